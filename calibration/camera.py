@@ -1,0 +1,168 @@
+"""The calibrated camera: camera.json (OpenCV conventions, INTERFACES.md) and its rays.
+
+World to camera: ``X_cam = R @ X_world + t``; camera x right, y down, z forward; pixel (0, 0) is
+the centre of the top-left pixel; metres. Images are raw (distorted); rays go through pixel
+centres after removing distortion.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hardware.workspace import WorkspaceError, as_array, as_float, read_json, write_json
+
+
+@dataclass
+class Camera:
+    """A calibrated pinhole camera with OpenCV's 5-term distortion.
+
+    Attributes
+    ----------
+    width, height : int
+        Image size in pixels.
+    K : (3, 3) ndarray
+        Intrinsic matrix.
+    dist : (5,) ndarray
+        ``k1, k2, p1, p2, k3``.
+    R : (3, 3) ndarray
+        World-to-camera rotation.
+    t : (3,) ndarray
+        World-to-camera translation.
+    tsai : dict or None
+        Tsai's parameters when the camera came from a Tsai calibration (kept, not used here).
+    """
+
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tsai: dict | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.K = np.asarray(self.K, dtype=np.float64)
+        self.dist = np.zeros(5) if self.dist is None else np.asarray(self.dist, dtype=np.float64)
+        self.R = np.asarray(self.R, dtype=np.float64)
+        self.t = np.asarray(self.t, dtype=np.float64).reshape(3)
+
+    # ---------------------------------------------------------------- geometry
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates."""
+        return -self.R.T @ self.t
+
+    @classmethod
+    def look_at(cls, width, height, fov_x_deg, eye, target, up=(0, 0, 1), dist=None) -> "Camera":
+        """A camera at ``eye`` looking at ``target`` with horizontal field of view ``fov_x_deg``."""
+        eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+        z = target - eye
+        z /= np.linalg.norm(z)
+        x = np.cross(z, up)
+        if np.linalg.norm(x) < 1e-9:
+            raise ValueError("look_at: the up vector is parallel to the viewing direction")
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        f = 0.5 * width / np.tan(np.radians(fov_x_deg) / 2)
+        K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
+        return cls(width, height, K, dist, R, -R @ eye)
+
+    def scaled(self, width: int, height: int) -> "Camera":
+        """The same camera at another resolution (same field of view, pixel-centre convention)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        K[0, 1] *= sx
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return Camera(width, height, K, self.dist.copy(), self.R.copy(), self.t.copy())
+
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        """Normalised image coordinates (x, y) with distortion removed, for pixels ``uv`` (N, 2)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        Kinv = np.linalg.inv(self.K)
+        if not np.any(self.dist):
+            return uv @ Kinv[:2, :2].T + Kinv[:2, 2]
+        import cv2
+
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, crit)
+        return out.reshape(-1, 2)
+
+    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-space rays through every pixel centre, row-major (pixel index = v * width + u).
+
+        Returns
+        -------
+        origins : (H*W, 3) ndarray
+        directions : (H*W, 3) ndarray, unit length
+        """
+        v, u = np.mgrid[0 : self.height, 0 : self.width]
+        return self.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+
+    def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World-space rays through pixel positions ``uv`` (N, 2), distortion removed."""
+        xy = self.undistort(uv)
+        d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        d = d_cam @ self.R  # R.T @ d_cam for each row
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.broadcast_to(self.center, d.shape).copy(), d
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Pixel positions (N, 2) of world points (N, 3), distortion applied."""
+        import cv2
+
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 3)
+        rvec, _ = cv2.Rodrigues(self.R)
+        uv, _ = cv2.projectPoints(pts, rvec, self.t, self.K, self.dist)
+        return uv.reshape(-1, 2)
+
+    # ---------------------------------------------------------------- file format
+    def to_json(self) -> dict:
+        obj = dict(self.extra)
+        obj.update(width=int(self.width), height=int(self.height), K=self.K, dist=self.dist, R=self.R, t=self.t)
+        if self.tsai is not None:
+            obj["tsai"] = self.tsai
+        return obj
+
+    def save(self, path) -> Path:
+        return write_json(path, self.to_json())
+
+    @classmethod
+    def from_json(cls, obj: dict, path="camera.json") -> "Camera":
+        def need(key):
+            if key not in obj:
+                raise WorkspaceError(path, key, "this field", got="missing")
+            return obj[key]
+
+        width, height = need("width"), need("height")
+        for key, val in (("width", width), ("height", height)):
+            if isinstance(val, bool) or not isinstance(val, int) or val <= 0:
+                raise WorkspaceError(path, key, "a positive integer", got=val)
+        K = as_array(need("K"), (3, 3), path, "K")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+            raise WorkspaceError(path, "K", "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0", got=obj["K"])
+        dist = obj.get("dist")
+        dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
+        if dist.ndim != 1 or len(dist) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+            raise WorkspaceError(path, "dist", "4, 5, 8, 12 or 14 finite OpenCV distortion coefficients", got=obj.get("dist"))
+        R = as_array(need("R"), (3, 3), path, "R")
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise WorkspaceError(path, "R", "a rotation matrix (orthonormal, det +1)", got=obj["R"])
+        t = as_array(need("t"), (3,), path, "t")
+        tsai = obj.get("tsai")
+        if tsai is not None:
+            for key in ("f", "kappa1", "sx", "Cx", "Cy", "dx", "dy"):
+                as_float(tsai.get(key), path, f"tsai.{key}")
+        known = {"width", "height", "K", "dist", "R", "t", "tsai"}
+        extra = {k: v for k, v in obj.items() if k not in known}
+        return cls(width, height, K, dist, R, t, tsai, extra)
+
+    @classmethod
+    def load(cls, path) -> "Camera":
+        return cls.from_json(read_json(path), path)

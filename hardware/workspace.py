@@ -1,0 +1,175 @@
+"""The workspace folder, its validation errors and atomic writes.
+
+Every stage reads and writes one folder (INTERFACES.md, "Workspace"). A stage that finds a bad
+file raises :class:`WorkspaceError`, whose message names the file, the field and what was
+expected; a stage never leaves a half-written file (:func:`atomic_write`).
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+
+class WorkspaceError(ValueError):
+    """A workspace file is missing or malformed.
+
+    Parameters
+    ----------
+    path : path-like
+        The file at fault.
+    field : str, optional
+        The field inside it (JSON path such as ``surfaces[2].material.kd``).
+    expected : str, optional
+        What was expected there.
+    got : object, optional
+        What was found instead (shortened in the message).
+    """
+
+    def __init__(self, path, field: str | None = None, expected: str | None = None, got: Any = None):
+        self.path, self.field, self.expected, self.got = Path(path), field, expected, got
+        msg = str(path)
+        if field:
+            msg += f": field '{field}'"
+        if expected:
+            msg += f": expected {expected}"
+        if got is not None:
+            text = repr(got)
+            msg += f", got {text[:80] + '...' if len(text) > 80 else text}"
+        super().__init__(msg)
+
+
+class Workspace:
+    """Paths of one scene's workspace (INTERFACES.md)."""
+
+    def __init__(self, root):
+        self.root = Path(root)
+
+    camera = property(lambda self: self.root / "camera.json")
+    lights = property(lambda self: self.root / "lights.json")
+    scene = property(lambda self: self.root / "scene.json")
+    meshes = property(lambda self: self.root / "meshes")
+    fit = property(lambda self: self.root / "fit.json")
+    textures = property(lambda self: self.root / "textures")
+    captures = property(lambda self: self.root / "captures")
+
+    @property
+    def input_image(self) -> Path:
+        """The input photograph: input.exr, else a 16-bit PNG/TIFF named input.*."""
+        for name in ("input.exr", "input.png", "input.tif", "input.tiff"):
+            if (self.root / name).exists():
+                return self.root / name
+        return self.root / "input.exr"
+
+    def require(self, path: Path, made_by: str) -> Path:
+        """Return ``path`` or stop with a message naming the stage that makes it."""
+        if not path.exists():
+            raise WorkspaceError(path, expected=f"this file (made by `{made_by}`)", got="missing")
+        return path
+
+
+@contextlib.contextmanager
+def atomic_write(path, mode: str = "wb") -> Iterator[Any]:
+    """Open a temporary file beside ``path``; rename it over ``path`` only on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_path(path) -> Iterator[Path]:
+    """A temporary path with ``path``'s suffix, for writers that take a file name (cv2, open3d)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def _jsonable(obj):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def write_json(path, obj) -> Path:
+    """Write ``obj`` as indented JSON, atomically. NaN and inf are refused, never written."""
+    text = json.dumps(obj, indent=2, default=_jsonable, allow_nan=False)
+    with atomic_write(path, "w") as f:
+        f.write(text + "\n")
+    return Path(path)
+
+
+def read_json(path) -> dict:
+    """Read a JSON object, naming the file in any error."""
+    path = Path(path)
+    if not path.exists():
+        raise WorkspaceError(path, expected="an existing file", got="missing")
+    try:
+        obj = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise WorkspaceError(path, expected=f"valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(obj, dict):
+        raise WorkspaceError(path, expected="a JSON object at the top level", got=type(obj).__name__)
+    return obj
+
+
+def field(obj: dict, key: str, path, where: str = "", required: bool = True, default=None):
+    """``obj[key]`` or a :class:`WorkspaceError` naming ``where.key``."""
+    name = f"{where}.{key}" if where else key
+    if key not in obj:
+        if required:
+            raise WorkspaceError(path, name, "this field", got="missing")
+        return default
+    return obj[key]
+
+
+def as_array(value, shape: tuple, path, name: str, *, nonneg: bool = False) -> np.ndarray:
+    """Convert a JSON value to a float64 array of ``shape`` (-1 = any), finite, optionally ≥ 0."""
+    want = "x".join("N" if s == -1 else str(s) for s in shape)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise WorkspaceError(path, name, f"numbers of shape {want}", got=value) from None
+    if arr.ndim != len(shape) or any(s not in (-1, a) for s, a in zip(shape, arr.shape)):
+        raise WorkspaceError(path, name, f"shape {want}", got=value)
+    if not np.all(np.isfinite(arr)):
+        raise WorkspaceError(path, name, "finite numbers (no NaN or inf)", got=value)
+    if nonneg and np.any(arr < 0):
+        raise WorkspaceError(path, name, "non-negative numbers", got=value)
+    return arr
+
+
+def as_float(value, path, name: str, *, positive: bool = False) -> float:
+    """A finite JSON number, optionally > 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise WorkspaceError(path, name, "a finite number", got=value)
+    if positive and value <= 0:
+        raise WorkspaceError(path, name, "a positive number", got=value)
+    return float(value)
