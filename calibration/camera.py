@@ -91,7 +91,7 @@ class Camera:
         import cv2
 
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, crit)
+        out = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, None, crit)
         return out.reshape(-1, 2)
 
     def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:

@@ -1,23 +1,36 @@
 """Linear image I/O: float32 OpenEXR by default, 16-bit PNG/TIFF read as value / 65535.
 
 Arrays are float32, shape (H, W, 3), RGB order, linear radiance (OpenCV's BGR is hidden here).
+OpenEXR goes through Mitsuba's Bitmap: the OpenCV 5 wheels are built without OpenEXR.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from hardware.workspace import WorkspaceError, atomic_path
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the first cv2 import
-
 
 def _cv2():
     import cv2
 
     return cv2
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    from hardware.mitsuba_env import mitsuba
+
+    bmp = mitsuba().Bitmap(str(path))
+    return np.array(bmp, dtype=np.float32, copy=True).reshape(bmp.height(), bmp.width(), -1)
+
+
+def _write_exr(path: Path, img: np.ndarray) -> None:
+    from hardware.mitsuba_env import mitsuba
+
+    mi = mitsuba()
+    fmt = mi.Bitmap.PixelFormat.RGB if img.ndim == 3 else mi.Bitmap.PixelFormat.Y
+    mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32), fmt).write(str(path))
 
 
 def read_image(path) -> np.ndarray:
@@ -29,6 +42,14 @@ def read_image(path) -> np.ndarray:
     path = Path(path)
     if not path.exists():
         raise WorkspaceError(path, expected="an image file", got="missing")
+    if path.suffix.lower() == ".exr":
+        try:
+            img = _read_exr(path)
+        except RuntimeError:
+            raise WorkspaceError(path, expected="a readable OpenEXR image") from None
+        if img.shape[2] >= 3:
+            img = img[:, :, :3]
+        return _checked(path, np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img)
     cv2 = _cv2()
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
@@ -42,7 +63,10 @@ def read_image(path) -> np.ndarray:
         img = np.repeat(img[:, :, None], 3, axis=2)
     elif img.shape[2] == 4:
         img = img[:, :, :3]
-    img = np.ascontiguousarray(img[:, :, ::-1])
+    return _checked(path, np.ascontiguousarray(img[:, :, ::-1]))
+
+
+def _checked(path: Path, img: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(img)):
         raise WorkspaceError(path, expected="finite pixel values", got=f"{int((~np.isfinite(img)).sum())} NaN/inf")
     return img
@@ -57,18 +81,18 @@ def write_image(path, img: np.ndarray, *, allow_nan: bool = False) -> Path:
     img = np.asarray(img, dtype=np.float32)
     if not allow_nan and not np.all(np.isfinite(img)):
         raise ValueError(f"{path}: refusing to write an image with NaN/inf pixels")
-    if img.ndim == 3:
-        img = img[:, :, ::-1]
-    cv2 = _cv2()
     suffix = path.suffix.lower()
     if suffix == ".exr":
-        data, params = img, [cv2.IMWRITE_EXR_TYPE, cv2.IMWRITE_EXR_TYPE_FLOAT]
-    elif suffix in (".png", ".tif", ".tiff"):
-        data, params = np.clip(np.nan_to_num(img) * 65535.0 + 0.5, 0, 65535).astype(np.uint16), []
-    else:
+        with atomic_path(path) as tmp:
+            _write_exr(tmp, img)
+        return path
+    if suffix not in (".png", ".tif", ".tiff"):
         raise ValueError(f"{path}: unknown image type {suffix!r} (use .exr, .png or .tif)")
+    data = np.clip(np.nan_to_num(img) * 65535.0 + 0.5, 0, 65535).astype(np.uint16)
+    if data.ndim == 3:
+        data = data[:, :, ::-1]
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(data), params):
+        if not _cv2().imwrite(str(tmp), np.ascontiguousarray(data)):
             raise OSError(f"{path}: OpenCV could not write the image")
     return path
 
@@ -81,3 +105,12 @@ def to_display(img: np.ndarray, exposure: float | None = None) -> np.ndarray:
     x = np.clip(img * exposure, 0, 1)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return (srgb * 255 + 0.5).astype(np.uint8)
+
+
+def write_preview(path, img: np.ndarray, exposure: float | None = None) -> Path:
+    """Write an 8-bit sRGB PNG preview of a linear image, atomically (for people, not for stages)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not _cv2().imwrite(str(tmp), to_display(img, exposure)[:, :, ::-1]):
+            raise OSError(f"{path}: OpenCV could not write the preview")
+    return path
