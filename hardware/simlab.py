@@ -1,0 +1,275 @@
+"""The simulated lab: a virtual copy of the dissertation's table-top set (METHOD.md §5).
+
+World frame of INTERFACES.md (metres, ground z = 0, +z up). The camera looks down at about 45°
+from about 0.6 m, toward +y. Five surfaces, in scene order:
+
+0. ``ground``: a table top with an A4 sheet of printed paper in its centre (one textured lambert
+   plane, large enough to fill the view);
+1. ``box``: a purple laminated paper box (closed box mesh, textured glossy phong);
+2. ``sheet``: a blue transparent plastic sheet (index 1.46), a thin closed box standing in front of
+   the purple box and leaning back, so that the camera sees part of the box through it;
+3. ``mirror``: a box-shaped mirror behind the purple box. The real one is glass (index 1.52) with a
+   silvered back; with depth D = 3 a ray entering the glass, reflecting on the silver and leaving
+   again needs more internal nodes than D allows, so it is modelled as an opaque reflector
+   (``ior`` null: F = 1) with ``r`` = 0.85 and a dark, glossy front;
+4. ``tile``: a textured ceramic tile lying on the paper (glossy phong).
+
+Two point lamps about 0.6 m away: one behind on the right (its highlight falls on the tile seen
+by the camera), one in front on the left (it lights the mirror's face). The purple box's back face
+is seen ONLY in the mirror. Ground-truth textures are smooth procedural functions of the surface
+point (:meth:`SimLab.albedo`), values in [0.05, 0.9] per band; the ``kd`` in the scene's materials
+is their mean over the surface (the homogeneous value).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera
+from calibration.lights import Lights, PointLight
+from reconstruction.scene import Material, Mesh, Scene, Surface
+
+#: Full resolution of the simulated camera (the dissertation's 640x480).
+FULL_SIZE = (640, 480)
+#: A4 paper, metres (x by y on the ground).
+A4 = (0.297, 0.210)
+#: Radial distortion of the simulated lens (k1, mild barrel).
+K1 = -0.05
+SHEET_IOR = 1.46
+ALBEDO_RANGE = (0.05, 0.9)
+
+
+# ---------------------------------------------------------------- geometry
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[1.0, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def box_mesh(size, center, rotation=None) -> Mesh:
+    """A closed box (8 vertices, 12 triangles) with outward-facing triangles.
+
+    Parameters
+    ----------
+    size : (3,) array_like
+        Edge lengths along the box's own x, y, z axes.
+    center : (3,) array_like
+        Centre in world coordinates.
+    rotation : (3, 3) ndarray, optional
+        Box-to-world rotation (identity when omitted).
+    """
+    half = 0.5 * np.asarray(size, dtype=np.float64)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * half
+    R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    verts = corners @ R.T + np.asarray(center, dtype=np.float64)
+    # Quads listed counter-clockwise seen from outside: -x, +x, -y, +y, -z, +z.
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    return Mesh(verts, tris)
+
+
+def plane_mesh(x_range, y_range, z: float = 0.0) -> Mesh:
+    """A horizontal rectangle facing +z (an open mesh: two-sided)."""
+    (x0, x1), (y0, y1) = x_range, y_range
+    verts = [[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]]
+    return Mesh(verts, [[0, 1, 2], [0, 2, 3]])
+
+
+# ---------------------------------------------------------------- textures
+def _soft_checker(u: np.ndarray, v: np.ndarray, cell: float, sharpness: float = 6.0) -> np.ndarray:
+    """A checkerboard in [0, 1] with smooth (tanh) edges; ``cell`` is the square's size."""
+    s = np.sin(np.pi * u / cell) * np.sin(np.pi * v / cell)
+    return 0.5 + 0.5 * np.tanh(sharpness * s)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+
+def _mix(a, b, w: np.ndarray) -> np.ndarray:
+    """Per-point blend of two colours: ``a`` where w = 0, ``b`` where w = 1."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return a + (b - a) * w[:, None]
+
+
+def _ground_albedo(local: np.ndarray) -> np.ndarray:
+    """Wood-grain table with an A4 sheet printed with a soft checker and waves."""
+    x, y = local[:, 0], local[:, 1]
+    grain = 0.8 + 0.2 * np.sin(2 * np.pi * y / 0.013 + 3.0 * np.sin(2 * np.pi * x / 0.11))
+    wood = np.array([0.45, 0.30, 0.18]) * grain[:, None]
+    checker = _soft_checker(x + 0.01, y + 0.005, 0.035)
+    waves = 0.5 + 0.5 * np.sin(2 * np.pi * (x + 0.6 * y) / 0.05)
+    paper = _mix([0.82, 0.80, 0.76], [0.30, 0.42, 0.62], 0.6 * checker * (0.5 + 0.5 * waves))
+    inside = _sigmoid((A4[0] / 2 - np.abs(x)) / 0.0015) * _sigmoid((A4[1] / 2 - np.abs(y)) / 0.0015)
+    return wood + (paper - wood) * inside[:, None]
+
+
+def _box_albedo(local: np.ndarray) -> np.ndarray:
+    """Purple laminated print: oblique waves and soft stripes, in the box's own frame."""
+    x, y, z = local[:, 0], local[:, 1], local[:, 2]
+    waves = np.sin(2 * np.pi * (x + 0.5 * z) / 0.03) * np.sin(2 * np.pi * (y - 0.7 * z) / 0.025)
+    stripes = _sigmoid(8.0 * np.sin(2 * np.pi * (x - y + z) / 0.04))
+    base = _mix([0.36, 0.12, 0.46], [0.70, 0.52, 0.80], 0.5 + 0.5 * waves)
+    return base * (0.7 + 0.3 * stripes)[:, None]
+
+
+def _tile_albedo(local: np.ndarray) -> np.ndarray:
+    """Cream and blue ceramic pattern: soft checker with a radial motif, in the tile's frame."""
+    x, y = local[:, 0], local[:, 1]
+    checker = _soft_checker(x, y, 0.03, sharpness=4.0)
+    rings = 0.5 + 0.5 * np.cos(2 * np.pi * np.hypot(x, y) / 0.035)
+    return _mix([0.85, 0.78, 0.62], [0.12, 0.22, 0.55], 0.8 * checker * (0.4 + 0.6 * rings))
+
+
+@dataclass
+class _Texture:
+    """A procedural albedo in a surface's own frame: ``fn((points - origin) @ frame)``."""
+
+    fn: object
+    origin: np.ndarray
+    frame: np.ndarray  # columns are the surface's own axes in world coordinates
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        local = (np.asarray(points, dtype=np.float64).reshape(-1, 3) - self.origin) @ self.frame
+        return np.clip(self.fn(local), *ALBEDO_RANGE)
+
+
+# ---------------------------------------------------------------- the lab
+@dataclass
+class SimLab:
+    """The simulated lab: camera, lights, scene with true materials, and the true albedo.
+
+    Attributes
+    ----------
+    camera : Camera
+    lights : Lights
+    scene : Scene
+        Surfaces with meshes loaded and the true materials (``kd`` = mean of the texture).
+    textures : dict
+        Surface index -> procedural albedo; surfaces not in it have the constant ``kd``.
+    """
+
+    camera: Camera
+    lights: Lights
+    scene: Scene
+    textures: dict = field(default_factory=dict)
+
+    def albedo(self, surface_index: int, points: np.ndarray) -> np.ndarray:
+        """True diffuse albedo (N, 3) of surface ``surface_index`` at world points (N, 3)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        tex = self.textures.get(int(surface_index))
+        if tex is None:
+            return np.broadcast_to(self.scene[surface_index].material["kd"], points.shape).copy()
+        return tex(points)
+
+    def albedo_at(self, surfaces: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """True albedo (N, 3) at points (N, 3) on surfaces (N,) (e.g. every tree node)."""
+        surfaces = np.asarray(surfaces).reshape(-1)
+        out = np.zeros((len(surfaces), 3))
+        for s in np.unique(surfaces):
+            sel = surfaces == s
+            out[sel] = self.albedo(int(s), points[sel])
+        return out
+
+    def homogeneous(self) -> "SimLab":
+        """The same lab with every surface at its constant ``kd`` (no textures)."""
+        return SimLab(self.camera, self.lights, self.scene, {})
+
+
+def _surface_mean(mesh: Mesh, tex: _Texture, n: int = 20000) -> np.ndarray:
+    """Area-weighted mean of a texture over a mesh (deterministic sample)."""
+    rng = np.random.default_rng(0)
+    v = mesh.vertices[mesh.triangles]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    tri = rng.choice(len(area), size=n, p=area / area.sum())
+    a, b = rng.random(n), rng.random(n)
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    pts = v[tri, 0] + a[:, None] * (v[tri, 1] - v[tri, 0]) + b[:, None] * (v[tri, 2] - v[tri, 0])
+    return tex(pts).mean(axis=0)
+
+
+def _material(brdf: str, ior=None, **params) -> Material:
+    full = {k: np.float64(v) if np.ndim(v) == 0 and k in ("ns", "alpha", "sigma") else
+            np.broadcast_to(np.asarray(v, dtype=np.float64), (3,)).copy() for k, v in params.items()}
+    full.setdefault("r", np.zeros(3))
+    full.setdefault("t", np.zeros(3))
+    return Material(brdf, full, ior)
+
+
+def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured: bool = True) -> SimLab:
+    """Build the simulated lab at ``width`` x ``height`` (the 640x480 camera, scaled).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size; any size keeps the full-resolution camera's field of view.
+    textured : bool
+        False gives the homogeneous variant (every surface its constant ``kd``).
+
+    Returns
+    -------
+    SimLab
+    """
+    if width < 2 or height < 2:
+        raise ValueError(f"build_lab: image size must be at least 2x2, got {width}x{height}")
+    camera = Camera.look_at(*FULL_SIZE, fov_x_deg=50.0, eye=(0.05, -0.39, 0.43), target=(0.0, 0.03, 0.0),
+                            dist=np.array([K1, 0.0, 0.0, 0.0, 0.0]))
+    if (width, height) != FULL_SIZE:
+        camera = camera.scaled(width, height)
+
+    R_box, R_tile, R_mirror = _rot_z(12.0), _rot_z(20.0), _rot_z(-5.0)
+    R_sheet = _rot_z(8.0) @ _rot_x(-10.0)  # leaning back, away from the camera
+    sheet_size = np.array([0.10, 0.003, 0.10])
+    sheet_bottom = np.array([-0.12, -0.06, 0.001])  # lifted 1 mm: no face shared with the ground
+    sheet_center = sheet_bottom + R_sheet @ np.array([0.0, 0.0, sheet_size[2] / 2])
+    geometry = {
+        "ground": plane_mesh((-0.45, 0.45), (-0.30, 0.60)),
+        "box": box_mesh((0.10, 0.07, 0.06), (-0.07, 0.03, 0.03), R_box),
+        "sheet": box_mesh(sheet_size, sheet_center, R_sheet),
+        "mirror": box_mesh((0.26, 0.006, 0.13), (-0.02, 0.15, 0.065), R_mirror),
+        "tile": box_mesh((0.12, 0.12, 0.008), (0.11, -0.06, 0.004), R_tile),
+    }
+    textures = {
+        0: _Texture(_ground_albedo, np.zeros(3), np.eye(3)),
+        1: _Texture(_box_albedo, np.array([-0.07, 0.03, 0.03]), R_box),
+        4: _Texture(_tile_albedo, np.array([0.11, -0.06, 0.008]), R_tile),
+    }
+    kd = {i: _surface_mean(geometry[name], textures[i]) for i, name in ((0, "ground"), (1, "box"), (4, "tile"))}
+    materials = {
+        "ground": _material("lambert", kd=kd[0]),
+        "box": _material("phong", kd=kd[1], ks=0.25, ns=30.0, r=0.04),
+        "sheet": _material("phong", ior=SHEET_IOR, kd=[0.01, 0.015, 0.04], ks=0.2, ns=200.0,
+                           r=1.0, t=[0.35, 0.60, 0.92]),
+        "mirror": _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85),
+        "tile": _material("phong", kd=kd[4], ks=0.35, ns=60.0, r=0.06),
+    }
+    surfaces = [Surface(name, f"meshes/{name}.ply", materials[name], textured=name in ("ground", "box", "tile"),
+                        mesh=geometry[name]) for name in geometry]
+    # Halogen-like warm lamps; intensities put the image's brightest pixels near 0.8.
+    warm = np.array([1.0, 0.86, 0.66])
+    lights = Lights([PointLight([0.22, 0.36, 0.46], 0.24 * warm), PointLight([-0.40, -0.20, 0.45], 0.24 * warm)])
+    return SimLab(camera, lights, Scene(surfaces), textures if textured else {})
+
+
+def write_lab(workspace, lab: SimLab) -> dict[str, Path]:
+    """Write the lab's camera.json, lights.json, scene.json and meshes/*.ply into ``workspace``.
+
+    Returns
+    -------
+    dict
+        Name -> path of every file written.
+    """
+    root = Path(workspace)
+    root.mkdir(parents=True, exist_ok=True)
+    scene = Scene(lab.scene.surfaces, root)
+    written = {"camera": lab.camera.save(root / "camera.json"), "lights": lab.lights.save(root / "lights.json"),
+               "scene": scene.save(root / "scene.json")}
+    written.update({s.name: root / s.mesh_path for s in scene})
+    return written
