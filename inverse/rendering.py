@@ -1,0 +1,152 @@
+"""Images from pixel-intensity trees: arithmetic on the stored nodes, never new ray casting.
+
+Per node ``i`` on surface ``s`` and band ``c`` (docs/architecture.md)::
+
+    radiance_i[c] = P_i[c] · Σ_j basis_i[c, j] · x_s[c, j]
+    basis_i[c, j] = fresnel_i · Σ_k visible_ik · intensity_k[c] / dist2_ik · g_j(θ_s; n_i, l_ik, v_i)
+    P_i[c]        = Π over the node's path of r_s[c] (reflection) or t_s[c] (transmission)
+
+and a pixel's value is the sum over its nodes. ``materials`` is the list of
+:class:`reconstruction.scene.Material` in surface order (``[s.material for s in scene]``);
+``intensities`` is ``lights.intensities`` (K, 3).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from inverse.models import MAX_LINEAR, MAX_NONLINEAR, get_model
+
+
+def _check(trees, materials, intensities=None):
+    if len(trees) and int(trees.surface.max()) >= len(materials):
+        raise ValueError(f"the trees reference surface {int(trees.surface.max())} but only {len(materials)} materials were given")
+    if intensities is None:
+        return None
+    intensities = np.asarray(intensities, dtype=np.float64)
+    if intensities.shape != (trees.n_lights, 3) or not np.all(np.isfinite(intensities)):
+        raise ValueError(f"intensities: expected finite values of shape ({trees.n_lights}, 3), got {intensities.shape}")
+    return intensities
+
+
+def _groups(trees):
+    """(surface index, node indices) for each surface that has nodes."""
+    order = np.argsort(trees.surface, kind="stable")
+    surfaces, starts = np.unique(trees.surface[order], return_index=True)
+    return zip(surfaces.tolist(), np.split(order, starts[1:]))
+
+
+def node_parameters(trees, materials) -> tuple[np.ndarray, np.ndarray]:
+    """Linear parameters ``x`` (N, 3, L) and nonlinear ``θ`` (N, P) of each node's surface.
+
+    ``L`` and ``P`` are the largest counts over all models; unused slots are 0. ``kd`` is slot 0
+    of every model.
+    """
+    _check(trees, materials)
+    x = np.zeros((len(trees), 3, MAX_LINEAR))
+    theta = np.zeros((len(trees), MAX_NONLINEAR))
+    for s, idx in _groups(trees):
+        model = get_model(materials[s].brdf)
+        x[idx, :, : model.n_linear] = model.x_of(materials[s])
+        theta[idx, : model.n_nonlinear] = model.theta_of(materials[s])
+    return x, theta
+
+
+def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
+    """Coefficients of each node's linear parameters, and their derivative in its θ.
+
+    Parameters
+    ----------
+    trees : inverse.trees.Trees
+    materials : list of Material
+        The nonlinear parameters (and model) of each surface are read here.
+    intensities : (K, 3) array_like
+    grad : bool
+        Also compute the derivative (else None is returned for it).
+
+    Returns
+    -------
+    basis : (N, 3, L) ndarray
+        ``fresnel · Σ_k visible · intensity_k[c] / dist2 · g_j``, zero-padded to L.
+    dbasis : (N, 3, L, P) ndarray or None
+        d basis / d θ_p of the node's surface, zero-padded to P.
+    """
+    intensities = _check(trees, materials, intensities)
+    n, k = len(trees), trees.n_lights
+    basis = np.zeros((n, 3, MAX_LINEAR))
+    dbasis = np.zeros((n, 3, MAX_LINEAR, MAX_NONLINEAR)) if grad else None
+    for s, idx in _groups(trees):
+        model = get_model(materials[s].brdf)
+        theta = np.repeat(model.theta_of(materials[s])[None], len(idx) * k, axis=0)
+        normal = np.repeat(trees.normal[idx], k, axis=0)
+        view = np.repeat(trees.view[idx], k, axis=0)
+        light = trees.light_dir[idx].reshape(-1, 3)
+        weight = trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx]  # (n_s, K)
+        L, P = model.n_linear, model.n_nonlinear
+        if grad:
+            g, dg = model.g_and_dg(theta, normal, light, view)
+            dbasis[idx, :, :L, :P] = np.einsum("nk,kc,nklp->nclp", weight, intensities, dg.reshape(len(idx), k, L, P))
+        else:
+            g = model.g(theta, normal, light, view)
+        basis[idx, :, :L] = np.einsum("nk,kc,nkl->ncl", weight, intensities, g.reshape(len(idx), k, L))
+    return basis, dbasis
+
+
+def linear_basis(trees, materials, intensities) -> np.ndarray:
+    """(N, 3, L) coefficients of each node's linear parameters (see :func:`linear_basis_and_grad`)."""
+    return linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
+
+
+def path_products(trees, materials) -> np.ndarray:
+    """(N, 3) product of ``r_s`` (reflection) and ``t_s`` (transmission) along each node's path."""
+    _check(trees, materials)
+    per_path = np.ones((len(trees.paths), 3))
+    for i, path in enumerate(trees.paths):  # one iteration per distinct path, not per node
+        for s, kind in path:
+            per_path[i] *= np.asarray(materials[s]["t" if kind else "r"], dtype=np.float64)
+    return per_path[trees.path]
+
+
+def accumulate(trees, values: np.ndarray) -> np.ndarray:
+    """Sum per-node values (N, 3) into an (H, W, 3) float64 image by pixel."""
+    size = trees.width * trees.height
+    img = np.stack([np.bincount(trees.pixel, weights=values[:, c], minlength=size) for c in range(3)], axis=1)
+    return img.reshape(trees.height, trees.width, 3)
+
+
+def node_radiance(trees, materials, intensities, *, kd_nodes=None, basis=None) -> np.ndarray:
+    """(N, 3) contribution of each node to its pixel: path product · basis · x.
+
+    Parameters
+    ----------
+    kd_nodes : (N, 3) array_like, optional
+        Per-node diffuse albedo replacing the surface's ``kd`` (texture stage).
+    basis : (N, 3, L) ndarray, optional
+        A precomputed :func:`linear_basis` for these materials' nonlinear parameters, to skip
+        evaluating the models when only linear parameters, r or t changed.
+    """
+    x, _ = node_parameters(trees, materials)
+    if kd_nodes is not None:
+        kd_nodes = np.asarray(kd_nodes, dtype=np.float64)
+        if kd_nodes.shape != (len(trees), 3):
+            raise ValueError(f"kd_nodes: expected shape ({len(trees)}, 3), got {kd_nodes.shape}")
+        x[:, :, 0] = kd_nodes
+    if basis is None:
+        basis = linear_basis(trees, materials, intensities)
+    elif basis.shape != x.shape:
+        raise ValueError(f"basis: expected shape {x.shape}, got {basis.shape}")
+    return path_products(trees, materials) * np.einsum("ncl,ncl->nc", basis, x)
+
+
+def render(trees, materials, intensities, *, kd_nodes=None, basis=None) -> np.ndarray:
+    """The (H, W, 3) float64 linear image predicted by the trees for these parameters."""
+    return accumulate(trees, node_radiance(trees, materials, intensities, kd_nodes=kd_nodes, basis=basis))
+
+
+def render_albedo(trees, materials, kd_nodes=None) -> np.ndarray:
+    """(H, W, 3) ``kd`` of the surface seen directly at each pixel; NaN where it sees nothing."""
+    x, _ = node_parameters(trees, materials)
+    kd = x[:, :, 0] if kd_nodes is None else np.asarray(kd_nodes, dtype=np.float64)
+    out = np.full((trees.width * trees.height, 3), np.nan)
+    primary = trees.level == 1
+    out[trees.pixel[primary]] = kd[primary]
+    return out.reshape(trees.height, trees.width, 3)

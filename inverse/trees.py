@@ -1,0 +1,398 @@
+"""Pixel-intensity computation trees (METHOD.md §1, docs/architecture.md): built once by ray casting.
+
+:func:`build_trees` casts one primary ray per pixel centre and follows ideal mirror reflections
+and Snell refractions up to ``depth`` internal nodes per path, level by level, with Open3D's
+``RaycastingScene`` (Embree, float32). Each node stores what the renderer needs to evaluate the
+pixel's radiance for any photometric parameters without casting a ray again: the point, shading
+normal, view and light directions, squared light distances, light visibility, the product of
+the known Fresnel factors and the sequence of ideal interactions (its *path*).
+
+Robustness against float32 ray casting: hit points are recomputed in float64 on the hit
+triangle's plane, and every secondary or shadow ray starts a scene-scaled ``eps`` off the
+surface, on the side it leaves to.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hardware.workspace import WorkspaceError, atomic_write
+from inverse.optics import fresnel, normalize, reflect, refract
+
+#: Kinds of ideal interaction in a path.
+REFLECTION, TRANSMISSION = 0, 1
+
+_ARRAYS = ("pixel", "surface", "point", "normal", "view", "level", "fresnel", "path",
+           "light_dir", "light_dist2", "visible", "parent", "triangle", "barycentric")
+
+
+@dataclass
+class Trees:
+    """The flat node table of every pixel's tree (fields as in docs/architecture.md).
+
+    Besides the documented fields: ``parent`` (N,) int64, index of the parent node (−1 for
+    primary hits); ``triangle`` (N,) int64, index of the hit triangle in its surface's mesh;
+    ``barycentric`` (N, 2) f64, Open3D's (u, v) in it (point = (1−u−v) v0 + u v1 + v v2);
+    ``key``, a fingerprint of the inputs (see :func:`trees_key`) for caching.
+    """
+
+    width: int
+    height: int
+    depth: int
+    pixel: np.ndarray
+    surface: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    view: np.ndarray
+    level: np.ndarray
+    fresnel: np.ndarray
+    path: np.ndarray
+    paths: list[tuple[tuple[int, int], ...]]
+    light_dir: np.ndarray
+    light_dist2: np.ndarray
+    visible: np.ndarray
+    parent: np.ndarray
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    stats: dict = field(default_factory=dict)
+    key: str = ""
+
+    def __len__(self) -> int:
+        return len(self.pixel)
+
+    @property
+    def n_lights(self) -> int:
+        return self.light_dist2.shape[1]
+
+    def save(self, path) -> Path:
+        """Write the trees to an ``.npz`` file, atomically."""
+        flat = [item for p in self.paths for item in p]
+        arrays = {name: getattr(self, name) for name in _ARRAYS}
+        arrays.update(
+            shape=np.array([self.width, self.height, self.depth]),
+            paths_len=np.array([len(p) for p in self.paths], dtype=np.int64),
+            paths_flat=np.array(flat, dtype=np.int64).reshape(-1, 2),
+            stats=np.array(json.dumps(self.stats)),
+            key=np.array(self.key),
+        )
+        with atomic_write(path, "wb") as f:
+            np.savez(f, **arrays)
+        return Path(path)
+
+    @classmethod
+    def load(cls, path) -> "Trees":
+        """Read trees written by :meth:`save`; a missing or malformed file raises WorkspaceError."""
+        path = Path(path)
+        if not path.exists():
+            raise WorkspaceError(path, expected="a trees file written by Trees.save", got="missing")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise WorkspaceError(path, expected=f"an .npz trees file ({exc})") from None
+        for name in (*_ARRAYS, "shape", "paths_len", "paths_flat", "stats", "key"):
+            if name not in data:
+                raise WorkspaceError(path, name, "this array", got="missing")
+        ends = np.cumsum(data["paths_len"])
+        flat = [tuple(int(x) for x in row) for row in data["paths_flat"]]
+        paths = [tuple(flat[e - n:e]) for n, e in zip(data["paths_len"], ends)]
+        width, height, depth = (int(x) for x in data["shape"])
+        arrays = {name: data[name] for name in _ARRAYS}
+        trees = cls(width, height, depth, paths=paths, stats=json.loads(str(data["stats"])),
+                    key=str(data["key"]), **arrays)
+        n = len(trees)
+        if any(len(a) != n for a in arrays.values()) or (n and trees.path.max() >= len(paths)):
+            raise WorkspaceError(path, expected="arrays of one length and path indices within 'paths'")
+        return trees
+
+
+def trees_key(scene, camera, lights, depth: int, prune_tol: float) -> str:
+    """SHA-1 of everything the trees depend on: camera, light positions, meshes, iors, r/t zeros."""
+    h = hashlib.sha1()
+    for a in (camera.K, camera.dist, camera.R, camera.t, lights.positions):
+        h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    h.update(repr((camera.width, camera.height, int(depth), float(prune_tol))).encode())
+    for s in scene.surfaces:
+        m = s.mesh
+        h.update(np.ascontiguousarray(m.vertices).tobytes() + np.ascontiguousarray(m.triangles).tobytes())
+        if m.normals is not None:
+            h.update(np.ascontiguousarray(m.normals).tobytes())
+        h.update(repr((s.material.ior, _given_zero(s.material, "r"), _given_zero(s.material, "t"))).encode())
+    return h.hexdigest()
+
+
+def _given_zero(material, name: str) -> bool:
+    """True where the user stated the attenuation ``name`` to be exactly 0 (not a default)."""
+    return name not in material.defaulted and bool(np.all(np.asarray(material[name]) == 0))
+
+
+class _Caster:
+    """The scene in an Open3D RaycastingScene plus the float64 mesh data to refine its hits."""
+
+    def __init__(self, scene):
+        import open3d as o3d
+
+        self.o3d = o3d
+        self.rc = o3d.t.geometry.RaycastingScene()
+        n = len(scene.surfaces)
+        self.gid_to_surface = {}
+        verts, tris, vnormals, offsets = [], [], [], [0]
+        self.has_vnormals = np.zeros(n, dtype=bool)
+        for i, s in enumerate(scene.surfaces):
+            m = s.mesh
+            if m is None or len(m.triangles) == 0:
+                raise ValueError(f"surface {s.name!r} has no loaded mesh with triangles")
+            if not np.all(np.isfinite(m.vertices)):
+                raise ValueError(f"surface {s.name!r}: mesh vertices are not all finite")
+            gid = self.rc.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)),
+                                        o3d.core.Tensor(m.triangles.astype(np.uint32)))
+            self.gid_to_surface[gid] = i
+            base = sum(len(v) for v in verts)
+            verts.append(m.vertices)
+            tris.append(m.triangles + base)
+            offsets.append(offsets[-1] + len(m.triangles))
+            self.has_vnormals[i] = m.normals is not None and len(m.normals) == len(m.vertices)
+            vnormals.append(m.normals if self.has_vnormals[i] else np.zeros_like(m.vertices))
+        self.vertices = np.concatenate(verts)
+        self.triangles = np.concatenate(tris)
+        self.vnormals = np.concatenate(vnormals)
+        self.tri_offset = np.array(offsets[:-1], dtype=np.int64)
+        v = self.vertices[self.triangles]
+        self.face_normals = normalize(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]))
+        lut = np.full(max(self.gid_to_surface) + 1, -1, dtype=np.int64)
+        for gid, i in self.gid_to_surface.items():
+            lut[gid] = i
+        self.lut = lut
+
+    def cast(self, origin: np.ndarray, direction: np.ndarray):
+        """First hits of unit rays: (hit mask, surface, global triangle, barycentric, float64 point)."""
+        rays = np.concatenate([origin, direction], axis=1).astype(np.float32)
+        ans = self.rc.cast_rays(self.o3d.core.Tensor(rays))
+        gid = ans["geometry_ids"].numpy().astype(np.int64)
+        hit = gid != self.rc.INVALID_ID
+        gid = np.where(hit, gid, 0)
+        surface = self.lut[np.minimum(gid, len(self.lut) - 1)]
+        tri = self.tri_offset[surface] + ans["primitive_ids"].numpy().astype(np.int64) * hit
+        uv = ans["primitive_uvs"].numpy().astype(np.float64)
+        t32 = np.where(hit, ans["t_hit"].numpy().astype(np.float64), 0.0)
+        # float64 distance to the hit triangle's plane; keep Embree's where the ray grazes it.
+        ng = self.face_normals[tri]
+        den = np.einsum("ij,ij->i", direction, ng)
+        num = np.einsum("ij,ij->i", self.vertices[self.triangles[tri, 0]] - origin, ng)
+        t64 = np.divide(num, den, out=t32.copy(), where=hit & (np.abs(den) > 1e-6))
+        good = hit & np.isfinite(t64) & (np.abs(t64 - t32) <= 1e-4 * (1.0 + np.abs(t32)))
+        t = np.where(good, t64, t32)
+        point = origin + t[:, None] * direction
+        return hit, surface, tri, uv, point
+
+    def occluded(self, origin: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Whether the segment origin → target (both (M, 3)) hits any surface."""
+        if len(origin) == 0:
+            return np.zeros(0, dtype=bool)
+        rays = np.concatenate([origin, target - origin], axis=1).astype(np.float32)
+        occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
+        return occ.numpy().astype(bool)
+
+    def shading_normal(self, tri, uv, surface):
+        """Interpolated vertex normals where the mesh has them, else the geometric normal."""
+        n = self.face_normals[tri].copy()
+        smooth = self.has_vnormals[surface]
+        if np.any(smooth):
+            t, w = tri[smooth], uv[smooth]
+            vn = self.vnormals[self.triangles[t]]
+            interp = (1 - w[:, :1] - w[:, 1:]) * vn[:, 0] + w[:, :1] * vn[:, 1] + w[:, 1:] * vn[:, 2]
+            interp = normalize(interp)
+            # keep the winding's side; a degenerate interpolation falls back to the face normal
+            interp *= np.sign(np.einsum("ij,ij->i", interp, n) + 1e-300)[:, None]
+            n[smooth] = np.where((np.linalg.norm(interp, axis=1) > 0.5)[:, None], interp, n[smooth])
+        return n
+
+
+def _dot(a, b):
+    return np.einsum("...i,...i->...", a, b)
+
+
+def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4) -> Trees:
+    """Cast the pixel-intensity trees of ``scene`` seen by ``camera`` under point ``lights``.
+
+    Parameters
+    ----------
+    scene : reconstruction.scene.Scene
+        Surfaces with loaded meshes; only geometry, ``ior`` and r/t given as exactly 0 are used.
+    camera : calibration.camera.Camera
+    lights : calibration.lights.Lights
+    depth : int
+        Maximum number of internal nodes on a path (1 = direct lighting only).
+    prune_tol : float
+        A branch whose largest possible weight (product of Fresnel factors, r and t being <= 1)
+        is below this is not followed.
+
+    Returns
+    -------
+    Trees
+    """
+    if int(depth) < 1:
+        raise ValueError(f"depth must be >= 1, got {depth!r}")
+    if not prune_tol >= 0:
+        raise ValueError(f"prune_tol must be >= 0, got {prune_tol!r}")
+    depth = int(depth)
+    start = time.perf_counter()
+    caster = _Caster(scene)
+    mats = [s.material for s in scene.surfaces]
+    transparent = np.array([m.transparent for m in mats])
+    ior = np.array([m.ior if m.transparent else 1.0 for m in mats], dtype=np.float64)
+    follow_r = np.array([not _given_zero(m, "r") for m in mats])
+    follow_t = transparent & np.array([not _given_zero(m, "t") for m in mats])
+
+    light_pos = lights.positions
+    n_lights = len(light_pos)
+    extent = np.concatenate([caster.vertices, light_pos, camera.center[None]])
+    scale = float(np.max(np.ptp(extent, axis=0))) + float(np.max(np.abs(extent)))
+    eps = 1e-5 * scale  # float32 carries ~6e-8 relative: far above its rounding of coordinates
+
+    stats = {
+        "rays": {"primary": 0, "shadow": 0, "reflection": 0, "refraction": 0},
+        "nodes_per_level": [],
+        "pruned": {"r_zero": 0, "t_zero": 0, "weight": 0, "depth": 0},
+        "total_internal_reflections": 0,
+        "escaped": 0,
+        "lights_too_close": 0,
+        "eps": eps,
+    }
+    paths: list[tuple] = [()]
+    path_id = {(): 0}
+
+    origin, direction = camera.pixel_rays()
+    n_pix = len(origin)
+    ray_pixel = np.arange(n_pix, dtype=np.int64)
+    ray_path = np.zeros(n_pix, dtype=np.int64)
+    ray_fresnel = np.ones(n_pix)
+    ray_parent = np.full(n_pix, -1, dtype=np.int64)
+    stats["rays"]["primary"] = n_pix
+    levels = []
+    n_before = 0
+
+    for level in range(1, depth + 1):
+        if len(origin) == 0:
+            break
+        hit, surf, tri, uv, point = caster.cast(origin, direction)
+        if level > 1:
+            stats["escaped"] += int(np.count_nonzero(~hit))
+        d = direction[hit]
+        surf, tri, uv, point = surf[hit], tri[hit], uv[hit], point[hit]
+        node = dict(pixel=ray_pixel[hit], path=ray_path[hit], fresnel=ray_fresnel[hit],
+                    parent=ray_parent[hit], surface=surf, point=point, triangle=tri - caster.tri_offset[surf],
+                    barycentric=uv, level=np.full(len(d), level, dtype=np.int8), view=-d)
+        m = len(d)
+        stats["nodes_per_level"].append(m)
+
+        # Orient normals toward the incoming ray (the viewer's side); the winding gives "outside".
+        ng = caster.face_normals[tri]
+        cos_g = _dot(d, ng)
+        entering = cos_g < 0
+        side = np.where(entering, 1.0, -1.0)[:, None]
+        ngf = ng * side
+        ns = caster.shading_normal(tri, uv, surf) * side
+        ns = np.where((_dot(ns, -d) > 0)[:, None], ns, ngf)
+        node["normal"] = ns
+
+        # Direct lighting: light on the viewer's side of the shading normal and segment unoccluded.
+        to_light = light_pos[None] - point[:, None]
+        dist2 = np.sum(to_light**2, axis=2)
+        ldir = normalize(to_light)
+        close = dist2 <= eps**2
+        stats["lights_too_close"] += int(np.count_nonzero(close))
+        cand = (_dot(ldir, ns[:, None]) > 0) & ~close
+        vis = np.zeros((m, n_lights), dtype=bool)
+        ni, ki = np.nonzero(cand)
+        stats["rays"]["shadow"] += len(ni)
+        vis[ni, ki] = ~caster.occluded(point[ni] + eps * ngf[ni], light_pos[ki])
+        node.update(light_dir=ldir, light_dist2=np.maximum(dist2, eps**2), visible=vis)
+        levels.append(node)
+
+        # Ideal branches.
+        s_t = transparent[surf]
+        want_r, want_t = follow_r[surf], follow_t[surf]
+        stats["pruned"]["r_zero"] += int(np.count_nonzero(~want_r))
+        stats["pruned"]["t_zero"] += int(np.count_nonzero(s_t & ~want_t))
+        if level == depth:
+            stats["pruned"]["depth"] += int(np.count_nonzero(want_r) + np.count_nonzero(want_t))
+            break
+        cos_i = _dot(-d, ns)
+        n1 = np.where(entering, 1.0, ior[surf])
+        n2 = np.where(entering, ior[surf], 1.0)
+        F = np.where(s_t, fresnel(cos_i, n1, n2), 1.0)
+        w_r = node["fresnel"] * F
+        w_t = node["fresnel"] * (1.0 - F)
+        refl = reflect(d, ns)
+        bad = _dot(refl, ngf) <= 0  # a shading normal must not send the ray into its own surface
+        refl[bad] = reflect(d[bad], ngf[bad])
+        trans, tir = refract(d, ns, n1 / n2)
+        bad = ~tir & (_dot(trans, ngf) >= 0)
+        if np.any(bad):
+            trans[bad], tir_bad = refract(d[bad], ngf[bad], (n1 / n2)[bad])
+            tir[bad] |= tir_bad
+        tir &= s_t
+        stats["total_internal_reflections"] += int(np.count_nonzero(tir & want_t))
+        take_r = want_r & (w_r >= prune_tol)
+        take_t = want_t & ~tir & (w_t >= prune_tol)
+        stats["pruned"]["weight"] += int(np.count_nonzero(want_r & ~take_r) + np.count_nonzero(want_t & ~tir & ~take_t))
+        stats["rays"]["reflection"] += int(np.count_nonzero(take_r))
+        stats["rays"]["refraction"] += int(np.count_nonzero(take_t))
+
+        ir, it = np.nonzero(take_r)[0], np.nonzero(take_t)[0]
+        idx = np.concatenate([ir, it])
+        kind = np.concatenate([np.full(len(ir), REFLECTION), np.full(len(it), TRANSMISSION)])
+        origin = np.concatenate([point[ir] + eps * ngf[ir], point[it] - eps * ngf[it]])
+        direction = np.concatenate([refl[ir], trans[it]])
+        ray_fresnel = np.concatenate([w_r[ir], w_t[it]])
+        ray_pixel = node["pixel"][idx]
+        ray_parent = n_before + idx
+        ray_path = _child_paths(node["path"][idx], surf[idx], kind, paths, path_id)
+        n_before += m
+
+    # nothing in view gives an empty, well-formed table
+    nodes = {k: np.concatenate([lv[k] for lv in levels]) for k in _ARRAYS} if levels else _empty_nodes(n_lights)
+    stats["build_s"] = time.perf_counter() - start
+    return Trees(
+        camera.width, camera.height, depth,
+        pixel=nodes["pixel"].astype(np.int64), surface=nodes["surface"].astype(np.int32),
+        point=nodes["point"], normal=nodes["normal"], view=nodes["view"],
+        level=nodes["level"].astype(np.int8), fresnel=nodes["fresnel"],
+        path=nodes["path"].astype(np.int32), paths=paths, light_dir=nodes["light_dir"],
+        light_dist2=nodes["light_dist2"], visible=nodes["visible"], parent=nodes["parent"].astype(np.int64),
+        triangle=nodes["triangle"].astype(np.int64), barycentric=nodes["barycentric"],
+        stats=stats, key=trees_key(scene, camera, lights, depth, prune_tol),
+    )
+
+
+def _child_paths(parent_path, surface, kind, paths, path_id) -> np.ndarray:
+    """Path index of each child ray: its parent's path extended by (surface, kind)."""
+    if len(parent_path) == 0:
+        return np.zeros(0, dtype=np.int64)
+    n_surf = int(surface.max()) + 1
+    key = (parent_path * n_surf + surface) * 2 + kind
+    uniq, inverse = np.unique(key, return_inverse=True)
+    ids = np.empty(len(uniq), dtype=np.int64)
+    for j, k in enumerate(uniq):  # one iteration per distinct path, not per ray
+        p, rest = divmod(int(k), 2 * n_surf)
+        new = paths[p] + ((rest // 2, rest % 2),)
+        if new not in path_id:
+            path_id[new] = len(paths)
+            paths.append(new)
+        ids[j] = path_id[new]
+    return ids[inverse]
+
+
+def _empty_nodes(n_lights: int) -> dict:
+    z3 = np.zeros((0, 3))
+    return dict(pixel=np.zeros(0, np.int64), surface=np.zeros(0, np.int32), point=z3, normal=z3, view=z3,
+                level=np.zeros(0, np.int8), fresnel=np.zeros(0), path=np.zeros(0, np.int32),
+                light_dir=np.zeros((0, n_lights, 3)), light_dist2=np.zeros((0, n_lights)),
+                visible=np.zeros((0, n_lights), bool), parent=np.zeros(0, np.int64),
+                triangle=np.zeros(0, np.int64), barycentric=np.zeros((0, 2)))
