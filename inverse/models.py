@@ -63,8 +63,9 @@ class Model:
 
     def _prepare(self, theta, n, l, v):
         n, l, v = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (n, l, v))
-        theta = np.asarray(theta, dtype=np.float64).reshape(-1, self.n_nonlinear)
-        theta = np.broadcast_to(theta, (len(n), self.n_nonlinear))
+        theta = np.asarray(theta, dtype=np.float64)
+        theta = np.broadcast_to(theta.reshape(-1, self.n_nonlinear) if theta.size else np.zeros((1, 0)),
+                                (len(n), self.n_nonlinear))
         return theta, n, l, v
 
     def g(self, theta, n, l, v) -> np.ndarray:
