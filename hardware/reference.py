@@ -27,7 +27,7 @@ from reconstruction.scene import Scene
 #: Offset (metres) of secondary and shadow ray origins off the surface, against self-hits.
 EPS = 1e-5
 #: Models this renderer shades.
-MODELS = ("phong", "lambert")
+MODELS = ("phong", "lambert", "ward", "oren-nayar")
 
 
 def fresnel(cos_i: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,7 +69,7 @@ class _Caster:
         from hardware.mitsuba_env import mitsuba
 
         self.mi = mi = mitsuba()
-        self.shapes, self.face_normals, self.smooth = [], [], []
+        self.shapes, self.face_normals, self.smooth, self.vertices, self.triangles = [], [], [], [], []
         shapes = {}
         for i, surf in enumerate(scene):
             if surf.mesh is None:
@@ -86,6 +86,8 @@ class _Caster:
             shapes[f"s{i:04d}"] = shape
             self.shapes.append(shape)
             self.face_normals.append(m.face_normals())
+            self.vertices.append(m.vertices)
+            self.triangles.append(m.triangles)
             self.smooth.append(has_n)
         # optimize=False keeps one shape per surface (NOTES.md: shapes with equal BSDFs merge).
         self.scene = mi.load_dict({"type": "scene", **shapes}, optimize=False)
@@ -116,6 +118,16 @@ class _Caster:
             smooth = np.isin(surface, np.flatnonzero(self.smooth))
             ns[smooth] = _unit(sh[smooth])
         hit &= surface >= 0
+        t = np.where(hit, t, 0.0)
+        # Refine Embree's float32 distance in float64 on the hit triangle's plane (kept if close).
+        v0 = np.zeros((n, 3))
+        for i in range(len(self.shapes)):
+            sel = surface == i
+            v0[sel] = self.vertices[i][self.triangles[i][prim[sel], 0]]
+        den = np.sum(d * ng, axis=1)
+        t64 = np.divide(np.sum((v0 - o) * ng, axis=1), den, out=t.copy(), where=hit & (np.abs(den) > 1e-9))
+        close = hit & (np.abs(t64 - t) <= 1e-4 * (1.0 + np.abs(t)))
+        t = np.where(close, t64, t)
         return hit, t, surface, ng, ns
 
     def occluded(self, o: np.ndarray, d: np.ndarray, tmax: np.ndarray) -> np.ndarray:
@@ -124,12 +136,32 @@ class _Caster:
 
 
 def _shade(material, kd: np.ndarray, n: np.ndarray, v: np.ndarray, l: np.ndarray) -> np.ndarray:
-    """``g · x`` of the surface's model for one light: (N, 3) per unit irradiance term."""
-    cos_l = np.sum(n * l, axis=1)
+    """``g · x`` of the surface's model for one light (lit side only): (N, 3) per unit irradiance.
+
+    Written from the models' textbook definitions with explicit angles, not from inverse/models.py.
+    """
+    cos_l = np.clip(np.sum(n * l, axis=1), 0.0, 1.0)
+    cos_v = np.clip(np.sum(n * v, axis=1), 1e-6, 1.0)
     out = kd * cos_l[:, None]
     if material.brdf == "phong":
         cos_h = np.clip(np.sum(n * _unit(l + v), axis=1), 0.0, 1.0)
         out = out + material["ks"] * (cos_h ** material["ns"])[:, None]
+    elif material.brdf == "ward":
+        # Isotropic Ward (1992): ks exp(-tan²δ / α²) / (4π α² sqrt(cos θi cos θo)), times cos θi.
+        delta = np.arccos(np.clip(np.sum(n * _unit(l + v), axis=1), -1.0, 1.0))
+        alpha = float(material["alpha"])
+        lobe = np.where(delta < np.pi / 2, np.exp(-np.tan(np.minimum(delta, 1.5707)) ** 2 / alpha**2), 0.0)
+        spec = lobe / (4 * np.pi * alpha**2 * np.sqrt(np.maximum(cos_l, 1e-300) * cos_v)) * cos_l
+        out = out + material["ks"] * spec[:, None]
+    elif material.brdf == "oren-nayar":
+        # Qualitative Oren-Nayar (1994): cos θi (A + B max(0, cos(φi − φo)) sin α tan β).
+        s2 = float(material["sigma"]) ** 2
+        a, b = 1 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09)
+        th_i, th_o = np.arccos(cos_l), np.arccos(cos_v)
+        l_t, v_t = _unit(l - cos_l[:, None] * n), _unit(v - cos_v[:, None] * n)
+        cos_phi = np.clip(np.sum(l_t * v_t, axis=1), 0.0, 1.0)
+        big, small = np.maximum(th_i, th_o), np.minimum(th_i, th_o)
+        out = kd * (cos_l * (a + b * cos_phi * np.sin(big) * np.tan(small)))[:, None]
     return out
 
 
