@@ -291,6 +291,10 @@ class GrblController:
         self._open()
         status = self._handshake()
         self.position = status.position
+        if self.version is None:  # the banner went by before the port opened: ask
+            for line in self.send("$I"):
+                if line.startswith("[VER:"):
+                    self.version = line[5:-1].split(".20")[0].split(":")[0]
         if status.state == "Alarm":
             raise GrblAlarm(self._pending_alarm, f" on {self.port}")
         if self.config.steps_per_degree is not None:
@@ -468,7 +472,7 @@ class GrblController:
                 return info
             if kind == "error":
                 raise GrblCommandError(line, int(got.split(":")[1]))
-            if kind == "setting":
+            if kind in ("setting", "message"):
                 info.append(got)
                 continue
             if kind in ("status", "banner"):

@@ -1,0 +1,142 @@
+"""Capture images with the turntable, the lamps and a camera into WORKSPACE/captures/<kind>/.
+
+Kinds: `calibration` (every lamp on, one shot per angle), `lights` (one lamp at a time per
+angle, for rod shadows), `sweep` (N angles over a full turn), `input` (the input photograph,
+optionally with a lamps-off ambient frame that is subtracted into WORKSPACE/input.exr).
+After every shot the image and captures/<kind>/manifest.json are written atomically; after a
+fault or Ctrl-C, the same command with --resume takes exactly the missing shots.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HELP = "capture calibration, rod-shadow, turntable or input images (hardware or simulated devices)"
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
+    if w < 2 or h < 2:
+        raise argparse.ArgumentTypeError(f"image size must be at least 2x2, got {text!r}")
+    return w, h
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("kind", choices=["calibration", "lights", "sweep", "input"])
+    parser.add_argument("workspace", type=Path)
+    parser.add_argument("--port", required=True, help="serial port of the GRBL board, or 'sim' for the simulated board")
+    parser.add_argument("--camera", required=True, help="sim | opencv:N | opencv:URL | folder:PATH (tethered camera)")
+    parser.add_argument("--config", help="hardware JSON (default: WORKSPACE/hardware.json when it exists)")
+    parser.add_argument("--angles", type=_floats, default=[0.0], help="turntable angles for calibration/lights (default 0)")
+    parser.add_argument("--count", type=int, default=36, help="sweep: number of shots over 360 degrees (default 36)")
+    parser.add_argument("--start", type=float, default=0.0, help="sweep: first angle; input: the angle (default 0)")
+    parser.add_argument("--ambient", action="store_true", help="input: also take a lamps-off frame and subtract it")
+    parser.add_argument("--exposure", type=float, help="exposure passed to the camera and recorded (seconds)")
+    parser.add_argument("--settle", type=float, default=0.0, help="seconds to wait after the lamps change")
+    parser.add_argument("--format", choices=["exr", "png", "tif"], default="exr", help="image files (default exr)")
+    again = parser.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue a stopped session; take only the missing shots")
+    again.add_argument("--overwrite", action="store_true", help="discard an earlier session of this kind and start again")
+    parser.add_argument("--unlock", action="store_true", help="if the board is in ALARM, soft-reset and unlock it first")
+    parser.add_argument("--trigger", help="folder camera: command that takes a shot (e.g. 'gphoto2 --trigger-capture')")
+    parser.add_argument("--camera-timeout", type=float, default=60.0, help="folder camera: seconds to wait for a file")
+    sim = parser.add_argument_group("simulated camera (--camera sim)")
+    sim.add_argument("--size", type=_size, default=(320, 240), help="image size WxH (default 320x240)")
+    sim.add_argument("--depth", type=int, default=3, help="ray depth of the simulated camera (default 3)")
+    sim.add_argument("--centre", type=_floats, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
+    sim.add_argument("--room-light", type=float, default=0.0, help="ambient radiance added to every pixel")
+
+
+def _plan(args, n_lamps: int):
+    from hardware import capture as cap
+
+    if args.kind == "calibration":
+        return cap.plan_calibration(n_lamps, args.angles, args.format)
+    if args.kind == "lights":
+        return cap.plan_lights(n_lamps, args.angles, args.format)
+    if args.kind == "sweep":
+        return cap.plan_sweep(n_lamps, args.count, args.start, args.format)
+    return cap.plan_input(n_lamps, args.start, args.ambient, args.format)
+
+
+def _camera(args, config, ctl, sim):
+    from hardware.cameras import SimulatedCamera, lab_renderer, open_camera
+
+    if args.camera != "sim":
+        if args.camera.startswith("folder:"):
+            trigger = args.trigger.split() if args.trigger else None
+            return open_camera(args.camera, trigger=trigger, timeout_s=args.camera_timeout)
+        return open_camera(args.camera)
+    from hardware.simlab import build_lab
+
+    lab = build_lab(*args.size)
+    if len(config.lamps) != len(lab.lights):
+        raise SystemExit(f"reflab capture: error: the simulated lab has {len(lab.lights)} lamps but the configuration "
+                         f"maps {len(config.lamps)} ({config.lamps})")
+    if len(args.centre) != 2:
+        raise SystemExit(f"reflab capture: error: --centre takes x,y, got {args.centre}")
+    if sim is not None:  # the simulated board's axis and outputs: the rig as it really is
+        state = lambda: (sim.turntable(config.axis), config.lamp_states(sim.lamp_outputs()))  # noqa: E731
+    else:
+        state = lambda: (ctl.angle, ctl.lamps)  # noqa: E731
+    return SimulatedCamera(lab_renderer(lab, depth=args.depth, centre=args.centre), state, ambient=args.room_light)
+
+
+def run(args) -> int:
+    from app.commands.hardware import load_config, open_port
+    from hardware.cameras import CameraError
+    from hardware.capture import CaptureCancelled, CaptureError, CaptureSession
+    from hardware.grbl import GrblAlarm, GrblController, GrblError
+    from hardware.workspace import WorkspaceError
+
+    config_path = args.config or (args.workspace / "hardware.json" if (args.workspace / "hardware.json").exists() else None)
+    config = load_config(config_path)
+    plan = _plan(args, len(config.lamps))
+    port, sim = open_port(args.port, config)
+    ctl = GrblController(port, config, log=print)
+    camera = None
+    try:
+        try:
+            ctl.connect()
+        except GrblAlarm:
+            if not args.unlock:
+                raise
+            ctl.unlock()
+            print(f"{port}: unlocked")
+        camera = _camera(args, config, ctl, sim)
+
+        def progress(done, total, rec):
+            lamps = "".join("1" if x else "0" for x in rec["lamps"])
+            print(f"[{done}/{total}] {rec['file']}  angle {rec['angle']:.3f}  lamps {lamps}", flush=True)
+
+        session = CaptureSession(args.workspace, args.kind, plan, ctl, camera, exposure=args.exposure,
+                                 settle_s=args.settle, resume=args.resume, overwrite=args.overwrite,
+                                 progress=progress, log=print)
+        manifest = session.run()
+        print(f"wrote {len(manifest['shots'])} images and {session.manifest_path}")
+        return 0
+    except CaptureCancelled as exc:
+        print(f"reflab capture: {exc}", file=sys.stderr)
+        return 130
+    except WorkspaceError:
+        raise  # the CLI names the file and field, exit status 2
+    except (CaptureError, GrblError, CameraError, ValueError) as exc:
+        print(f"reflab capture: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        ctl.close()
+        if camera is not None:
+            camera.close()
+        if sim is not None:
+            sim.stop()

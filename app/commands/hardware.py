@@ -1,0 +1,84 @@
+"""Talk to the turntable and lamp controller (GRBL 1.1) directly: status, rotate, lamps, unlock.
+
+`--port sim` starts the simulated board on a pseudo-terminal for the duration of the command.
+docs/hardware.md describes the wiring, the configuration file and the fault messages.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "turntable and lamps over serial (GRBL 1.1): status | rotate DEG | lamp N on|off | unlock"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--port", required=True, help="serial port (/dev/ttyUSB0, COM3) or 'sim' for the simulated board")
+    parser.add_argument("--config", help="hardware JSON (axis, steps per degree, lamp outputs, timeouts; docs/hardware.md)")
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    actions.add_parser("status", help="print state, turntable angle and lamp states")
+    rotate = actions.add_parser("rotate", help="turn the turntable to an absolute angle (degrees) and wait")
+    rotate.add_argument("degrees", type=float)
+    rotate.add_argument("--relative", action="store_true", help="turn by DEG from the current angle")
+    lamp = actions.add_parser("lamp", help="switch lamp N (index in the configuration's lamps) on or off")
+    lamp.add_argument("index", type=int)
+    lamp.add_argument("state", choices=["on", "off"])
+    actions.add_parser("unlock", help="leave an ALARM state: soft reset, then $X")
+
+
+def load_config(path):
+    """The hardware configuration at ``path``, or the defaults when it is None."""
+    from hardware.grbl import GrblConfig
+
+    return GrblConfig.load(path) if path else GrblConfig()
+
+
+def open_port(port: str, config, log=print):
+    """(port name, simulated board or None) for ``--port``; 'sim' starts a simulated board."""
+    if port != "sim":
+        return port, None
+    from hardware.simdevice import SimulatedGrbl
+
+    sim = SimulatedGrbl(time_scale=20.0).start()
+    log(f"simulated GRBL board on {sim.port}")
+    return sim.port, sim
+
+
+def describe(ctl) -> str:
+    lamps = ", ".join(f"{k} {'on' if on else 'off'}" for k, on in enumerate(ctl.lamps))
+    state = ctl.status().state
+    return f"{state}  angle {ctl.angle:.3f} deg  lamps: {lamps}  (GRBL {ctl.version} on {ctl.port})"
+
+
+def run(args) -> int:
+    from hardware.grbl import GrblAlarm, GrblController, GrblError
+
+    config = load_config(args.config)
+    port, sim = open_port(args.port, config)
+    ctl = GrblController(port, config, log=print)
+    try:
+        try:
+            ctl.connect()
+        except GrblAlarm:
+            if args.action != "unlock":
+                raise
+        if args.action == "unlock":
+            for line in ctl.unlock():
+                print(line)
+        elif args.action == "rotate":
+            target = ctl.angle + args.degrees if args.relative else args.degrees
+            ctl.rotate_to(target)
+        elif args.action == "lamp":
+            if not 0 <= args.index < len(config.lamps):
+                print(f"reflab hardware: error: lamp {args.index} is not configured (lamps 0..{len(config.lamps) - 1}: "
+                      f"{config.lamps})", file=sys.stderr)
+                return 2
+            ctl.set_lamp(args.index, args.state == "on")
+        print(describe(ctl))
+        return 0
+    except GrblError as exc:
+        print(f"reflab hardware: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        ctl.close()
+        if sim is not None:
+            sim.stop()

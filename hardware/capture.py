@@ -1,0 +1,299 @@
+"""Capture sessions: calibration shots, rod-shadow shots, a turntable sweep, the input image.
+
+A session is a *plan* (one :class:`Shot` per image: file, turntable angle, lamp states) run
+against a controller (:class:`hardware.grbl.GrblController`) and a camera
+(:mod:`hardware.cameras`). After every shot the image is written atomically and then
+``captures/<folder>/manifest.json`` (also atomically), so a fault or Ctrl-C never leaves a
+half-written file and never loses a finished shot; ``resume=True`` takes exactly the shots the
+manifest does not list. docs/hardware.md describes the manifest.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hardware.workspace import Workspace, WorkspaceError, read_json, write_json
+
+#: Session kind -> folder under WORKSPACE/captures (INTERFACES.md).
+FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
+
+
+class CaptureError(RuntimeError):
+    """A session stopped on a fault; the finished shots are kept and ``resume`` continues."""
+
+
+class CaptureCancelled(CaptureError):
+    """The user cancelled; the finished shots are kept and ``resume`` continues."""
+
+
+@dataclass
+class Shot:
+    """One planned image: its file name, the turntable angle and each lamp's state."""
+
+    file: str
+    angle: float
+    lamps: list
+    role: str = ""
+
+
+def _name(i: int, ext: str) -> str:
+    return f"{i:04d}.{ext}"
+
+
+def plan_calibration(n_lamps: int, angles=(0.0,), ext: str = "exr") -> list[Shot]:
+    """Every lamp on, one shot per turntable angle (a target on the turntable seen in several poses)."""
+    return [Shot(_name(i, ext), float(a), [True] * n_lamps, "calibration") for i, a in enumerate(angles)]
+
+
+def plan_lights(n_lamps: int, angles=(0.0,), ext: str = "exr") -> list[Shot]:
+    """One lamp at a time, at each angle: each image holds one rod shadow (marks.json's ``light``)."""
+    shots = []
+    for a in angles:
+        for k in range(n_lamps):
+            shots.append(Shot(_name(len(shots), ext), float(a), [j == k for j in range(n_lamps)], f"lamp {k}"))
+    return shots
+
+
+def plan_sweep(n_lamps: int, count: int, start: float = 0.0, ext: str = "exr") -> list[Shot]:
+    """``count`` shots at ``start + 360 i / count`` degrees, every lamp on."""
+    if count < 1:
+        raise ValueError(f"a sweep needs at least one shot, got {count}")
+    return [Shot(_name(i, ext), float(start + 360.0 * i / count), [True] * n_lamps, "sweep") for i in range(count)]
+
+
+def plan_input(n_lamps: int, angle: float = 0.0, ambient: bool = False, ext: str = "exr") -> list[Shot]:
+    """The input photograph (every lamp on) and optionally a lamps-off frame of the ambient light."""
+    shots = [Shot(f"input.{ext}", float(angle), [True] * n_lamps, "input")]
+    if ambient:
+        shots.append(Shot(f"ambient.{ext}", float(angle), [False] * n_lamps, "ambient"))
+    return shots
+
+
+class Control:
+    """Pause, resume and cancel a running session from another thread (the GUI, a signal handler).
+
+    A pause takes effect between shots, and during a turntable move as a feed hold.
+    """
+
+    def __init__(self):
+        self._run = threading.Event()
+        self._run.set()
+        self._cancel = threading.Event()
+
+    def pause(self) -> None:
+        self._run.clear()
+
+    def resume(self) -> None:
+        self._run.set()
+
+    def cancel(self) -> None:
+        self._cancel.set()
+        self._run.set()
+
+    @property
+    def paused(self) -> bool:
+        return not self._run.is_set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+    def wait(self) -> None:
+        """Block while paused; raise :class:`CaptureCancelled` once cancelled."""
+        while not self._run.wait(0.05):
+            pass
+        if self.cancelled:
+            raise CaptureCancelled("cancelled")
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+class CaptureSession:
+    """Run a plan, writing each image and the manifest after every shot.
+
+    Parameters
+    ----------
+    workspace : path-like
+    kind : str
+        ``calibration``, ``lights``, ``sweep`` or ``input`` (:data:`FOLDERS`).
+    plan : list of Shot
+    controller : GrblController
+        Connected; the session calls ``rotate_to``, ``set_lamps`` and reads ``angle``.
+    camera : object with ``capture(exposure)``, ``describe()``
+    exposure : float, optional
+        Passed to the camera and recorded (seconds for the simulated and most cameras).
+    settle_s : float
+        Wait after the lamps change before the shot (lamp warm-up, vibration).
+    resume : bool
+        Continue a stopped session: keep its finished shots, take the others.
+    overwrite : bool
+        Start again over a previous session of this kind (its images are removed first).
+    progress : callable, optional
+        ``progress(done, total, record)`` after every shot.
+    control : Control, optional
+    log : callable, optional
+    """
+
+    def __init__(self, workspace, kind: str, plan: list[Shot], controller, camera, *, exposure: float | None = None,
+                 settle_s: float = 0.0, resume: bool = False, overwrite: bool = False, progress=None,
+                 control: Control | None = None, log=None):
+        if kind not in FOLDERS:
+            raise ValueError(f"capture kind must be one of {sorted(FOLDERS)}, got {kind!r}")
+        if resume and overwrite:
+            raise ValueError("resume and overwrite exclude each other")
+        names = [s.file for s in plan]
+        if len(set(names)) != len(names) or not plan:
+            raise ValueError("a plan needs at least one shot and distinct file names")
+        self.workspace = Workspace(workspace)
+        self.kind, self.plan = kind, plan
+        self.folder = self.workspace.captures / FOLDERS[kind]
+        self.manifest_path = self.folder / "manifest.json"
+        self.controller, self.camera = controller, camera
+        self.exposure, self.settle_s = exposure, float(settle_s)
+        self.resume, self.overwrite = resume, overwrite
+        self.progress = progress or (lambda done, total, record: None)
+        self.control = control or Control()
+        self.log = log or (lambda msg: None)
+        self.manifest: dict = {}
+
+    # ------------------------------------------------------------------ manifest
+    def _plan_json(self) -> list[dict]:
+        return [asdict(s) for s in self.plan]
+
+    def _load_previous(self) -> list[dict]:
+        """Finished shots to keep: those of a resumable manifest whose image is still there."""
+        if not self.manifest_path.exists():
+            return []
+        old = read_json(self.manifest_path)
+        if self.overwrite:
+            for rec in old.get("shots", []):
+                (self.folder / str(rec.get("file"))).unlink(missing_ok=True)
+            return []
+        done = len(old.get("shots", []))
+        if not self.resume:
+            what = "a complete" if old.get("status") == "complete" else f"an unfinished ({done} of {len(old.get('plan', []))} shots)"
+            raise WorkspaceError(self.manifest_path, "status",
+                                 f"no earlier session; this folder holds {what} {old.get('kind')} session. "
+                                 "Pass --resume to continue it or --overwrite to start again", got=old.get("status"))
+        if old.get("kind") != self.kind:
+            raise WorkspaceError(self.manifest_path, "kind", f"{self.kind!r} to resume", got=old.get("kind"))
+        if old.get("plan") != self._plan_json():
+            raise WorkspaceError(self.manifest_path, "plan",
+                                 "the same shots as this command's (same angles, lamps, count and format); "
+                                 "resume with the options of the first run, or pass --overwrite", got="a different plan")
+        shots = old.get("shots")
+        if not isinstance(shots, list):
+            raise WorkspaceError(self.manifest_path, "shots", "a list", got=shots)
+        kept = [rec for rec in shots if isinstance(rec, dict) and (self.folder / str(rec.get("file"))).exists()]
+        if len(kept) < len(shots):
+            self.log(f"{len(shots) - len(kept)} shot(s) listed in {self.manifest_path} lost their image; retaking them")
+        return kept
+
+    def _write_manifest(self, status: str, error: str | None = None) -> None:
+        self.manifest.update(status=status, error=error, updated=_now(),
+                             reconnects=getattr(self.controller, "reconnect_count", 0))
+        write_json(self.manifest_path, self.manifest)
+
+    # ------------------------------------------------------------------ running
+    def run(self) -> dict:
+        """Take every shot not yet taken; return the manifest.
+
+        Raises
+        ------
+        CaptureError
+            On a device or camera fault, with the fault's message; the manifest says ``stopped``.
+        CaptureCancelled
+            On ``control.cancel()`` or Ctrl-C; the manifest says ``cancelled``.
+        """
+        from hardware.cameras import CameraError
+        from hardware.grbl import GrblError
+
+        kept = self._load_previous()
+        self.folder.mkdir(parents=True, exist_ok=True)
+        ctl = self.controller
+        self.manifest = {
+            "kind": self.kind, "plan": self._plan_json(), "shots": kept,
+            "controller": {"port": getattr(ctl, "port", None), "version": getattr(ctl, "version", None),
+                           "config": ctl.config.to_json() if hasattr(ctl, "config") else None},
+            "camera": self.camera.describe(), "started": _now(),
+        }
+        done = {rec["file"] for rec in kept}
+        todo = [s for s in self.plan if s.file not in done]
+        if kept:
+            self.log(f"resuming: {len(kept)} of {len(self.plan)} shots kept, {len(todo)} to take")
+        self._write_manifest("running")
+        try:
+            for shot in todo:
+                self.control.wait()
+                record = self._take(shot)
+                self.manifest["shots"].append(record)
+                self._write_manifest("running")
+                self.progress(len(self.manifest["shots"]), len(self.plan), record)
+            self._finish()
+        except (CaptureCancelled, KeyboardInterrupt):
+            self._write_manifest("cancelled", "cancelled by the user")
+            raise CaptureCancelled(self._stopped_message("cancelled by the user")) from None
+        except (GrblError, CameraError, OSError) as exc:
+            self._write_manifest("stopped", str(exc))
+            if isinstance(exc, CameraError):
+                with contextlib.suppress(GrblError, OSError):
+                    ctl.set_lamps([False] * len(ctl.config.lamps))
+            raise CaptureError(self._stopped_message(str(exc))) from exc
+        self._write_manifest("complete")
+        return self.manifest
+
+    def _stopped_message(self, why: str) -> str:
+        n = len(self.manifest["shots"])
+        return (f"{self.kind} capture stopped after {n} of {len(self.plan)} shots: {why}\n"
+                f"The {n} finished shots are kept in {self.folder}; fix the cause and run the same command "
+                "with --resume to take the others.")
+
+    def _take(self, shot: Shot) -> dict:
+        from hardware.grbl import MoveCancelled
+        from hardware.images import write_image
+
+        ctl = self.controller
+        if ctl.position is None or abs(ctl.angle - shot.angle) > ctl.config.angle_tolerance_deg:
+            try:
+                ctl.rotate_to(shot.angle, hold=lambda: self.control.paused, cancelled=lambda: self.control.cancelled)
+            except MoveCancelled:
+                raise CaptureCancelled("cancelled") from None
+        changed = ctl.lamps != list(shot.lamps)
+        ctl.set_lamps(shot.lamps)
+        if changed and self.settle_s > 0:
+            time.sleep(self.settle_s)
+        self.control.wait()
+        t0 = time.monotonic()
+        image = self.camera.capture(self.exposure)
+        if not np.all(np.isfinite(image)):
+            from hardware.cameras import CameraError
+
+            raise CameraError(f"the camera returned {int((~np.isfinite(image)).sum())} NaN/inf values for {shot.file}")
+        write_image(self.folder / shot.file, image)
+        return {"file": shot.file, "role": shot.role, "angle": shot.angle, "angle_reported": ctl.angle,
+                "lamps": list(shot.lamps), "time": _now(), "exposure": self.exposure,
+                "capture_s": round(time.monotonic() - t0, 4), "size": [int(image.shape[1]), int(image.shape[0])]}
+
+    def _finish(self) -> None:
+        """For the input kind: WORKSPACE/input.<ext>, the lamps-on frame minus the ambient frame."""
+        if self.kind != "input":
+            return
+        from hardware.images import read_image, write_image
+
+        shots = {s.role: s for s in self.plan}
+        lit = read_image(self.folder / shots["input"].file)
+        if "ambient" in shots:
+            lit = np.maximum(lit - read_image(self.folder / shots["ambient"].file), 0.0)
+        ext = Path(shots["input"].file).suffix
+        target = self.workspace.root / f"input{ext}"
+        write_image(target, lit)
+        self.manifest["input"] = {"file": target.name, "ambient_subtracted": "ambient" in shots}
+        self.log(f"wrote {target}")
