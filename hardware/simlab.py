@@ -230,7 +230,7 @@ def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured
     sheet_bottom = np.array([-0.12, -0.06, 0.001])  # lifted 1 mm: no face shared with the ground
     sheet_center = sheet_bottom + R_sheet @ np.array([0.0, 0.0, sheet_size[2] / 2])
     geometry = {
-        "ground": plane_mesh((-0.45, 0.45), (-0.30, 0.60)),
+        "ground": plane_mesh((-0.70, 0.70), (-0.40, 1.20)),
         "box": box_mesh((0.10, 0.07, 0.06), (-0.07, 0.03, 0.03), R_box),
         "sheet": box_mesh(sheet_size, sheet_center, R_sheet),
         "mirror": box_mesh((0.26, 0.006, 0.13), (-0.02, 0.15, 0.065), R_mirror),
