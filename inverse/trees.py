@@ -169,9 +169,15 @@ class _Caster:
             lut[gid] = i
         self.lut = lut
 
-    def cast(self, origin: np.ndarray, direction: np.ndarray):
-        """First hits of unit rays: (hit mask, surface, global triangle, barycentric, float64 point)."""
-        rays = np.concatenate([origin, direction], axis=1).astype(np.float32)
+    def cast(self, origin: np.ndarray, direction: np.ndarray, offset: np.ndarray | None = None, eps: float = 0.0):
+        """First hits of unit rays: (hit mask, surface, global triangle, barycentric, float64 point).
+
+        ``offset`` (M, 3) moves the origins handed to Embree only (off the surface they leave);
+        hit points are intersected in float64 from the true ``origin``, so the offset leaves
+        no trace in them.
+        """
+        start = origin if offset is None else origin + offset
+        rays = np.concatenate([start, direction], axis=1).astype(np.float32)
         ans = self.rc.cast_rays(self.o3d.core.Tensor(rays))
         gid = ans["geometry_ids"].numpy().astype(np.int64)
         hit = gid != self.rc.INVALID_ID
@@ -184,8 +190,10 @@ class _Caster:
         ng = self.face_normals[tri]
         den = np.einsum("ij,ij->i", direction, ng)
         num = np.einsum("ij,ij->i", self.vertices[self.triangles[tri, 0]] - origin, ng)
-        t64 = np.divide(num, den, out=t32.copy(), where=hit & (np.abs(den) > 1e-6))
-        good = hit & np.isfinite(t64) & (np.abs(t64 - t32) <= 1e-4 * (1.0 + np.abs(t32)))
+        steep = hit & (np.abs(den) > 1e-6)
+        t64 = np.divide(num, den, out=t32.copy(), where=steep)
+        slack = 1e-4 * (1.0 + np.abs(t32)) + np.divide(2.0 * eps, np.abs(den), out=np.zeros_like(den), where=steep)
+        good = steep & np.isfinite(t64) & (np.abs(t64 - t32) <= slack)
         t = np.where(good, t64, t32)
         point = origin + t[:, None] * direction
         return hit, surface, tri, uv, point
@@ -251,9 +259,10 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
 
     light_pos = lights.positions
     n_lights = len(light_pos)
-    extent = np.concatenate([caster.vertices, light_pos, camera.center[None]])
-    scale = float(np.max(np.ptp(extent, axis=0))) + float(np.max(np.abs(extent)))
-    eps = 1e-5 * scale  # float32 carries ~6e-8 relative: far above its rounding of coordinates
+    # Secondary and shadow rays start on the geometry, so its size sets float32's rounding there
+    # (~6e-8 relative); eps sits far above it and far below any feature a scene models.
+    scale = float(np.max(np.ptp(caster.vertices, axis=0))) + float(np.max(np.abs(caster.vertices)))
+    eps = 1e-5 * scale
 
     stats = {
         "rays": {"primary": 0, "shadow": 0, "reflection": 0, "refraction": 0},
@@ -268,6 +277,7 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     path_id = {(): 0}
 
     origin, direction = camera.pixel_rays()
+    offset = None
     n_pix = len(origin)
     ray_pixel = np.arange(n_pix, dtype=np.int64)
     ray_path = np.zeros(n_pix, dtype=np.int64)
@@ -280,7 +290,7 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     for level in range(1, depth + 1):
         if len(origin) == 0:
             break
-        hit, surf, tri, uv, point = caster.cast(origin, direction)
+        hit, surf, tri, uv, point = caster.cast(origin, direction, offset, eps)
         if level > 1:
             stats["escaped"] += int(np.count_nonzero(~hit))
         d = direction[hit]
@@ -348,7 +358,8 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         ir, it = np.nonzero(take_r)[0], np.nonzero(take_t)[0]
         idx = np.concatenate([ir, it])
         kind = np.concatenate([np.full(len(ir), REFLECTION), np.full(len(it), TRANSMISSION)])
-        origin = np.concatenate([point[ir] + eps * ngf[ir], point[it] - eps * ngf[it]])
+        origin = point[idx]
+        offset = eps * np.concatenate([ngf[ir], -ngf[it]])
         direction = np.concatenate([refl[ir], trans[it]])
         ray_fresnel = np.concatenate([w_r[ir], w_t[it]])
         ray_pixel = node["pixel"][idx]
