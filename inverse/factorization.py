@@ -1,0 +1,325 @@
+"""Photometric factorization A(θ) y = b (METHOD.md §2, dissertation eq. 2.5–2.8).
+
+Every tree node contributes ``fresnel · Π(path factors) · Σ_j a_j(θ) x_j`` to its pixel, where
+``a_j(θ) = Σ_k V_k I_k / d_k² · g_j(θ; n, l_k, v)`` (per band through ``I_k``). Grouping the nodes
+by *monomial* — the surface of the node and the multiset of the ``r_s`` / ``t_s`` factors on its
+path (order does not matter) — gives one column per (monomial, linear parameter ``x_j``): column
+entry = Σ over that pixel's nodes of that monomial of ``fresnel · a_j(θ)``, and
+
+    B_pixel,c = Σ_col A_c[pixel, col](θ) · y_c[col],    y_c[col] = x_j,c · Π r_s,c^e · t_s,c^e.
+
+Only the monomials that occur in the scene are kept; the dissertation's dense ``y`` has
+``len(x̃) · (1 + 2N)^(D−1)`` entries (:attr:`Factorization.dense_columns`).
+
+The sparsity pattern (which pixel meets which column) is fixed by the trees; only the values
+depend on θ, so each evaluation is a weighted ``bincount`` into a stored CSR pattern.
+
+Nonlinear parameters are handled in the model's natural units here; :mod:`inverse.fitting`
+maps them to its search space (log2 shininess).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+BANDS = 3
+
+
+@dataclass
+class Layout:
+    """Where each surface's parameters live in the flat parameter vectors.
+
+    Attributes
+    ----------
+    x_offset : (S + 1,) int
+        Linear parameters of surface ``s`` are ``x[x_offset[s]:x_offset[s+1]]`` (rows of an (X, 3) array).
+    x_names : list of (surface, name)
+        Name of each flat linear parameter.
+    theta_offset : (S + 1,) int
+        Nonlinear parameters of surface ``s`` are ``theta[theta_offset[s]:theta_offset[s+1]]`` (shared by bands).
+    theta_names : list of (surface, name)
+        Name of each flat nonlinear parameter.
+    n_factors : int
+        ``2 S``: factor ``2 s`` is ``r_s``, factor ``2 s + 1`` is ``t_s`` (rows of an (F, 3) array).
+    """
+
+    x_offset: np.ndarray
+    x_names: list
+    theta_offset: np.ndarray
+    theta_names: list
+    n_factors: int
+
+    @property
+    def n_x(self) -> int:
+        return int(self.x_offset[-1])
+
+    @property
+    def n_theta(self) -> int:
+        return int(self.theta_offset[-1])
+
+
+def canonical_paths(paths) -> tuple[np.ndarray, list]:
+    """Map ordered paths to their multiset of factors.
+
+    Parameters
+    ----------
+    paths : list of tuples of (surface, kind)
+        ``trees.paths``.
+
+    Returns
+    -------
+    canon : (len(paths),) int
+        Index of each path's sorted factor tuple in ``unique``.
+    unique : list of tuples of int
+        Sorted factor indices ``2 s + kind`` of each distinct multiset.
+    """
+    index, unique, canon = {}, [], np.empty(len(paths), dtype=np.int64)
+    for i, path in enumerate(paths):  # one entry per distinct path, not per pixel
+        key = tuple(sorted(2 * int(s) + int(k) for s, k in path))
+        if key not in index:
+            index[key] = len(unique)
+            unique.append(key)
+        canon[i] = index[key]
+    return canon, unique
+
+
+class Factorization:
+    """The factorized system of one scene: fixed sparsity, θ-dependent values.
+
+    Parameters
+    ----------
+    trees : Trees
+        Pixel-intensity trees (docs/architecture.md): ``pixel, surface, normal, view, fresnel,
+        path, paths, light_dir, light_dist2, visible, width, height, depth``.
+    models : list
+        One model per surface (``inverse.models.get_model(brdf)``): ``.linear`` and
+        ``.nonlinear`` name tuples, ``g(theta, n, l, v) -> (N, L)``, ``dg(...) -> (N, L, P)``.
+    intensities : (K, 3) array_like
+        Radiant intensity of each light per band.
+    mask : (H*W,) bool, optional
+        Pixels to use (False drops e.g. saturated pixels). Rows of every matrix are the used
+        pixels, in :attr:`rows` order.
+
+    Attributes
+    ----------
+    rows : (R,) int
+        Pixel index of each matrix row.
+    layout : Layout
+    col_x : (C,) int
+        Flat linear parameter of each column.
+    exponents : (C, F) int
+        Degree of each factor in each column's monomial.
+    monomials : list of (surface, factor tuple)
+        The monomial of each distinct column group.
+    """
+
+    def __init__(self, trees, models, intensities, mask=None):
+        self.trees = trees
+        self.models = list(models)
+        n_surf = len(self.models)
+        self.width, self.height, self.depth = int(trees.width), int(trees.height), int(trees.depth)
+        n_pix = self.width * self.height
+        mask = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix)
+        self.rows = np.flatnonzero(mask)
+        row_of_pixel = np.full(n_pix, -1, dtype=np.int64)
+        row_of_pixel[self.rows] = np.arange(len(self.rows))
+
+        n_lin = np.array([len(m.linear) for m in self.models], dtype=np.int64)
+        n_non = np.array([len(m.nonlinear) for m in self.models], dtype=np.int64)
+        x_off = np.concatenate([[0], np.cumsum(n_lin)])
+        t_off = np.concatenate([[0], np.cumsum(n_non)])
+        self.layout = Layout(
+            x_off, [(s, p) for s, m in enumerate(self.models) for p in m.linear],
+            t_off, [(s, p) for s, m in enumerate(self.models) for p in m.nonlinear], 2 * n_surf)
+
+        pixel = np.asarray(trees.pixel, dtype=np.int64)
+        surface = np.asarray(trees.surface, dtype=np.int64)
+        if len(pixel) and (surface.min() < 0 or surface.max() >= n_surf):
+            raise ValueError(f"trees reference surface {surface.max()} but the scene has {n_surf} surfaces")
+        intensities = np.asarray(intensities, dtype=np.float64).reshape(-1, BANDS)
+        # Known, θ-independent per-node-per-light weights: fresnel · V_k · I_k / d_k².
+        weight = (np.asarray(trees.fresnel, dtype=np.float64)[:, None, None]
+                  * np.asarray(trees.visible, dtype=np.float64)[:, :, None]
+                  * intensities[None, :, :] / np.asarray(trees.light_dist2, dtype=np.float64)[:, :, None])
+        keep = (row_of_pixel[pixel] >= 0) & np.any(weight > 0, axis=(1, 2))
+        self.node = np.flatnonzero(keep)
+        self.weight = weight[self.node]
+        node_surf = surface[self.node]
+
+        # Monomial of each node: (surface, multiset of path factors).
+        canon, unique = canonical_paths(trees.paths)
+        key = node_surf * max(len(unique), 1) + canon[np.asarray(trees.path, dtype=np.int64)[self.node]]
+        mono_key, node_mono = np.unique(key, return_inverse=True)
+        mono_surf = mono_key // max(len(unique), 1)
+        mono_path = mono_key % max(len(unique), 1)
+        self.monomials = [(int(s), unique[p]) for s, p in zip(mono_surf, mono_path)]
+        mono_exp = np.zeros((len(mono_key), 2 * n_surf), dtype=np.int64)
+        for m, (_, factors) in enumerate(self.monomials):  # one row per distinct monomial
+            np.add.at(mono_exp[m], list(factors), 1)
+
+        # Columns: (monomial, linear parameter j of the monomial's surface).
+        mono_ncol = n_lin[mono_surf]
+        mono_col0 = np.concatenate([[0], np.cumsum(mono_ncol)])
+        n_col = int(mono_col0[-1])
+        col_mono = np.repeat(np.arange(len(mono_key)), mono_ncol)
+        col_j = np.arange(n_col) - mono_col0[col_mono]
+        self.col_x = x_off[mono_surf[col_mono]] + col_j
+        self.exponents = mono_exp[col_mono]
+        self._used = np.flatnonzero(self.exponents.any(axis=0))  # factors that occur at all
+        self._exp_used = self.exponents[:, self._used]
+        self.col_surface = mono_surf[col_mono]
+
+        # Entries: one per (kept node, linear parameter of its surface), grouped by surface so
+        # that each model is evaluated once per light on all its nodes.
+        order = np.argsort(node_surf, kind="stable")
+        self._groups = []
+        entry_node, entry_col, entry_theta = [], [], []
+        start = 0
+        for s in range(n_surf):  # one vectorised block per surface
+            idx = order[np.searchsorted(node_surf[order], s):np.searchsorted(node_surf[order], s, side="right")]
+            if len(idx) == 0:
+                continue
+            J = int(n_lin[s])
+            self._groups.append((s, idx, start, J))
+            entry_node.append(np.repeat(idx, J))
+            entry_col.append((mono_col0[node_mono[idx]][:, None] + np.arange(J)[None, :]).ravel())
+            start += len(idx) * J
+        entry_node = np.concatenate(entry_node) if entry_node else np.zeros(0, np.int64)
+        entry_col = np.concatenate(entry_col) if entry_col else np.zeros(0, np.int64)
+        self.entry_col = entry_col
+        self.entry_row = row_of_pixel[pixel[self.node[entry_node]]]
+
+        # Fixed CSR pattern: entries of one (row, column) pair sum into one slot.
+        slot_key, self.entry_slot = np.unique(self.entry_row * max(n_col, 1) + entry_col, return_inverse=True)
+        self.n_rows, self.n_columns = len(self.rows), n_col
+        self._indices = (slot_key % max(n_col, 1)).astype(np.int32)
+        self._indptr = np.searchsorted(slot_key // max(n_col, 1), np.arange(self.n_rows + 1)).astype(np.int64)
+        self._n_slots = len(slot_key)
+        self._static = {}
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def dense_columns(self) -> int:
+        """Column count of the dissertation's dense ``y = x̃ ⊗ Kron^{D−1}(1 ⇓ r̃ ⇓ t̃)``: O(N^D)."""
+        return int(self.layout.n_x * (1 + self.layout.n_factors) ** max(self.depth - 1, 0))
+
+    def column_names(self) -> list[str]:
+        """Readable monomial of each column, e.g. ``kd[floor]·r[mirror]·t[sheet]²`` with surface indices."""
+        out = []
+        for c in range(self.n_columns):
+            s, name = self.layout.x_names[self.col_x[c]]
+            text = f"{name}{s}"
+            for f in np.flatnonzero(self.exponents[c]):
+                text += f"·{'rt'[f % 2]}{f // 2}" + (f"^{self.exponents[c, f]}" if self.exponents[c, f] > 1 else "")
+            out.append(text)
+        return out
+
+    # ------------------------------------------------------------------ values
+    def _entries(self, theta, grad: bool):
+        """Entry values (E, 3) and, with ``grad``, a list of (start, count, dvalues (count, 3, P), θ offset).
+
+        Surfaces whose model has no nonlinear parameter are evaluated once and cached.
+        """
+        a = np.empty((len(self.entry_col), BANDS))
+        das = []
+        tr = self.trees
+        for s, idx, start, J in self._groups:  # per surface: its model on all its nodes at once
+            model = self.models[s]
+            if s in self._static:
+                a[start:start + len(idx) * J] = self._static[s]
+                continue
+            nodes = self.node[idx]
+            th = np.asarray(theta[self.layout.theta_offset[s]:self.layout.theta_offset[s + 1]], dtype=np.float64)
+            n, v = tr.normal[nodes], tr.view[nodes]
+            w = self.weight[idx]  # (n, K, 3)
+            K, P = w.shape[1], len(th)
+            # All lights in one model call, stacked along N as the models expect.
+            args = (np.broadcast_to(th, (len(idx) * K, P)), np.repeat(n, K, axis=0),
+                    tr.light_dir[nodes].reshape(-1, 3), np.repeat(v, K, axis=0))
+            if grad and P:
+                g, dg = model.g_and_dg(*args)
+            else:
+                g, dg = model.g(*args), None
+            acc = np.einsum("nkc,nkj->ncj", w, g.reshape(len(idx), K, J))
+            a[start:start + len(idx) * J] = acc.transpose(0, 2, 1).reshape(-1, BANDS)
+            if dg is not None:
+                dacc = np.einsum("nkc,nkjp->njcp", w, dg.reshape(len(idx), K, J, P))
+                das.append((start, len(idx) * J, dacc.reshape(-1, BANDS, P), self.layout.theta_offset[s]))
+            if P == 0:
+                self._static[s] = a[start:start + len(idx) * J].copy()
+        if not grad:
+            return a
+        return a, das
+
+    def matrices(self, theta) -> list:
+        """A_c(θ) for each band: CSR (rows × columns)."""
+        return self._assemble(self._entries(theta, grad=False))
+
+    def _assemble(self, a) -> list:
+        import scipy.sparse as sp
+
+        out = []
+        for c in range(BANDS):
+            data = np.bincount(self.entry_slot, weights=a[:, c], minlength=self._n_slots)
+            out.append(sp.csr_matrix((data, self._indices, self._indptr), shape=(self.n_rows, self.n_columns)))
+        return out
+
+    def matrices_and_grad(self, theta):
+        """A_c(θ) and a function ``grad(residual, y) -> (Q,)`` = Σ_c residual_c · ∂A_c/∂θ_q · y_c.
+
+        Parameters
+        ----------
+        theta : (Q,) array_like
+            Flat nonlinear parameters in the models' natural units.
+
+        Returns
+        -------
+        A : list of 3 CSR matrices
+        grad : callable
+            ``grad(residual (3, R), y (3, C))`` returns the derivative of ``Σ_c residualᵀ A_c y_c``
+            with respect to each θ (residual held fixed), and ``grad.images(y)`` returns the (Q, 3, R)
+            image derivatives ``∂(A_c y_c)/∂θ_q``.
+        """
+        a, das = self._entries(theta, grad=True)
+        A = self._assemble(a)
+        rows, cols = self.entry_row, self.entry_col
+        Q = self.layout.n_theta
+
+        def images(y):
+            out = np.zeros((Q, BANDS, self.n_rows))
+            for start, count, d, q0 in das:  # per surface
+                sl = slice(start, start + count)
+                for p in range(d.shape[2]):
+                    for c in range(BANDS):
+                        out[q0 + p, c] = np.bincount(rows[sl], weights=d[:, c, p] * y[c, cols[sl]], minlength=self.n_rows)
+            return out
+
+        def grad(residual, y):
+            out = np.zeros(Q)
+            for start, count, d, q0 in das:
+                sl = slice(start, start + count)
+                for p in range(d.shape[2]):
+                    out[q0 + p] = sum(np.dot(residual[c, rows[sl]], d[:, c, p] * y[c, cols[sl]]) for c in range(BANDS))
+            return out
+
+        grad.images = images
+        return A, grad
+
+    # ------------------------------------------------------------------ monomials
+    def y(self, x, s) -> np.ndarray:
+        """Monomial values (3, C) from linear parameters ``x`` (X, 3) and factors ``s`` (F, 3)."""
+        return (np.asarray(x)[self.col_x] * self.factor_products(s)).T
+
+    def factor_products(self, s, skip: int | None = None) -> np.ndarray:
+        """Π_f s_f^e of each column (C, 3), optionally leaving factor ``skip`` out."""
+        e = self._exp_used
+        if skip is not None:
+            e = np.where(self._used == skip, 0, e)
+        # 0^0 = 1: a factor that is absent from a monomial leaves it unchanged.
+        return np.prod(np.asarray(s)[self._used][None, :, :] ** e[:, :, None], axis=1)
+
+    def render(self, theta, x, s) -> np.ndarray:
+        """Model radiance (3, R) of the used pixels for the given parameters."""
+        y = self.y(x, s)
+        return np.stack([A @ y[c] for c, A in enumerate(self.matrices(theta))])

@@ -1,0 +1,732 @@
+"""Fit the non-Lambertian parameters from one image: F-TBO and NF-TBO (METHOD.md §3).
+
+Both minimise the same objective, ``ε = Σ_c ‖A_c(θ) y_c(x, r, t) − b_c‖²`` over the used pixels
+(:mod:`inverse.factorization`), normalised by ``Σ b²``, with bounds ``x ≥ 0`` and ``r, t ∈ [0, 1]``;
+linear parameters are per band, θ is shared by the bands of a surface.
+
+- **F-TBO**: for fixed θ, the Gram matrices ``G_c = A_cᵀA_c`` and ``h_c = A_cᵀb_c`` reduce the
+  problem to the (few) monomial columns. There, ``x`` is the exact bounded least-squares solution
+  for fixed r, t (NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its
+  polynomial, alternated to convergence. θ (shininess searched in log2) is optimised on top by
+  L-BFGS-B with the envelope-theorem gradient (the partial derivative at the inner optimum).
+- **NF-TBO**: every parameter at once by nonlinear conjugate gradient (SciPy's Polak–Ribière CG)
+  on a bounded reparametrisation (``x = w²``, ``r = sin² φ``, ``log2 ns = lo + (hi − lo) sin² ψ``),
+  with a diagonal (Gauss–Newton) preconditioner; every evaluation is a full pass over the nodes.
+
+Parameters the image does not determine — no signal in their columns (a surface never seen, no
+reflection or transmission through a surface), or a one-sigma uncertainty larger than
+:data:`RESOLVE` of their scale (a hidden highlight, ks ≈ 0 leaving ns free) — are kept at their
+initial value, out of the fit, and named in ``undetermined``. One-sigma uncertainties come from
+the Jacobian at the optimum (``σ² (JᵀJ)⁻¹``, σ per band from the residual, never below
+:data:`NOISE_FLOOR` of the image peak).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hardware.workspace import WorkspaceError
+from inverse.factorization import BANDS, Factorization
+from reconstruction.scene import INITIAL, SCALAR_RANGE
+
+#: Nonlinear parameters searched in log2 (scale parameters spanning decades).
+LOG2 = frozenset({"ns", "alpha"})
+#: A parameter whose one-sigma exceeds this fraction of its scale is undetermined.
+RESOLVE = 0.25
+#: Noise assumed at least this fraction of the image peak: a noise-free float image still carries
+#: rounding, so σ never reaches 0 and a parameter with vanishing signal stays undetermined.
+NOISE_FLOOR = 1e-6
+#: Column signal below this fraction of the image peak counts as none.
+SIGNAL_FLOOR = 1e-9
+#: At least this many pixel values at the image maximum make a clipped (saturated) plateau.
+PLATEAU = 3
+METHODS = ("ftbo", "nftbo")
+
+
+# ---------------------------------------------------------------------- input checks
+def check_image(image, width: int, height: int, path="input image") -> np.ndarray:
+    """Validate the input photograph against the camera and return it as float64 (H, W, 3).
+
+    Raises
+    ------
+    WorkspaceError
+        Size different from camera.json, negative values, or an all-black image.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[:2] != (height, width):
+        raise WorkspaceError(path, "size", f"{width}x{height} RGB as in camera.json",
+                             got=f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else image.shape)
+    if not np.all(np.isfinite(image)):
+        raise WorkspaceError(path, "pixels", "finite values", got=f"{int((~np.isfinite(image)).sum())} NaN/inf")
+    if np.any(image < 0):
+        raise WorkspaceError(path, "pixels", "non-negative linear radiance", got=f"minimum {image.min():g}")
+    if not np.any(image > 0):
+        raise WorkspaceError(path, "pixels", "a lit image (some pixel above 0)", got="all pixels are 0 (black)")
+    return image
+
+
+def saturated_pixels(image, level: float | None = None) -> np.ndarray:
+    """Pixels (H*W,) bool with any band at the saturation level.
+
+    Parameters
+    ----------
+    image : (H, W, 3) array_like
+    level : float, optional
+        Clipping level. By default the image maximum counts as clipped when at least
+        :data:`PLATEAU` pixel values sit exactly on it (a sensor or 16-bit file clips to a plateau;
+        a rendered or unclipped highlight has one brightest value).
+    """
+    flat = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)
+    if level is None:
+        peak = flat.max()
+        if np.count_nonzero(flat == peak) < PLATEAU:
+            return np.zeros(len(flat), dtype=bool)
+        level = peak
+    return np.any(flat >= level, axis=1)
+
+
+# ---------------------------------------------------------------------- parameters
+@dataclass
+class Params:
+    """Flat parameters (layout of :class:`inverse.factorization.Layout`), natural units."""
+
+    x: np.ndarray  # (X, 3)
+    s: np.ndarray  # (F, 3): r_s at 2s, t_s at 2s+1
+    theta: np.ndarray  # (Q,)
+
+    def copy(self) -> "Params":
+        return Params(self.x.copy(), self.s.copy(), self.theta.copy())
+
+
+@dataclass
+class Free:
+    """Which parameters are fitted (True) or held at their initial value (False)."""
+
+    x: np.ndarray
+    s: np.ndarray
+    theta: np.ndarray
+
+    def count(self) -> int:
+        return int(self.x.sum() + self.s.sum() + self.theta.sum())
+
+
+def params_of(fac: Factorization, materials) -> Params:
+    """Flat parameters from a list of materials (surface order)."""
+    lay = fac.layout
+    x, s, th = np.zeros((lay.n_x, BANDS)), np.zeros((lay.n_factors, BANDS)), np.zeros(lay.n_theta)
+    for i, (model, mat) in enumerate(zip(fac.models, materials)):
+        for j, name in enumerate(model.linear):
+            x[lay.x_offset[i] + j] = mat[name]
+        for j, name in enumerate(model.nonlinear):
+            th[lay.theta_offset[i] + j] = float(mat[name])
+        s[2 * i] = mat["r"]
+        s[2 * i + 1] = mat["t"] if mat.transparent else 0.0
+    return Params(x, np.clip(s, 0.0, 1.0), th)
+
+
+def materials_of(fac: Factorization, p: Params, templates) -> list:
+    """Materials (copies of ``templates``) carrying the parameters ``p``."""
+    lay, out = fac.layout, []
+    for i, (model, mat) in enumerate(zip(fac.models, templates)):
+        m = mat.copy()
+        for j, name in enumerate(model.linear):
+            m.params[name] = p.x[lay.x_offset[i] + j].copy()
+        for j, name in enumerate(model.nonlinear):
+            m.params[name] = np.float64(p.theta[lay.theta_offset[i] + j])
+        m.params["r"] = p.s[2 * i].copy()
+        m.params["t"] = p.s[2 * i + 1].copy() if m.transparent else np.zeros(BANDS)
+        out.append(m)
+    return out
+
+
+class _Search:
+    """θ ↔ search variable u (log2 for :data:`LOG2` names), with bounds."""
+
+    def __init__(self, fac: Factorization):
+        names = [name for _, name in fac.layout.theta_names]
+        self.log = np.array([n in LOG2 for n in names], dtype=bool)
+        lo = np.array([SCALAR_RANGE[n][0] for n in names], dtype=np.float64).reshape(-1)
+        hi = np.array([SCALAR_RANGE[n][1] for n in names], dtype=np.float64).reshape(-1)
+        self.lo = np.where(self.log, np.log2(np.maximum(lo, 1e-300)), lo)
+        self.hi = np.where(self.log, np.log2(hi), hi)
+
+    def to_u(self, theta):
+        return np.clip(np.where(self.log, np.log2(np.maximum(theta, 1e-300)), theta), self.lo, self.hi)
+
+    def to_theta(self, u):
+        return np.where(self.log, np.exp2(u), u)
+
+    def dtheta_du(self, theta):
+        return np.where(self.log, theta * np.log(2.0), 1.0)
+
+
+# ---------------------------------------------------------------------- the objective
+class Problem:
+    """The data and the factorized model of one fit.
+
+    Parameters
+    ----------
+    fac : Factorization
+    image : (H, W, 3) array_like
+        Linear radiance; only ``fac.rows`` are used.
+    transparent : list of bool
+        Per surface: has a refracted branch (``t`` is a parameter); else ``t`` = 0.
+    """
+
+    def __init__(self, fac: Factorization, image, transparent):
+        self.fac = fac
+        self.transparent = [bool(t) for t in transparent]
+        self.b = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)[fac.rows].T.copy()  # (3, R)
+        self.bb = np.einsum("cr,cr->c", self.b, self.b)
+        self.norm = float(self.bb.sum()) or 1.0
+        self.peak = float(self.b.max()) if self.b.size else 0.0
+        self.search = _Search(fac)
+        self.onehot = np.zeros((fac.n_columns, fac.layout.n_x))
+        self.onehot[np.arange(fac.n_columns), fac.col_x] = 1.0
+        self.evaluations = 0
+
+    def residual(self, A, y) -> np.ndarray:
+        """Model minus image (3, R)."""
+        return np.stack([A[c] @ y[c] for c in range(BANDS)]) - self.b
+
+    def rms(self, res) -> np.ndarray:
+        """RMS residual per band over the used pixels."""
+        return np.sqrt(np.mean(res * res, axis=1)) if res.shape[1] else np.zeros(BANDS)
+
+    def dy(self, p: Params, c: int, free: Free) -> tuple[np.ndarray, list]:
+        """∂y_c/∂(free linear parameters of band c): (C, n) and their (kind, index) labels."""
+        fac = self.fac
+        prod = fac.factor_products(p.s)[:, c]
+        cols, labels = [], []
+        for i in np.flatnonzero(free.x[:, c]):
+            cols.append(np.where(fac.col_x == i, prod, 0.0))
+            labels.append(("x", i))
+        for f in np.flatnonzero(free.s[:, c]):
+            e = fac.exponents[:, f]
+            rest = fac.factor_products(p.s, skip=f)[:, c]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                d = np.where(e > 0, e * p.s[f, c] ** np.maximum(e - 1, 0) * rest, 0.0)
+            cols.append(p.x[fac.col_x, c] * d)
+            labels.append(("s", f))
+        return (np.stack(cols, axis=1) if cols else np.zeros((fac.n_columns, 0))), labels
+
+
+class _Inner:
+    """F-TBO's inner problem for fixed θ, in monomial space: G_c, h_c per band."""
+
+    def __init__(self, problem: Problem, A):
+        self.pb = problem
+        self.G = [(A[c].T @ A[c]).toarray() for c in range(BANDS)]
+        self.h = [A[c].T @ problem.b[c] for c in range(BANDS)]
+
+    def eps(self, c, y):
+        return float(y @ self.G[c] @ y - 2.0 * self.h[c] @ y + self.pb.bb[c])
+
+    def x_step(self, c, p: Params, free: Free):
+        """Exact bounded (x ≥ 0) least squares of band c's free x for fixed r, t."""
+        from scipy.optimize import nnls
+
+        fx = free.x[:, c]
+        if not fx.any():
+            return
+        T = self.pb.onehot * self.pb.fac.factor_products(p.s)[:, c:c + 1]
+        Q = T.T @ self.G[c] @ T
+        q = T.T @ self.h[c] - Q[:, ~fx] @ p.x[~fx, c]
+        Qf, qf = Q[np.ix_(fx, fx)], q[fx]
+        # ‖R x − d‖² = xᵀ Q x − 2 qᵀ x + const with R = √w Vᵀ, d = Vᵀq / √w (w > 0).
+        w, V = np.linalg.eigh(Qf)
+        keep = w > max(w.max(), 0.0) * 1e-14
+        if not keep.any():
+            return
+        R = np.sqrt(w[keep])[:, None] * V[:, keep].T
+        d = (V[:, keep].T @ qf) / np.sqrt(w[keep])
+        p.x[fx, c] = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
+
+    def s_step(self, c, f, p: Params):
+        """Exact minimiser on [0, 1] of band c's ε as a polynomial in factor f."""
+        fac = self.pb.fac
+        e = fac.exponents[:, f]
+        u = p.x[fac.col_x, c] * fac.factor_products(p.s, skip=f)[:, c]
+        G, h = self.G[c], self.h[c]
+        top = int(e.max())
+        # y(σ) = Σ_d σ^d U_d; ε(σ) = Σ_{d,d'} σ^{d+d'} U_dᵀ G U_d' − 2 Σ_d σ^d hᵀU_d + const.
+        U = np.stack([np.where(e == d, u, 0.0) for d in range(top + 1)])  # (top+1, C)
+        GU = U[1:] @ G  # rows d >= 1 (G symmetric)
+        coef = np.zeros(2 * top + 1)  # ascending powers; the constant term does not move the minimiser
+        cross = GU @ U.T  # (top, top+1): U_dᵀ G U_d' for d >= 1
+        for d in range(1, top + 1):
+            coef[d] += 2.0 * cross[d - 1, 0] - 2.0 * (h @ U[d])
+            for d2 in range(1, top + 1):
+                coef[d + d2] += cross[d - 1, d2]
+        cand = [0.0, 1.0, p.s[f, c]]
+        deriv = coef[1:] * np.arange(1, len(coef))
+        if np.any(deriv[1:]):
+            roots = np.polynomial.polynomial.polyroots(deriv)
+            cand += [float(r.real) for r in roots if abs(r.imag) <= 1e-9 * (1 + abs(r.real)) and 0.0 < r.real < 1.0]
+        cand = np.array(cand)
+        vals = np.polynomial.polynomial.polyval(cand, coef)
+        p.s[f, c] = cand[int(np.argmin(vals))]
+
+    def joint_step(self, c, p: Params, free: Free) -> None:
+        """One projected Gauss–Newton step on all free linear parameters of band c at once.
+
+        Alternating exact block minimisers converges linearly when blocks are coupled (an albedo
+        and the mirror that reflects it); this joint step, still in monomial space, is kept only
+        when it lowers ε, so the alternation's exactness is preserved and its tail is cut short.
+        """
+        D, labels = self.pb.dy(p, c, free)
+        if not labels:
+            return
+        fac = self.pb.fac
+        y = fac.y(p.x, p.s)[c]
+        g = D.T @ (self.G[c] @ y - self.h[c])
+        H = D.T @ self.G[c] @ D
+        z = np.array([p.x[i, c] if k == "x" else p.s[i, c] for k, i in labels])
+        hi = np.array([np.inf if k == "x" else 1.0 for k, _ in labels])
+        act = ((z <= 0.0) & (g > 0)) | ((z >= hi) & (g < 0))
+        fr = ~act
+        if not fr.any():
+            return
+        w, V = np.linalg.eigh(H[np.ix_(fr, fr)])
+        keep = w > max(w.max(), 0.0) * 1e-13
+        if not keep.any():
+            return
+        step = np.zeros_like(z)
+        step[fr] = -(V[:, keep] / w[keep]) @ (V[:, keep].T @ g[fr])
+        new = np.clip(z + step, 0.0, hi)
+        trial = p.copy()
+        for (k, i), v in zip(labels, new):
+            (trial.x if k == "x" else trial.s)[i, c] = v
+        if self.eps(c, fac.y(trial.x, trial.s)[c]) < self.eps(c, y):
+            p.x[:, c], p.s[:, c] = trial.x[:, c], trial.s[:, c]
+
+    def solve(self, p: Params, free: Free, tol=1e-15, max_sweeps=200) -> int:
+        """Alternate the exact x and factor steps per band until ε stops decreasing."""
+        fac = self.pb.fac
+        sweeps = 0
+        for c in range(BANDS):
+            last = self.eps(c, fac.y(p.x, p.s)[c])
+            for sweep in range(max_sweeps):
+                self.x_step(c, p, free)
+                for f in np.flatnonzero(free.s[:, c]):
+                    self.s_step(c, f, p)
+                self.joint_step(c, p, free)
+                now = self.eps(c, fac.y(p.x, p.s)[c])
+                sweeps += 1
+                if last - now <= tol * self.pb.bb[c] + 1e-300:
+                    break
+                last = now
+        return sweeps
+
+
+# ---------------------------------------------------------------------- results
+@dataclass
+class FitResult:
+    """Everything ``fit.json`` reports (INTERFACES.md) plus diagnostics."""
+
+    method: str
+    params: Params
+    free: Free
+    materials: list
+    sigma: Params
+    rms: np.ndarray
+    time_s: float
+    trace: list
+    undetermined: list
+    rounds: int
+    evaluations: int
+    iterations: int
+    message: str
+    stats: dict = field(default_factory=dict)
+
+
+def _trace_point(t0, rms):
+    return [round(time.perf_counter() - t0, 6), [float(v) for v in rms]]
+
+
+def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100):
+    """F-TBO: θ (search space) by Levenberg–Marquardt over the exact inner linear solution.
+
+    The profiled objective's gradient is the partial derivative at the inner optimum (envelope
+    theorem); its Gauss–Newton curvature is the Schur complement of the full normal matrix on
+    θ (variable projection), which costs a few monomial-space products per iteration.
+    """
+    fac, srch = pb.fac, pb.search
+    q = np.flatnonzero(free.theta)
+
+    def evaluate(u, start: Params):
+        cur = start.copy()
+        full = srch.to_u(cur.theta)
+        full[q] = u
+        cur.theta = srch.to_theta(full)
+        A, grad = fac.matrices_and_grad(cur.theta)
+        _Inner(pb, A).solve(cur, free)
+        y = fac.y(cur.x, cur.s)
+        res = pb.residual(A, y)
+        pb.evaluations += 1
+        E = float(np.sum(res * res)) / pb.norm
+        g = 2.0 * grad(res, y)[q] * srch.dtheta_du(cur.theta)[q] / pb.norm
+        return E, g, cur, A, grad, res
+
+    u = srch.to_u(p.theta)[q]
+    E, g, cur, A, grad, res = evaluate(u, p)
+    trace.append(_trace_point(t0, pb.rms(res)))
+    if len(q) == 0:
+        return cur, 0, "no nonlinear parameter to fit: one exact linear solve"
+    lam, message, it = 1e-3, f"stopped after {maxiter} iterations", 0
+    lo, hi = srch.lo[q], srch.hi[q]
+    for it in range(1, maxiter + 1):
+        S = _theta_curvature(pb, cur, free, A, grad) * np.outer(srch.dtheta_du(cur.theta)[q], srch.dtheta_du(cur.theta)[q])
+        S = 2.0 * S / pb.norm
+        improved = False
+        for _ in range(12):  # damping increases until a step lowers ε
+            step = -np.linalg.solve(S + lam * np.diag(np.maximum(np.diag(S), 1e-300)), g)
+            u_new = np.clip(u + step, lo, hi)
+            trial = evaluate(u_new, cur)
+            if trial[0] < E:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            message = "converged: no step lowers the error"
+            break
+        gain, moved = E - trial[0], float(np.max(np.abs(u_new - u)))
+        u, (E, g, cur, A, grad, res) = u_new, trial
+        lam = max(lam / 3.0, 1e-12)
+        trace.append(_trace_point(t0, pb.rms(res)))
+        if moved < 1e-10 or gain <= 1e-12 * (E + gain) or E == 0.0:
+            message = "converged: step or error change below tolerance"
+            break
+    return cur, it, message
+
+
+def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
+    """JᵀJ of θ with the linear parameters profiled out (Schur complement), natural units."""
+    inner = Free(free.x & (p.x > 0), free.s & (p.s > 0) & (p.s < 1), free.theta)  # bounds active: held
+    H, labels = _normal_matrix(pb, p, inner, np.ones(BANDS), A, grad)
+    nq = int(free.theta.sum())
+    n_lin = len(labels) - nq
+    Hll, Hlq, Hqq = H[:n_lin, :n_lin], H[:n_lin, n_lin:], H[n_lin:, n_lin:]
+    if n_lin == 0:
+        return Hqq
+    w, V = np.linalg.eigh(Hll)
+    keep = w > max(w.max(), 0.0) * 1e-13
+    proj = V[:, keep].T @ Hlq
+    return Hqq - proj.T @ (proj / w[keep][:, None])
+
+
+class _NFMap:
+    """NF-TBO's unconstrained variables z ↔ bounded parameters (free ones only), preconditioned."""
+
+    def __init__(self, pb: Problem, p: Params, free: Free):
+        self.pb, self.base, self.free = pb, p, free
+        self.q = np.flatnonzero(free.theta)
+        srch = pb.search
+        self.lo, self.hi = srch.lo[self.q], srch.hi[self.q]
+        self.scale = 1.0
+
+    def to_z(self, p: Params) -> np.ndarray:
+        w = np.sqrt(np.maximum(p.x[self.free.x], 0.0))
+        phi = np.arcsin(np.sqrt(np.clip(p.s[self.free.s], 0.0, 1.0)))
+        u = self.pb.search.to_u(p.theta)[self.q]
+        span = np.maximum(self.hi - self.lo, 1e-300)
+        psi = np.arcsin(np.sqrt(np.clip((u - self.lo) / span, 0.0, 1.0)))
+        return np.concatenate([w, phi, psi]) * self.scale
+
+    def to_params(self, z):
+        """Parameters and dparam/dz (diagonal) of the free ones."""
+        z = z / self.scale
+        nx, ns = int(self.free.x.sum()), int(self.free.s.sum())
+        w, phi, psi = z[:nx], z[nx:nx + ns], z[nx + ns:]
+        p = self.base.copy()
+        p.x[self.free.x] = w * w
+        p.s[self.free.s] = np.sin(phi) ** 2
+        span = self.hi - self.lo
+        u = self.pb.search.to_u(p.theta)
+        u[self.q] = self.lo + span * np.sin(psi) ** 2
+        p.theta = self.pb.search.to_theta(u)
+        d = np.concatenate([2.0 * w, np.sin(2.0 * phi), span * np.sin(2.0 * psi) * self.pb.search.dtheta_du(p.theta)[self.q]])
+        return p, d / self.scale
+
+
+def _gradient(pb: Problem, p: Params, A, grad, res):
+    """∂ε/∂(x, s, θ) (natural units, unnormalised halves excluded): full arrays."""
+    fac = pb.fac
+    y = fac.y(p.x, p.s)
+    gy = 2.0 * np.stack([A[c].T @ res[c] for c in range(BANDS)])  # (3, C)
+    prod = fac.factor_products(p.s)
+    gx = np.stack([np.bincount(fac.col_x, weights=gy[c] * prod[:, c], minlength=fac.layout.n_x) for c in range(BANDS)], axis=1)
+    gs = np.zeros_like(p.s)
+    for f in np.flatnonzero(fac.exponents.any(axis=0)):  # factors: 2 per surface
+        e = fac.exponents[:, f]
+        rest = fac.factor_products(p.s, skip=f)
+        d = np.where(e[:, None] > 0, e[:, None] * p.s[f][None, :] ** np.maximum(e[:, None] - 1, 0) * rest, 0.0)
+        gs[f] = np.einsum("cm,mc->c", gy, p.x[fac.col_x] * d)
+    gth = 2.0 * grad(res, y)
+    return gx, gs, gth
+
+
+def _nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=20000):
+    """NF-TBO: Polak–Ribière conjugate gradient on all free parameters at once."""
+    from scipy.optimize import minimize
+
+    fac = pb.fac
+    m = _NFMap(pb, p, free)
+    # Diagonal preconditioner: unit Gauss–Newton curvature of each variable at the start.
+    z0 = m.to_z(p)
+    m.scale = 1.0 / np.sqrt(np.maximum(_gn_diagonal(pb, m, z0), 1e-300))
+    m.scale = np.where(np.isfinite(m.scale), m.scale, 1.0)
+    z0 = m.to_z(p)
+    last = {}
+
+    def fun(z):
+        cur, d = m.to_params(z)
+        A, grad = fac.matrices_and_grad(cur.theta)
+        res = pb.residual(A, fac.y(cur.x, cur.s))
+        pb.evaluations += 1
+        gx, gs, gth = _gradient(pb, cur, A, grad, res)
+        g = np.concatenate([gx[free.x], gs[free.s], gth[m.q]]) * d / pb.norm
+        last["rms"], last["p"] = pb.rms(res), cur
+        return float(np.sum(res * res)) / pb.norm, g
+
+    def callback(zk):
+        trace.append(_trace_point(t0, last["rms"]))
+
+    fun(z0)
+    callback(z0)
+    if len(z0) == 0:
+        return last["p"], 0, "nothing to fit"
+    res = minimize(fun, z0, jac=True, method="CG", callback=callback, options={"maxiter": maxiter, "gtol": 1e-14})
+    out, _ = m.to_params(res.x)
+    return out, int(res.nit), str(res.message)
+
+
+def _gn_diagonal(pb: Problem, m: _NFMap, z) -> np.ndarray:
+    """Gauss–Newton curvature ‖∂B/∂z_i‖² / norm of each NF-TBO variable."""
+    cur, d = m.to_params(z)
+    H = _normal_matrix(pb, cur, m.free, np.ones(BANDS))[0]
+    return np.diag(H) * d * d / pb.norm
+
+
+def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None):
+    """JᵀWJ of the free parameters (natural units) with band weights; and the label of each row.
+
+    ``A``, ``grad`` from ``fac.matrices_and_grad(p.theta)`` when the caller has them.
+    """
+    fac = pb.fac
+    if A is None:
+        A, grad = fac.matrices_and_grad(p.theta)
+    y = fac.y(p.x, p.s)
+    q = np.flatnonzero(free.theta)
+    img = grad.images(y)[q] if len(q) else np.zeros((0, BANDS, fac.n_rows))  # (nq, 3, R)
+    blocks, labels = [], []
+    for c in range(BANDS):
+        D, lab = pb.dy(p, c, free)
+        blocks.append(D)
+        labels += [(kind, i, c) for kind, i in lab]
+    n_lin = sum(b.shape[1] for b in blocks)
+    n = n_lin + len(q)
+    H = np.zeros((n, n))
+    off = 0
+    for c in range(BANDS):
+        D = blocks[c]
+        k = D.shape[1]
+        AD = A[c] @ D  # (R, k): image derivatives of band c's linear parameters
+        H[off:off + k, off:off + k] = weights[c] * (AD.T @ AD)
+        if len(q):
+            cross = weights[c] * (AD.T @ img[:, c, :].T)
+            H[off:off + k, n_lin:] = cross
+            H[n_lin:, off:off + k] = cross.T
+        off += k
+    if len(q):
+        H[n_lin:, n_lin:] = np.einsum("c,qcr,pcr->qp", weights, img, img)
+    labels += [("theta", i, -1) for i in q]
+    return H, labels
+
+
+def uncertainty(pb: Problem, p: Params, free: Free, res) -> Params:
+    """One-sigma uncertainties (natural units) of the free parameters; inf where unconstrained.
+
+    The noise of band c is estimated from its residual, but never below :data:`NOISE_FLOOR` of
+    the image peak; the covariance is ``(JᵀWJ)⁻¹`` with ``W = 1/σ_c²``.
+    """
+    n_free = free.count()
+    dof = max(BANDS * pb.fac.n_rows - n_free, 1)
+    var = np.sum(res * res, axis=1) / max(dof / BANDS, 1.0)
+    var = np.maximum(var, (NOISE_FLOOR * pb.peak) ** 2)
+    H, labels = _normal_matrix(pb, p, free, 1.0 / var)
+    sig = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+    if not labels:
+        return sig
+    dg = np.sqrt(np.maximum(np.diag(H), 0.0))
+    ok = dg > 0
+    Hs = H[np.ix_(ok, ok)] / np.outer(dg[ok], dg[ok])
+    w, V = np.linalg.eigh(Hs)
+    w = np.maximum(w, 1e-14 * max(w.max(), 1e-300))
+    cov = (V / w) @ V.T
+    sd = np.full(len(labels), np.inf)
+    sd[ok] = np.sqrt(np.maximum(np.diag(cov), 0.0)) / dg[ok]
+    for (kind, i, c), v in zip(labels, sd):
+        if kind == "x":
+            sig.x[i, c] = v
+        elif kind == "s":
+            sig.s[i, c] = v
+        else:
+            sig.theta[i] = v
+    return sig
+
+
+def _structural_free(pb: Problem, p: Params) -> Free:
+    """Parameters with signal in their columns at the initial θ (exact zeros left out)."""
+    fac, lay = pb.fac, pb.fac.layout
+    A, grad = fac.matrices_and_grad(p.theta)
+    floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
+    colmax = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1)  # (C, 3)
+    live = colmax > floor
+    x_free = np.zeros((lay.n_x, BANDS), dtype=bool)
+    np.logical_or.at(x_free, fac.col_x, live)
+    s_free = np.zeros((lay.n_factors, BANDS), dtype=bool)
+    for f in np.flatnonzero(fac.exponents.any(axis=0)):
+        s_free[f] = live[fac.exponents[:, f] > 0].any(axis=0)
+    for i, transparent in enumerate(pb.transparent):
+        if not transparent:
+            s_free[2 * i + 1] = False
+    th_free = np.zeros(lay.n_theta, dtype=bool)
+    if lay.n_theta:
+        # θ acts through the columns of its surface's x: only those with signal count.
+        img = grad.images(x_free[fac.col_x].T.astype(np.float64))
+        th_free = np.abs(img).max(axis=(1, 2)) > floor
+    return Free(x_free, s_free, th_free)
+
+
+def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params) -> Free:
+    """Free parameters whose one-sigma exceeds :data:`RESOLVE` of their scale."""
+    xs = np.maximum(np.maximum(np.abs(p.x), np.abs(init.x)), 1e-3)
+    bad_x = free.x & ~(sig.x <= RESOLVE * xs)
+    bad_s = free.s & ~(sig.s <= RESOLVE)
+    srch = pb.search
+    sig_u = np.where(srch.log, sig.theta / np.maximum(p.theta * np.log(2.0), 1e-300), sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
+    bad_t = free.theta & ~(sig_u <= RESOLVE)
+    return Free(bad_x, bad_s, bad_t)
+
+
+def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int = 3,
+        maxiter: int | None = None) -> FitResult:
+    """Fit every determinable photometric parameter from one image.
+
+    Parameters
+    ----------
+    fac : Factorization
+        The scene's factorized system (its ``rows`` are the pixels used, e.g. saturated ones left out).
+    image : (H, W, 3) array_like
+        Linear radiance (validated with :func:`check_image`).
+    materials : list of Material
+        Initial values, one per surface (scene.json's, else METHOD.md §3's). Their ``ior`` says
+        which surfaces are transparent.
+    method : {"ftbo", "nftbo"}
+    max_rounds : int
+        Fit → find unresolved parameters → fix them → refit, at most this many times.
+    maxiter : int, optional
+        Outer iteration cap (L-BFGS-B for F-TBO, CG for NF-TBO).
+
+    Returns
+    -------
+    FitResult
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if len(materials) != len(fac.models):
+        raise ValueError(f"{len(materials)} materials for {len(fac.models)} surfaces")
+    t0 = time.perf_counter()
+    pb = Problem(fac, image, [m.transparent for m in materials])
+    init = params_of(fac, materials)
+    srch = pb.search
+    init.theta = srch.to_theta(srch.to_u(init.theta))
+    p = init.copy()
+    free = _structural_free(pb, p)
+    trace, iterations, message = [], 0, ""
+    rounds = 0
+    kw = {} if maxiter is None else {"maxiter": maxiter}
+    for rounds in range(1, max_rounds + 1):
+        runner = _ftbo if method == "ftbo" else _nftbo
+        p, nit, message = runner(pb, p, free, t0, trace, **kw)
+        iterations += nit
+        A = fac.matrices(p.theta)
+        res = pb.residual(A, fac.y(p.x, p.s))
+        sig = uncertainty(pb, p, free, res)
+        bad = _unresolved(pb, p, init, free, sig)
+        if bad.count() == 0:
+            break
+        if bad.theta.any():
+            # θ first: an unresolved shininess inflates its ks's σ; with θ held, ks is judged alone.
+            bad.x[:], bad.s[:] = False, False
+        # Hold the unresolved ones at their initial value and refit the rest from there.
+        for name in ("x", "s", "theta"):
+            cur, b0, fr = getattr(p, name), getattr(init, name), getattr(bad, name)
+            cur[fr] = b0[fr]
+            getattr(free, name)[fr] = False
+        if rounds == max_rounds:
+            A = fac.matrices(p.theta)
+            res = pb.residual(A, fac.y(p.x, p.s))
+            sig = uncertainty(pb, p, free, res)
+    elapsed = time.perf_counter() - t0
+    rms = pb.rms(res)
+    trace.append(_trace_point(t0, rms))
+    return FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace,
+                     _undetermined(fac, free, materials), rounds, pb.evaluations, iterations, message,
+                     {"used_pixels": int(fac.n_rows), "free_parameters": free.count()})
+
+
+def _undetermined(fac: Factorization, free: Free, materials) -> list:
+    """Per surface, the names of the parameters held at their initial value ("ks[2]" for one band)."""
+    lay, out = fac.layout, []
+    for i, (model, mat) in enumerate(zip(fac.models, materials)):
+        names = []
+        for j, name in enumerate(model.linear):
+            names += _band_names(name, ~free.x[lay.x_offset[i] + j])
+        names += _band_names("r", ~free.s[2 * i])
+        names += _band_names("t", ~free.s[2 * i + 1])
+        names += [name for j, name in enumerate(model.nonlinear) if not free.theta[lay.theta_offset[i] + j]]
+        out.append(names)
+    return out
+
+
+def _band_names(name, held) -> list:
+    if held.all():
+        return [name]
+    return [f"{name}[{c}]" for c in np.flatnonzero(held)]
+
+
+def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: dict | None = None) -> dict:
+    """The fit.json object of INTERFACES.md (plus diagnostics)."""
+    lay, surfaces = fac.layout, []
+    for i, (surf, model, mat) in enumerate(zip(scene.surfaces, fac.models, result.materials)):
+        sigma = {}
+        for j, name in enumerate(model.linear):
+            k = lay.x_offset[i] + j
+            sigma[name] = _sigma_list(result.sigma.x[k], result.free.x[k])
+        for j, name in enumerate(model.nonlinear):
+            q = lay.theta_offset[i] + j
+            sigma[name] = float(result.sigma.theta[q]) if result.free.theta[q] and np.isfinite(result.sigma.theta[q]) else None
+        sigma["r"] = _sigma_list(result.sigma.s[2 * i], result.free.s[2 * i])
+        sigma["t"] = _sigma_list(result.sigma.s[2 * i + 1], result.free.s[2 * i + 1])
+        surfaces.append({"name": surf.name, "material": mat.to_json(), "sigma": sigma,
+                         "undetermined": result.undetermined[i]})
+    out = {
+        "method": result.method, "depth": int(depth), "time_s": round(result.time_s, 6),
+        "rms": [float(v) for v in result.rms], "trace": result.trace, "surfaces": surfaces,
+        "columns": {"used": int(fac.n_columns), "monomials": len(fac.monomials),
+                    "dense_dissertation": fac.dense_columns, "names": fac.column_names()},
+        "iterations": result.iterations, "evaluations": result.evaluations, "rounds": result.rounds,
+        "message": result.message,
+    }
+    out.update(result.stats)
+    out.update(extra or {})
+    return out
+
+
+def _sigma_list(sig, free) -> list:
+    """Per-band sigma, None where the band is undetermined (JSON null, never NaN/inf)."""
+    return [float(v) if f and np.isfinite(v) else None for v, f in zip(sig, free)]
