@@ -291,12 +291,12 @@ class GrblController:
         self._open()
         status = self._handshake()
         self.position = status.position
+        if status.state == "Alarm":
+            raise GrblAlarm(self._pending_alarm, f" on {self.port}")
         if self.version is None:  # the banner went by before the port opened: ask
             for line in self.send("$I"):
                 if line.startswith("[VER:"):
                     self.version = line[5:-1].split(".20")[0].split(":")[0]
-        if status.state == "Alarm":
-            raise GrblAlarm(self._pending_alarm, f" on {self.port}")
         if self.config.steps_per_degree is not None:
             self._ensure_steps_per_degree()
         return self

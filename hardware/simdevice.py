@@ -94,6 +94,7 @@ class SimulatedGrbl:
         # What the host did, for conformance tests.
         self.lines: list[tuple[float, str]] = []
         self.polls: list[float] = []
+        self.realtime: list[tuple[float, bytes]] = []  # !, ~ and 0x18 as received
         self.max_in_flight = 0
         self.resets = 0
         self._unacked = 0
@@ -139,6 +140,16 @@ class SimulatedGrbl:
         with self._lock:
             self.faults.append(fault)
         return fault
+
+    def replug(self) -> None:
+        """Plug the board back in after a ``disconnect`` fault that did not come back by itself."""
+        with self._lock:
+            if self._fd is None:
+                self._plug()
+
+    @property
+    def plugged(self) -> bool:
+        return self._fd is not None
 
     def _plug(self) -> None:
         """A fresh pty behind ``port``; the board prints its banner as after power-up."""
@@ -225,13 +236,15 @@ class SimulatedGrbl:
             if c == b"?":
                 self.polls.append(now)
                 self._send(self._report())
-            elif c == b"!":
-                self._feed_hold(now)
-            elif c == b"~":
-                self._cycle_start(now)
-            elif c == b"\x18":
-                self._reset(now)
-                lines.clear()
+            elif c in (b"!", b"~", b"\x18"):
+                self.realtime.append((now, c))
+                if c == b"!":
+                    self._feed_hold(now)
+                elif c == b"~":
+                    self._cycle_start(now)
+                else:
+                    self._reset(now)
+                    lines.clear()
             elif c == b"\n":
                 lines.append(self._rx.decode("latin-1").strip())
                 self._rx.clear()
