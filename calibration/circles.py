@@ -1,0 +1,194 @@
+"""Circle-grid target detection with sub-pixel ellipse centres, and the ellipse-centre bias.
+
+A circle seen in perspective is an ellipse whose centre is *not* the image of the circle's centre
+(Heikkilä 2000; OpenCV issue 7312): the offset grows with the circle's size and the target's
+tilt. :func:`detect_grid` returns measured ellipse centres (intensity-weighted area centroids,
+exact for an ellipse, sub-pixel through the anti-aliased edge); :func:`ellipse_centres` predicts
+where those centres are for a given pose, so the calibration (:mod:`calibration.tsai`) fits the
+measured centres with the predicted *ellipse* centres instead of the projected circle centres:
+Heikkilä's correction, inside the refinement rather than as a separate pre-correction.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class GridDetection:
+    """One image's detection.
+
+    Attributes
+    ----------
+    found : bool
+        True when all ``cols * rows`` circles were found and ordered.
+    centres : (N, 2) ndarray or None
+        Sub-pixel ellipse centres, row by row (see :func:`hardware.simtarget.target_points`).
+    areas : (N,) ndarray or None
+        Ellipse areas in px² (used to estimate the printed circles' radius).
+    n_blobs : int
+        Dark blobs the blob detector saw (a hint when the grid size is wrong).
+    """
+
+    found: bool
+    centres: np.ndarray | None
+    areas: np.ndarray | None
+    n_blobs: int
+
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """``"COLSxROWS"`` -> (cols, rows), each ≥ 2; ValueError naming the value otherwise."""
+    parts = str(text).lower().split("x")
+    try:
+        cols, rows = (int(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"--grid: expected COLSxROWS such as 11x8, got {text!r}") from None
+    if cols < 2 or rows < 2:
+        raise ValueError(f"--grid: need at least 2 circles per row and column, got {text!r}")
+    return cols, rows
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image, dtype=np.float64)
+    return img.mean(axis=2) if img.ndim == 3 else img
+
+
+def _blob_detector(shape):
+    import cv2
+
+    p = cv2.SimpleBlobDetector_Params()
+    p.filterByColor, p.blobColor = True, 0
+    p.filterByArea, p.minArea, p.maxArea = True, 12.0, float(shape[0] * shape[1]) / 8
+    p.filterByCircularity = False
+    p.filterByInertia, p.minInertiaRatio = True, 0.08
+    p.filterByConvexity, p.minConvexity = True, 0.8
+    return cv2.SimpleBlobDetector_create(p)
+
+
+def _canonical_order(centres: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    """Reorder OpenCV's grid so the target frame is right-handed with +z toward the camera.
+
+    Of the orderings of the same grid (180° turn; mirror; 90° turns when square), keep those where
+    the image of +x (along a row) crossed with the image of -y (down the columns) is positive, as
+    for a camera above the plane, then the one whose rows run most to the right and downward.
+    """
+    grid = centres.reshape(rows, cols, 2)
+    candidates = [grid, grid[::-1], grid[:, ::-1], grid[::-1, ::-1]]
+    if cols == rows:
+        candidates += [np.swapaxes(g, 0, 1) for g in candidates]
+    best, best_score = None, -np.inf
+    for g in candidates:
+        a = g[0, -1] - g[0, 0]
+        b = g[-1, 0] - g[0, 0]
+        if a[0] * b[1] - a[1] * b[0] <= 0:
+            continue
+        score = a[0] / np.linalg.norm(a) + b[1] / np.linalg.norm(b)
+        if score > best_score:
+            best, best_score = g, score
+    return best.reshape(-1, 2)
+
+
+def detect_grid(image: np.ndarray, cols: int, rows: int) -> GridDetection:
+    """Find a symmetric grid of dark circles on a light target, with sub-pixel ellipse centres.
+
+    OpenCV's ``findCirclesGrid`` finds and orders the grid; each centre is then re-measured as the
+    intensity-weighted centroid of its blob: weights ``(bg - I) / (bg - ink)`` clipped to [0, 1],
+    with ``bg`` the local paper level (grey dilation) and ``ink`` the blob's darkest level, so the
+    partially covered edge pixels count by their coverage.
+
+    Parameters
+    ----------
+    image : (H, W, 3) or (H, W) ndarray
+        Linear image.
+    cols, rows : int
+        Circles per row and per column.
+    """
+    import cv2
+
+    g = _grey(image)
+    lo, hi = np.percentile(g, [0.5, 99.5])
+    g8 = np.clip(255 * (g - lo) / max(hi - lo, 1e-12), 0, 255).astype(np.uint8)
+    detector = _blob_detector(g.shape)
+    n_blobs = len(detector.detect(g8))
+    found, centres = cv2.findCirclesGrid(g8, (cols, rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID,
+                                         blobDetector=detector)
+    if not found or centres is None or len(centres) != cols * rows:
+        return GridDetection(False, None, None, n_blobs)
+    centres = _canonical_order(centres.reshape(-1, 2).astype(np.float64), cols, rows)
+
+    # Local paper level: grey dilation wider than the largest circle removes the dark discs.
+    step = np.median(np.linalg.norm(np.diff(centres.reshape(rows, cols, 2), axis=1), axis=2))
+    k = int(2 * np.ceil(step) + 1)
+    bg = cv2.dilate(g.astype(np.float32), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(np.float64)
+    # Blobs: connected components of "darker than half-way", grown by 2 px to take in the edge.
+    dark = (g < 0.5 * (bg + np.percentile(g, 1))).astype(np.uint8)
+    n_lab, labels = cv2.connectedComponents(dark, connectivity=8)
+    ij = np.round(centres).astype(int)
+    ij[:, 0] = ij[:, 0].clip(0, g.shape[1] - 1)
+    ij[:, 1] = ij[:, 1].clip(0, g.shape[0] - 1)
+    ids = labels[ij[:, 1], ij[:, 0]]
+    if np.any(ids == 0) or len(np.unique(ids)) != len(ids):
+        return GridDetection(False, None, None, n_blobs)  # a centre off its blob, or two merged
+    lut = np.zeros(n_lab, np.float32)
+    lut[ids] = np.arange(1, len(ids) + 1)
+    grown = cv2.dilate(lut[labels], np.ones((5, 5), np.uint8)).astype(np.int64)  # 0 = none, k+1 = circle k
+    ink = np.full(len(ids) + 1, np.inf)
+    np.minimum.at(ink, grown.ravel(), g.ravel())
+    w = np.clip((bg - g) / np.maximum(bg - ink[grown], 1e-9), 0.0, 1.0)
+    w[grown == 0] = 0.0
+    v, u = np.mgrid[0 : g.shape[0], 0 : g.shape[1]]
+    m00 = np.bincount(grown.ravel(), w.ravel(), len(ids) + 1)[1:]
+    mu = np.bincount(grown.ravel(), (w * u).ravel(), len(ids) + 1)[1:] / np.maximum(m00, 1e-12)
+    mv = np.bincount(grown.ravel(), (w * v).ravel(), len(ids) + 1)[1:] / np.maximum(m00, 1e-12)
+    if np.any(m00 < 3):
+        return GridDetection(False, None, None, n_blobs)
+    return GridDetection(True, np.stack([mu, mv], axis=1), m00, n_blobs)
+
+
+def circle_conics(points: np.ndarray, radius: float) -> np.ndarray:
+    """(N, 3, 3) conic matrices of circles of ``radius`` centred at plane points (N, >=2)."""
+    x, y = points[:, 0], points[:, 1]
+    Q = np.zeros((len(points), 3, 3))
+    Q[:, 0, 0] = Q[:, 1, 1] = 1.0
+    Q[:, 0, 2] = Q[:, 2, 0] = -x
+    Q[:, 1, 2] = Q[:, 2, 1] = -y
+    Q[:, 2, 2] = x**2 + y**2 - radius**2
+    return Q
+
+
+def ellipse_centres(R: np.ndarray, t: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """Normalised (undistorted) image coordinates of the centres of the imaged circles.
+
+    The plane-to-image homography ``H = [r1 r2 t]`` maps the circle's conic ``Q`` to
+    ``C = H^-T Q H^-1``; the ellipse centre is ``-C[:2,:2]^-1 C[:2,2]``. With ``radius = 0`` this
+    is the projected circle centre.
+
+    Parameters
+    ----------
+    R, t : (3, 3), (3,) ndarray, or (V, 3, 3), (V, 3) for V views at once
+        Target-to-camera pose(s).
+    points : (N, 3) ndarray
+        Circle centres on the target plane z = 0.
+    radius : float
+        Printed circle radius, same unit as ``points`` and ``t``.
+
+    Returns
+    -------
+    (N, 2) or (V, N, 2) ndarray
+    """
+    R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    single = R.ndim == 2
+    H = np.concatenate([np.atleast_3d(R.reshape(-1, 3, 3))[:, :, :2], t.reshape(-1, 3, 1)], axis=2)
+    if radius == 0:
+        p = np.einsum("vij,nj->vni", H, np.column_stack([points[:, 0], points[:, 1], np.ones(len(points))]))
+        out = p[..., :2] / p[..., 2:3]
+    else:
+        Hinv = np.linalg.inv(H)
+        C = np.einsum("vji,njk,vkl->vnil", Hinv, circle_conics(points, radius), Hinv, optimize=True)
+        A, b = C[..., :2, :2], C[..., :2, 2]
+        det = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+        # -A^-1 b for symmetric 2x2 A, written out (fast for many small systems).
+        out = -np.stack([A[..., 1, 1] * b[..., 0] - A[..., 0, 1] * b[..., 1],
+                         A[..., 0, 0] * b[..., 1] - A[..., 1, 0] * b[..., 0]], axis=-1) / det[..., None]
+    return out[0] if single else out

@@ -1,0 +1,235 @@
+"""Simulated calibration captures: a printed circle target and rod shadows, rendered with Mitsuba 3.
+
+The truth is an OpenCV camera (:class:`calibration.camera.Camera`, distortion included). Mitsuba
+renders an undistorted pinhole image with a wider field of view and finer pixels; ``cv2.remap``
+then samples it at the undistorted position of every output pixel, so the returned image is
+exactly what the distorted OpenCV camera sees (up to the bilinear resampling of the fine render).
+
+World frame as in INTERFACES.md: metres, the ground/target plane is z = 0, +z up toward the
+camera. Circle (column i, row j) of the target is at ``(i * spacing, -j * spacing, 0)``, the
+order :func:`calibration.circles.detect_grid` returns (row by row, rows top to bottom).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.camera import Camera
+
+
+def target_points(cols: int, rows: int, spacing: float) -> np.ndarray:
+    """(rows*cols, 3) centres of a symmetric circle grid, row-major, on the plane z = 0."""
+    j, i = np.mgrid[0:rows, 0:cols]
+    return np.stack([i.ravel() * spacing, -j.ravel() * spacing, np.zeros(i.size)], axis=1).astype(np.float64)
+
+
+def target_texture(cols: int, rows: int, spacing: float, radius: float, texels_per_m: float = 12000.0):
+    """Anti-aliased printed target (white paper, black discs) and its extent on the plane.
+
+    Returns
+    -------
+    image : (H, W) float32 ndarray
+        Reflectance, row 0 at the target's top edge (largest y).
+    extent : tuple
+        ``(xmin, xmax, ymin, ymax)`` of the printed sheet in world metres.
+    """
+    margin = spacing
+    xmin, xmax = -margin, (cols - 1) * spacing + margin
+    ymin, ymax = -(rows - 1) * spacing - margin, margin
+    w = int(np.ceil((xmax - xmin) * texels_per_m))
+    h = int(np.ceil((ymax - ymin) * texels_per_m))
+    x = xmin + (np.arange(w) + 0.5) * (xmax - xmin) / w
+    y = ymax - (np.arange(h) + 0.5) * (ymax - ymin) / h
+    # Distance to the nearest grid centre, separably: the grid is axis-aligned.
+    dx = np.abs(x - np.clip(np.round(x / spacing), 0, cols - 1) * spacing)
+    dy = np.abs(y + np.clip(np.round(-y / spacing), 0, rows - 1) * spacing)
+    d = np.sqrt(dx[None, :] ** 2 + dy[:, None] ** 2)
+    texel = (xmax - xmin) / w
+    ink = np.clip(0.5 - (d - radius) / texel, 0.0, 1.0)  # linear coverage ramp over one texel
+    return (1.0 - 0.95 * ink).astype(np.float32), (xmin, xmax, ymin, ymax)
+
+
+def _rectangle(extent, z=0.0):
+    """Mitsuba ``to_world`` of a rectangle covering ``extent`` at height z (normal +z)."""
+    from hardware.mitsuba_env import mitsuba
+
+    mi = mitsuba()
+    xmin, xmax, ymin, ymax = extent
+    return mi.ScalarTransform4f().translate([(xmin + xmax) / 2, (ymin + ymax) / 2, z]).scale(
+        [(xmax - xmin) / 2, (ymax - ymin) / 2, 1.0])
+
+
+def render_view(camera: Camera, objects: dict, spp: int = 16, oversample: float = 1.5) -> np.ndarray:
+    """Render Mitsuba ``objects`` (shapes, emitters, integrator) as seen by a distorted camera.
+
+    Parameters
+    ----------
+    camera : Camera
+        The true camera (OpenCV intrinsics, distortion and pose).
+    objects : dict
+        Mitsuba scene entries other than the sensor; an ``integrator`` entry is required.
+    spp : int
+        Samples per pixel of the fine render (box filter: exact pixel-area integration).
+    oversample : float
+        Fine-render focal length relative to the camera's, so the final remap blurs little.
+
+    Returns
+    -------
+    (H, W, C) float32 ndarray, all channels the integrator writes.
+    """
+    import cv2
+
+    from hardware.mitsuba_env import mitsuba
+
+    mi = mitsuba()
+    W, H = camera.width, camera.height
+    v, u = np.mgrid[0:H, 0:W]
+    xy = camera.undistort(np.stack([u.ravel(), v.ravel()], 1).astype(np.float64))
+    f = oversample * max(camera.K[0, 0], camera.K[1, 1])
+    half_w = np.abs(xy[:, 0]).max() * f + 2
+    half_h = np.abs(xy[:, 1]).max() * f + 2
+    rw, rh = int(2 * np.ceil(half_w)), int(2 * np.ceil(half_h))
+    fov = np.degrees(2 * np.arctan(rw / 2 / f))
+    C = camera.center
+    to_world = mi.ScalarTransform4f().look_at(origin=C.tolist(), target=(C + camera.R[2]).tolist(),
+                                              up=(-camera.R[1]).tolist())
+    scene = dict(objects, type="scene")
+    scene["sensor"] = {
+        "type": "perspective", "fov": float(fov), "fov_axis": "x", "to_world": to_world,
+        "near_clip": 1e-3, "far_clip": 1e3,
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": rw, "height": rh, "rfilter": {"type": "box"},
+                 "pixel_format": "rgb"},
+    }
+    fine = np.array(mi.render(mi.load_dict(scene, optimize=False)), dtype=np.float32)
+    # Fine pixel centre of normalised point (x, y): f * (x, y) + ((rw - 1) / 2, (rh - 1) / 2).
+    map_u = (xy[:, 0] * f + (rw - 1) / 2).reshape(H, W).astype(np.float32)
+    map_v = (xy[:, 1] * f + (rh - 1) / 2).reshape(H, W).astype(np.float32)
+    chans = [cv2.remap(np.ascontiguousarray(fine[:, :, c]), map_u, map_v, cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE) for c in range(fine.shape[2])]
+    return np.stack(chans, axis=2)
+
+
+def render_target(camera: Camera, cols: int, rows: int, spacing: float, radius: float, *,
+                  noise: float = 0.005, spp: int = 16, seed: int = 0, background: float = 0.3) -> np.ndarray:
+    """Linear RGB image of the printed circle target lying on the plane z = 0.
+
+    The sheet is self-emitting (radiance = its reflectance), so the image has no lighting noise,
+    over a uniform grey table of radiance ``background``; Gaussian sensor noise of std ``noise``.
+    """
+    from hardware.mitsuba_env import mitsuba
+
+    mi = mitsuba()
+    tex, extent = target_texture(cols, rows, spacing, radius)
+    # Bitmap row 0 maps to uv v = 0, which Mitsuba's rectangle puts at y = -1: flip rows.
+    bmp = mi.Bitmap(np.ascontiguousarray(tex[::-1, :, None]))
+    black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
+    objects = {
+        "integrator": {"type": "direct"},
+        "sheet": {"type": "rectangle", "to_world": _rectangle(extent, 0.0), "bsdf": black,
+                  "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": bmp, "raw": True,
+                                                           "filter_type": "bilinear"}}},
+        "table": {"type": "rectangle", "to_world": _rectangle((-5, 5, -5, 5), -1e-4), "bsdf": black,
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [background] * 3}}},
+    }
+    img = render_view(camera, objects, spp=spp)[:, :, :3]
+    rng = np.random.default_rng(seed)
+    return (img + rng.normal(0.0, noise, img.shape)).astype(np.float32)
+
+
+def random_target_poses(n: int, cols: int, rows: int, spacing: float, seed: int = 0, *,
+                        distance: float = 0.45, max_tilt_deg: float = 40.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` camera poses (R, t) looking at the target's centre from varied tilted directions.
+
+    The camera sits ``distance`` (±10%) from the target centre, its axis ``max_tilt_deg`` at most
+    off the target normal, rolled by up to ±20°: a spread of orientations that is not degenerate.
+    """
+    rng = np.random.default_rng(seed)
+    centre = np.array([(cols - 1) * spacing / 2, -(rows - 1) * spacing / 2, 0.0])
+    poses = []
+    for k in range(n):
+        tilt = np.radians(max_tilt_deg * (0.35 + 0.65 * rng.random()))
+        azim = 2 * np.pi * (k / n) + rng.normal(0, 0.3)
+        d = distance * (0.9 + 0.2 * rng.random())
+        eye = centre + d * np.array([np.sin(tilt) * np.cos(azim), np.sin(tilt) * np.sin(azim), np.cos(tilt)])
+        aim = centre + rng.normal(0, 0.01, 3) * np.array([1, 1, 0])
+        z = aim - eye
+        z /= np.linalg.norm(z)
+        roll = np.radians(rng.uniform(-20, 20))
+        up = np.array([np.sin(roll), np.cos(roll), 0.0])
+        x = np.cross(z, up)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        poses.append((R, -R @ eye))
+    return poses
+
+
+@dataclass
+class RodScene:
+    """A vertical rod on the ground plane lit by one point lamp; its true marks.
+
+    Attributes
+    ----------
+    foot : (3,) ndarray
+        Rod foot on z = 0.
+    height, radius : float
+        Rod height and radius (metres).
+    lamp : (3,) ndarray
+        Lamp position.
+    """
+
+    foot: np.ndarray
+    height: float
+    radius: float
+    lamp: np.ndarray
+
+    @property
+    def tip(self) -> np.ndarray:
+        """Shadow tip on z = 0: where the line lamp -> rod top meets the ground."""
+        top = self.foot + np.array([0.0, 0.0, self.height])
+        s = self.lamp[2] / (self.lamp[2] - self.height)
+        return self.lamp + s * (top - self.lamp)
+
+
+def render_rod(camera: Camera, rod: RodScene, *, intensity: float = 0.3, ambient: float = 0.05,
+               ground_reflectance: float = 0.7, spp: int = 8, noise: float = 0.002, seed: int = 0) -> np.ndarray:
+    """Linear RGB image of a red vertical rod on a grey ground lit by one point lamp.
+
+    The ambient term (``ambient`` times each surface's reflectance, Mitsuba's albedo AOV) stands for
+    the room's light: it keeps the rod's unlit side and the shadow distinguishable by colour.
+    """
+    from hardware.mitsuba_env import mitsuba
+
+    mi = mitsuba()
+    foot = np.asarray(rod.foot, dtype=np.float64)
+    objects = {
+        "integrator": {"type": "aov", "aovs": "albedo:albedo", "direct": {"type": "direct"}},
+        "ground": {"type": "rectangle", "to_world": _rectangle((-3, 3, -3, 3), 0.0),
+                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [ground_reflectance] * 3}}},
+        "rod": {"type": "cylinder", "p0": foot.tolist(), "p1": (foot + [0, 0, rod.height]).tolist(),
+                "radius": float(rod.radius),
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.6, 0.04, 0.04]}}},
+        "cap": {"type": "disk", "to_world": mi.ScalarTransform4f().translate((foot + [0, 0, rod.height]).tolist())
+                .scale([rod.radius, rod.radius, 1.0]),
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.6, 0.04, 0.04]}}},
+        "lamp": {"type": "point", "position": np.asarray(rod.lamp, float).tolist(),
+                 "intensity": {"type": "rgb", "value": [intensity] * 3}},
+    }
+    img = render_view(camera, objects, spp=spp)
+    out = img[:, :, :3] + ambient * img[:, :, 3:6]
+    rng = np.random.default_rng(seed)
+    return (out + rng.normal(0.0, noise, out.shape)).astype(np.float32)
+
+
+def render_lit_ground(camera: Camera, lamp: np.ndarray, intensity, reflectance: float, *, spp: int = 4) -> np.ndarray:
+    """Linear RGB image of a Lambertian ground (z = 0) of ``reflectance`` under one point lamp."""
+    objects = {
+        "integrator": {"type": "direct"},
+        "ground": {"type": "rectangle", "to_world": _rectangle((-3, 3, -3, 3), 0.0),
+                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [reflectance] * 3}}},
+        "lamp": {"type": "point", "position": np.asarray(lamp, float).tolist(),
+                 "intensity": {"type": "rgb", "value": np.broadcast_to(np.asarray(intensity, float), (3,)).tolist()}},
+    }
+    return render_view(camera, objects, spp=spp)[:, :, :3].astype(np.float32)
