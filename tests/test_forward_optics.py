@@ -150,7 +150,7 @@ def test_lambert_has_no_nonlinear_parameters():
 def test_phong_extreme_exponents_are_finite():
     model = get_model("phong")
     n = np.tile([0.0, 0, 1], (4, 1))
-    # half vectors: exactly n (n·h = 1), perpendicular-ish (n·h -> 0), and a typical angle
+    # h = n (head-on, and grazing light opposite a grazing view), a typical angle, a mirror pair
     l = np.array([[0, 0, 1.0], [1, 0, 1e-9], [0.6, 0, 0.8], [0, 0.6, 0.8]])
     v = np.array([[0, 0, 1.0], [-1, 0, 1e-9], [0, 0, 1.0], [0, -0.6, 0.8]])
     l /= np.linalg.norm(l, axis=1, keepdims=True)
