@@ -89,8 +89,8 @@ class OpenCVCamera:
 class FolderCamera:
     """A tethered camera that writes each shot into a folder (its own software, or ``trigger``).
 
-    A new file counts once its size has not changed for ``settle_s``: the camera software may
-    still be writing it. Raw formats (CR2, NEF …) must be converted to linear 16-bit TIFF or
+    A new file counts once its size has not changed for ``settle_s`` and it reads as a complete
+    image: the camera software may still be writing it. Raw formats (CR2, NEF …) must be converted to linear 16-bit TIFF or
     EXR by the tethering software (e.g. with dcraw -4 -T).
 
     Parameters
@@ -117,6 +117,7 @@ class FolderCamera:
 
     def capture(self, exposure: float | None = None) -> np.ndarray:
         from hardware.images import read_image
+        from hardware.workspace import WorkspaceError
 
         before = set(self._images())
         if self.trigger:
@@ -133,10 +134,15 @@ class FolderCamera:
                 if path not in seen or seen[path][0] != size:
                     seen[path] = (size, now)
                 elif size > 0 and now - seen[path][1] >= self.settle_s:
+                    try:
+                        image = read_image(path)
+                    except WorkspaceError:
+                        seen[path] = (size, now)  # truncated: the writer paused longer than settle_s
+                        continue
                     self.last_file = path
-                    return read_image(path)
+                    return image
             time.sleep(0.05)
-        raise CameraError(f"no new image in {self.folder} within {self.timeout_s:g} s; check the tethering software "
+        raise CameraError(f"no new complete image in {self.folder} within {self.timeout_s:g} s; check the tethering software "
                           f"saves to this folder as {'/'.join(FOLDER_SUFFIXES)}")
 
     def describe(self) -> dict:
