@@ -29,6 +29,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.lights import Lights, PointLight
+from hardware.workspace import write_json
 from reconstruction.scene import Material, Mesh, Scene, Surface
 
 #: Full resolution of the simulated camera (the dissertation's 640x480).
@@ -258,8 +259,17 @@ def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured
     return SimLab(camera, lights, Scene(surfaces), textures if textured else {})
 
 
-def write_lab(workspace, lab: SimLab) -> dict[str, Path]:
+def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Path]:
     """Write the lab's camera.json, lights.json, scene.json and meshes/*.ply into ``workspace``.
+
+    Parameters
+    ----------
+    workspace : path-like
+    lab : SimLab
+    materials : bool
+        True: scene.json carries the true materials. False: only what a user knows before
+        fitting (``brdf`` and ``ior``), and the truth goes to ``truth.json`` (fit.json's
+        "surfaces" layout) for comparison.
 
     Returns
     -------
@@ -268,8 +278,15 @@ def write_lab(workspace, lab: SimLab) -> dict[str, Path]:
     """
     root = Path(workspace)
     root.mkdir(parents=True, exist_ok=True)
-    scene = Scene(lab.scene.surfaces, root)
+    surfaces = lab.scene.surfaces
+    if not materials:
+        surfaces = [Surface(s.name, s.mesh_path, Material(s.material.brdf, {}, s.material.ior), s.textured, s.mesh, s.extra)
+                    for s in surfaces]
+    scene = Scene(surfaces, root)
     written = {"camera": lab.camera.save(root / "camera.json"), "lights": lab.lights.save(root / "lights.json"),
                "scene": scene.save(root / "scene.json")}
+    if not materials:
+        written["truth"] = write_json(root / "truth.json", {"surfaces": [
+            {"name": s.name, "textured": s.textured, "material": s.material.to_json()} for s in lab.scene]})
     written.update({s.name: root / s.mesh_path for s in scene})
     return written
