@@ -1,13 +1,13 @@
 """`reflab demo`: the simulated lab end to end at a small size, with the later stages stubbed
 (missing, or replaced by stand-ins that write the true model) so the plumbing is checked alone."""
 import re
+import sys
 import types
 
 import numpy as np
 import pytest
 
 import app.commands.demo as demo
-import inverse.texture
 from app.cli import main
 from hardware.images import read_image
 from hardware.simlab import build_lab
@@ -63,8 +63,8 @@ def test_demo_runs_stages_and_reports_the_model_error(tmp_path, monkeypatch, cap
         return types.SimpleNamespace(add_arguments=lambda p: p.add_argument("workspace"), run=run)
 
     monkeypatch.setattr(demo, "_stage", lambda name: module({"fit": fake_fit, "texture": fake_texture}[name]))
-    monkeypatch.setattr(inverse.texture, "albedo_nodes",
-                        lambda ws, scene, trees: lab.albedo_at(trees.surface, trees.point))
+    monkeypatch.setitem(sys.modules, "inverse.texture", types.SimpleNamespace(
+        albedo_nodes=lambda ws, scene, trees: lab.albedo_at(trees.surface, trees.point)))
     assert main(["demo", str(tmp_path / "demo"), "--size", "64x48", "--noise", "0.01"]) == 0
     out = capsys.readouterr().out
     assert ran == ["fit", "texture"]

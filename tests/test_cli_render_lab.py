@@ -1,9 +1,11 @@
 """`reflab render` end to end on a small simulated-lab workspace, checked against the independent
 reference renderer (hardware/reference.py) with the same materials, lights, camera and texture."""
+import sys
+import types
+
 import numpy as np
 import pytest
 
-import inverse.texture
 from app.cli import main
 from calibration.lights import Lights
 from hardware.images import read_image
@@ -81,7 +83,8 @@ def test_render_uses_texture_stage_albedo(ws, monkeypatch, capsys):
         kd[trees.surface == scene.index("mirror")] = np.nan  # unknown: falls back to homogeneous kd
         return kd
 
-    monkeypatch.setattr(inverse.texture, "albedo_nodes", albedo_nodes)
+    # The texture stage's hook, stood in by the true albedo (textures/ exists).
+    monkeypatch.setitem(sys.modules, "inverse.texture", types.SimpleNamespace(albedo_nodes=albedo_nodes))
     assert main(["render", str(root), "-o", str(root / "tex.exr")]) == 0
     assert calls and "unknown" in capsys.readouterr().out
     ref = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)
@@ -117,3 +120,14 @@ def test_render_missing_scene_names_the_file(tmp_path, capsys):
     assert main(["render", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "scene.json" in err and "reflab reconstruct" in err
+
+
+def test_render_bad_fit_json_names_file_and_field(ws, capsys):
+    root, lab = ws
+    write_json(root / "fit.json", {"surfaces": [{"name": "table", "material": {"brdf": "lambert", "ior": None}}]})
+    assert main(["render", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert "fit.json" in err and "surfaces[0].name" in err and "table" in err
+    write_json(root / "fit.json", {"surfaces": [{"name": "tile", "material": {"brdf": "phong", "kd": [0.5, -1, 0], "ior": None}}]})
+    assert main(["render", str(root)]) == 2
+    assert "surfaces[0].material.kd" in capsys.readouterr().err

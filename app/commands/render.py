@@ -56,6 +56,29 @@ def texture_albedo(workspace, scene, trees):
     return albedo_nodes(ws, scene, trees)
 
 
+def fitted_materials(workspace, scene) -> tuple[list, str]:
+    """Materials in surface order: fit.json's "surfaces"[i]["material"] when it exists (matched by
+    name, else by position), else scene.json's; returns them and the file they came from."""
+    from hardware.workspace import Workspace, WorkspaceError, read_json
+    from reconstruction.scene import Material
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    materials = [s.material for s in scene]
+    if not ws.fit.exists():
+        return materials, "scene.json"
+    items = read_json(ws.fit).get("surfaces")
+    if not isinstance(items, list):
+        raise WorkspaceError(ws.fit, "surfaces", "a list of fitted surfaces", got=items)
+    for i, item in enumerate(items):
+        if not isinstance(item, dict) or "material" not in item:
+            raise WorkspaceError(ws.fit, f"surfaces[{i}]", "an object with 'name' and 'material'", got=item)
+        name = item.get("name", scene[i].name if i < len(scene) else None)
+        if name not in scene.names:
+            raise WorkspaceError(ws.fit, f"surfaces[{i}].name", f"one of the scene's surfaces {scene.names}", got=name)
+        materials[scene.index(name)] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
+    return materials, "fit.json"
+
+
 def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3) -> tuple:
     """Render the model of ``workspace`` (see the module's description).
 
@@ -82,7 +105,6 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     from calibration.lights import Lights
     from hardware.workspace import Workspace
     from inverse.rendering import render, render_albedo
-    from inverse.texture import load_materials
     from inverse.trees import build_trees
     from reconstruction.scene import Scene
 
@@ -90,7 +112,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     cam = Camera.load(camera or ws.require(ws.camera, "reflab calibrate camera"))
     lig = Lights.load(lights or ws.require(ws.lights, "reflab calibrate lights"))
     scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
-    materials, source = load_materials(ws, scene)  # fit.json's when present
+    materials, source = fitted_materials(ws, scene)
 
     t0 = time.perf_counter()
     trees = build_trees(scene, cam, lig, depth=depth)
