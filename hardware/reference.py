@@ -240,7 +240,8 @@ def render_reference(scene: Scene, camera: Camera, lights: Lights, depth: int = 
             dist2 = np.maximum(np.sum(to_light**2, axis=1), 1e-300)
             dist = np.sqrt(dist2)
             l = to_light / dist[:, None]
-            lit = (np.sum(ns * l, axis=1) > 0) & (np.sum(ng * l, axis=1) > 0)
+            # A lamp within EPS of the point has no defined direction: it does not light it.
+            lit = (np.sum(ns * l, axis=1) > 0) & (np.sum(ng * l, axis=1) > 0) & (dist > EPS)
             idx = np.flatnonzero(lit)
             counts["shadow"] += len(idx)
             lit[idx] = ~caster.occluded(origin[idx], l[idx], dist[idx] - 2 * EPS)

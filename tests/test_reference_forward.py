@@ -76,3 +76,24 @@ def test_lab_exercises_mirror_sheet_highlights_and_shadows(small):
     # Shadows: a part of the directly seen ground misses one lamp or both.
     ground = (trees.surface == names.index("ground")) & (trees.level == 1)
     assert 0.03 < np.mean(~trees.visible[ground].all(axis=1)) < 0.6
+
+
+def test_forward_model_matches_reference_ward_and_oren_nayar():
+    from reconstruction.scene import Material
+
+    lab = build_lab(120, 90)
+    box, ground = lab.scene[lab.scene.index("box")], lab.scene[lab.scene.index("ground")]
+    box.material = Material("ward", {"kd": box.material["kd"], "ks": np.full(3, 0.3), "alpha": np.float64(0.15),
+                                     "r": np.full(3, 0.04), "t": np.zeros(3)})
+    ground.material = Material("oren-nayar", {"kd": ground.material["kd"], "sigma": np.float64(0.4),
+                                              "r": np.zeros(3), "t": np.zeros(3)})
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    ours = render(trees, [s.material for s in lab.scene], lab.lights.intensities)
+    ref = render_reference(lab.scene, lab.camera, lab.lights, depth=3)
+    assert _rel_rms(ours, ref) < 0.01
+    # The models matter: Lambert in their place gives another image.
+    plain = [s.material.copy() for s in lab.scene]
+    for m in plain:
+        if m.brdf in ("ward", "oren-nayar"):
+            m.brdf = "lambert"
+    assert _rel_rms(render(trees, plain, lab.lights.intensities), ref) > 0.02
