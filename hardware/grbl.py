@@ -22,6 +22,13 @@ import serial
 
 from hardware.workspace import WorkspaceError, read_json
 
+try:  # pyserial lets termios and ioctl errors of a vanished tty through unwrapped
+    import termios
+
+    _PORT_ERRORS: tuple = (OSError, termios.error)
+except ImportError:  # Windows
+    _PORT_ERRORS = (OSError,)
+
 #: GRBL 1.1 error codes (doc/csv/error_codes_en_US.csv), the ones a turntable can meet.
 ERRORS = {
     1: "G-code words consist of a letter and a value; letter was not found",
@@ -289,7 +296,10 @@ class GrblController:
     def connect(self) -> "GrblController":
         """Open the port, wait for GRBL, read its state; raise :class:`GrblAlarm` if it is in Alarm."""
         self._open()
-        status = self._handshake()
+        try:
+            status = self._handshake()
+        except _PORT_ERRORS as exc:
+            raise DeviceLost(f"{self.port} failed while connecting ({exc}); check the USB cable and the board's power") from None
         self.position = status.position
         if status.state == "Alarm":
             raise GrblAlarm(self._pending_alarm, f" on {self.port}")
@@ -368,7 +378,8 @@ class GrblController:
             try:
                 self._open()
                 status = self._handshake()
-            except DeviceLost:
+            except (DeviceLost, *_PORT_ERRORS) as exc:
+                cause = exc
                 continue
             self.reconnect_count += 1
             if status.state == "Alarm":
@@ -423,9 +434,7 @@ class GrblController:
         while True:
             try:
                 return fn(*args)
-            except serial.SerialTimeoutException:
-                raise
-            except serial.SerialException as exc:
+            except _PORT_ERRORS as exc:  # SerialException is an OSError
                 self._reconnect(exc)
 
     def _note(self, line: str, kind: str, waiting_for: str) -> None:
