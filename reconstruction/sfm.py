@@ -1,0 +1,325 @@
+"""Structure from motion over a turntable sweep with pycolmap, on the CPU.
+
+The camera stands still while the turntable turns the objects, which is the same as the camera
+orbiting objects that stand still, provided what does not turn (the table, the room) is masked
+out. The intrinsics come from camera.json and stay fixed; images are matched in sweep order
+with the sweep closed into a loop (shot N-1 is matched with shot 0), and COLMAP's incremental
+mapper recovers one pose per shot in an arbitrary similarity frame (see
+:mod:`reconstruction.registration` for the workspace frame).
+
+COLMAP puts the centre of the top-left pixel at (0.5, 0.5); camera.json (OpenCV) puts it at
+(0, 0): the principal point is shifted by half a pixel on the way in and keypoints on the way out.
+"""
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera
+from hardware.workspace import WorkspaceError
+
+#: A pixel whose display value varies less than this over the whole sweep does not turn.
+STATIC_THRESHOLD = 4.0 / 255.0
+
+
+@dataclass
+class SfMResult:
+    """Poses and sparse points of one turntable sweep, in the reconstruction's own frame.
+
+    Attributes
+    ----------
+    names : list of str
+        Image names in sweep order (the input order).
+    R : (N, 3, 3) ndarray
+        World-to-camera rotations; NaN rows for images that were not registered.
+    t : (N, 3) ndarray
+        World-to-camera translations; NaN for images that were not registered.
+    points : (P, 3) ndarray
+        Sparse 3D points.
+    point_error : (P,) ndarray
+        Mean reprojection error of each point (pixels).
+    tracks : list of ndarray
+        For each point, the indices (into ``names``) of the images that see it.
+    report : dict
+        ``registered``, ``images``, ``unregistered`` (names), ``reprojection_px`` (mean),
+        ``points``, ``mean_track_length``, ``time_s`` per stage and in all.
+    """
+
+    names: list
+    R: np.ndarray
+    t: np.ndarray
+    points: np.ndarray
+    point_error: np.ndarray
+    tracks: list
+    report: dict = field(default_factory=dict)
+
+    @property
+    def registered(self) -> np.ndarray:
+        """(N,) bool: images with a recovered pose."""
+        return np.all(np.isfinite(self.t), axis=1)
+
+    @property
+    def centers(self) -> np.ndarray:
+        """(N, 3) camera centres (NaN where unregistered)."""
+        return -np.einsum("nji,nj->ni", self.R, self.t)
+
+
+def colmap_camera(camera: Camera) -> tuple[str, str]:
+    """COLMAP camera model name and parameter string for ``camera``'s fixed intrinsics.
+
+    Raises
+    ------
+    ValueError
+        For skewed pixels or thin-prism/tilt distortion terms, which COLMAP cannot hold.
+    """
+    K, d = camera.K, np.zeros(8)
+    if abs(K[0, 1]) > 1e-9 * K[0, 0]:
+        raise ValueError(f"camera.json: field 'K': COLMAP cannot hold a skew of {K[0, 1]} (expected 0)")
+    if len(camera.dist) > 8 and np.any(camera.dist[8:] != 0):
+        raise ValueError("camera.json: field 'dist': COLMAP cannot hold thin-prism or tilt terms (expected at most 8)")
+    d[: min(8, len(camera.dist))] = camera.dist[:8]
+    head = [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5]
+    if np.any(d[4:] != 0):
+        return "FULL_OPENCV", ",".join(f"{x:.17g}" for x in head + list(d))
+    return "OPENCV", ",".join(f"{x:.17g}" for x in head + list(d[:4]))
+
+
+def static_mask(images: list) -> np.ndarray:
+    """(H, W) bool: pixels that look the same in every shot (the table, the room: they do not turn).
+
+    Parameters
+    ----------
+    images : list of (H, W) ndarray
+        Display-encoded grey images in [0, 1], one per shot.
+    """
+    stack = np.stack(images).astype(np.float32)
+    spread = stack.max(axis=0) - stack.min(axis=0)
+    return spread < STATIC_THRESHOLD
+
+
+def _display(images: list) -> list:
+    """8-bit-ready sRGB grey images sharing one exposure (SIFT wants perceptual contrast)."""
+    exposure = 1.0 / max(float(np.percentile(np.stack([im.mean(axis=2) for im in images]), 99.5)), 1e-12)
+    out = []
+    for im in images:
+        x = np.clip(np.nan_to_num(im.mean(axis=2)) * exposure, 0.0, 1.0)
+        out.append(np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055))
+    return out
+
+
+def loop_pairs(n: int, overlap: int, closed: bool) -> list[tuple[int, int]]:
+    """Index pairs ``(i, i + d)`` for d = 1..overlap, wrapping around when the sweep is closed."""
+    pairs = set()
+    for d in range(1, min(overlap, n - 1) + 1):
+        for i in range(n):
+            j = i + d
+            if j >= n:
+                if not closed:
+                    continue
+                j -= n
+            if i != j:
+                pairs.add((min(i, j), max(i, j)))
+    return sorted(pairs)
+
+
+def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask: bool = True,
+            overlap: int = 5, closed: bool = True, min_registered: float = 0.9, max_features: int = 4000,
+            workdir=None, seed: int = 0) -> SfMResult:
+    """Recover the pose of every shot of a turntable sweep.
+
+    Parameters
+    ----------
+    images : list of (H, W, 3) float ndarray
+        Linear images in sweep order (the size of camera.json).
+    names : list of str
+        A name per image (used in messages and results).
+    camera : Camera
+        Calibrated intrinsics, held fixed.
+    masks : (H, W) bool ndarray or list of them, optional
+        True where the pixel may be used (what turns). Combined with the automatic mask.
+    auto_mask : bool
+        Mask out pixels that do not change over the sweep (:func:`static_mask`).
+    overlap : int
+        Each shot is matched with the next ``overlap`` shots.
+    closed : bool
+        The sweep is a full turn: match its end with its start (loop closure).
+    min_registered : float
+        Fraction of shots that must be registered; fewer raises :class:`WorkspaceError`.
+    max_features : int
+        SIFT features per image.
+    workdir : path-like, optional
+        Where COLMAP's database and images go (a temporary folder by default).
+    seed : int
+        COLMAP's random seed (repeatable runs).
+
+    Returns
+    -------
+    SfMResult
+    """
+    if len(images) != len(names):
+        raise ValueError(f"run_sfm: {len(images)} images but {len(names)} names")
+    if len(images) < 3:
+        raise WorkspaceError(names[0] if names else "captures/turntable", expected="at least 3 turntable shots",
+                             got=len(images))
+    for im, name in zip(images, names):
+        if im.shape[:2] != (camera.height, camera.width):
+            raise WorkspaceError(name, expected=f"an image of camera.json's size {camera.width}x{camera.height}",
+                                 got=f"{im.shape[1]}x{im.shape[0]}")
+    if workdir is None:
+        with tempfile.TemporaryDirectory(prefix="reflab-sfm-") as tmp:
+            return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
+                        Path(tmp), seed)
+    return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
+                Path(workdir), seed)
+
+
+def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features, work: Path, seed):
+    import cv2
+    import pycolmap
+
+    times = {}
+    t0 = time.perf_counter()
+    n = len(images)
+    grey = _display(images)
+    use = np.ones((n, camera.height, camera.width), dtype=bool)
+    if masks is not None:
+        use &= np.asarray(masks, dtype=bool)
+    if auto_mask:
+        use &= ~static_mask(grey)[None]
+    if not use.any(axis=(1, 2)).all():
+        bad = [names[i] for i in np.flatnonzero(~use.any(axis=(1, 2)))]
+        raise WorkspaceError(bad[0], expected="some pixels that turn with the turntable (the mask hides them all)",
+                             got=f"{len(bad)} fully masked shots")
+    img_dir, mask_dir = work / "images", work / "masks"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    mask_dir.mkdir(parents=True, exist_ok=True)
+    files = [f"{i:04d}.png" for i in range(n)]
+    for f, g, m in zip(files, grey, use):
+        cv2.imwrite(str(img_dir / f), (g * 255 + 0.5).astype(np.uint8))
+        cv2.imwrite(str(mask_dir / (f + ".png")), m.astype(np.uint8) * 255)
+    times["prepare_s"] = time.perf_counter() - t0
+
+    db = work / "database.db"
+    if db.exists():
+        db.unlink()
+    model, params = colmap_camera(camera)
+    reader = pycolmap.ImageReaderOptions(camera_model=model, camera_params=params, mask_path=str(mask_dir))
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = int(max_features)
+    extraction.use_gpu = False
+    t = time.perf_counter()
+    pycolmap.extract_features(db, img_dir, image_names=files, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction,
+                              device=pycolmap.Device.cpu)
+    times["features_s"] = time.perf_counter() - t
+
+    pairs_file = work / "pairs.txt"
+    pairs_file.write_text("".join(f"{files[i]} {files[j]}\n" for i, j in loop_pairs(n, overlap, closed)))
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    t = time.perf_counter()
+    pycolmap.match_image_pairs(db, matching_options=matching,
+                               pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_file),
+                               device=pycolmap.Device.cpu)
+    times["matching_s"] = time.perf_counter() - t
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.ba_refine_focal_length = False
+    options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = False
+    options.mapper.abs_pose_refine_focal_length = False
+    options.mapper.abs_pose_refine_extra_params = False
+    options.random_seed = int(seed)
+    options.multiple_models = False
+    t = time.perf_counter()
+    (work / "sparse").mkdir(exist_ok=True)
+    models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=options)
+    times["mapping_s"] = time.perf_counter() - t
+    times["total_s"] = time.perf_counter() - t0
+    return _result(models, names, files, camera, min_registered, times)
+
+
+def _result(models, names, files, camera, min_registered, times) -> SfMResult:
+    n = len(names)
+    rec = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+    R = np.full((n, 3, 3), np.nan)
+    t = np.full((n, 3), np.nan)
+    index = {f: i for i, f in enumerate(files)}
+    points, errors, tracks = np.zeros((0, 3)), np.zeros(0), []
+    reproj = float("nan")
+    if rec is not None:
+        image_index = {}
+        for image_id, image in rec.images.items():
+            if not image.has_pose:
+                continue
+            pose = image.cam_from_world()
+            i = index[image.name]
+            image_index[image_id] = i
+            R[i] = pose.rotation.matrix()
+            t[i] = pose.translation
+        pts = list(rec.points3D.values())
+        points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+        errors = np.array([p.error for p in pts], dtype=np.float64)
+        tracks = [np.unique([image_index[e.image_id] for e in p.track.elements if e.image_id in image_index])
+                  for p in pts]
+        reproj = float(rec.compute_mean_reprojection_error()) if pts else float("nan")
+    registered = np.all(np.isfinite(t), axis=1)
+    report = {
+        "images": n,
+        "registered": int(registered.sum()),
+        "unregistered": [names[i] for i in np.flatnonzero(~registered)],
+        "reprojection_px": reproj if np.isfinite(reproj) else None,
+        "points": int(len(points)),
+        "mean_track_length": float(np.mean([len(tr) for tr in tracks])) if tracks else 0.0,
+        "camera_model": colmap_camera(camera)[0],
+        "time_s": {k: round(v, 3) for k, v in times.items()},
+    }
+    need = max(3, int(np.ceil(min_registered * n)))
+    if registered.sum() < need:
+        missing = report["unregistered"]
+        raise WorkspaceError(
+            Path(names[0]).parent if names else "captures/turntable",
+            expected=f"at least {need} of {n} turntable shots registered by structure from motion "
+                     "(check the masks hide only what does not turn, that the objects are textured, and that "
+                     "consecutive shots overlap: smaller turntable steps)",
+            got=f"{int(registered.sum())} registered; not registered: {', '.join(missing[:8])}"
+                + (" ..." if len(missing) > 8 else ""))
+    return SfMResult(list(names), R, t, points, errors, tracks, report)
+
+
+def load_sweep(folder) -> tuple[list, np.ndarray | None]:
+    """Image paths of a turntable sweep in sweep order, and their commanded angles.
+
+    ``folder/manifest.json`` (written by ``reflab capture``, docs/hardware.md) lists the shots with
+    their ``file`` and ``angle``; without it the folder's images are taken in name order and the
+    angles are unknown (None).
+    """
+    from hardware.workspace import read_json
+
+    folder = Path(folder)
+    manifest = folder / "manifest.json"
+    if manifest.exists():
+        shots = read_json(manifest).get("shots")
+        if not isinstance(shots, list) or not shots:
+            raise WorkspaceError(manifest, "shots", "a non-empty list of shots", got=shots)
+        paths, angles = [], []
+        for i, shot in enumerate(shots):
+            if not isinstance(shot, dict) or "file" not in shot or "angle" not in shot:
+                raise WorkspaceError(manifest, f"shots[{i}]", "an object with 'file' and 'angle'", got=shot)
+            angle = shot["angle"]
+            if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not np.isfinite(angle):
+                raise WorkspaceError(manifest, f"shots[{i}].angle", "a finite number of degrees", got=angle)
+            paths.append(folder / str(shot["file"]))
+            angles.append(float(angle))
+        order = np.argsort(np.mod(angles, 360.0), kind="stable")
+        return [paths[i] for i in order], np.asarray(angles)[order]
+    paths = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".exr", ".png", ".tif", ".tiff")
+                   and not p.name.startswith(".")) if folder.is_dir() else []
+    if not paths:
+        raise WorkspaceError(folder, expected="turntable shots (captures/turntable/*.exr and its manifest.json, "
+                                              "made by `reflab capture sweep`)", got="none")
+    return paths, None

@@ -1,0 +1,394 @@
+"""Surfaces of the scene: fitted to sparse points, modelled from marked corners, or imported.
+
+Three sources, all in the workspace's world frame (metres, ground z = 0, +z up):
+
+* sparse SfM points of textured surfaces: the ground plane by RANSAC plane segmentation (Open3D),
+  then every cluster of points standing on it as a box resting on the ground, fitted to the
+  points' distance from the box surface (robust least squares);
+* corners marked in two or more registered shots (a marks file, docs/reconstruction.md), for what
+  feature matching cannot see: mirrors and transparent sheets. Like Façade (Debevec 1996), a
+  box's parameters (centre, rotation, edge lengths) are fitted to the marks' reprojection error;
+  edge lengths that the marks cannot show (a sheet's thickness) are given in the file;
+* a mesh from a scanner (PLY/OBJ).
+
+A transparent surface (``ior`` set) must be closed: a marked sheet is a thin box, and an imported
+open mesh with an ``ior`` is refused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera
+from hardware.workspace import WorkspaceError, as_array, as_float, read_json
+from reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
+
+#: Box corner labels in the order of :func:`box_mesh`'s vertices.
+CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+#: Quads counter-clockwise seen from outside: -x, +x, -y, +y, -z, +z.
+_QUADS = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+
+
+@dataclass
+class Modelled:
+    """A surface made by this module: name, mesh, material fields and where it came from."""
+
+    name: str
+    mesh: Mesh
+    brdf: str = "phong"
+    ior: float | None = None
+    textured: bool = True
+    source: str = ""
+    info: dict = field(default_factory=dict)
+
+
+def box_mesh(center, R, size) -> Mesh:
+    """A closed box (8 vertices, 12 outward triangles): corner k at ``center + R @ (CORNERS[k] * size / 2)``."""
+    verts = (CORNERS * (0.5 * np.asarray(size, dtype=np.float64))) @ np.asarray(R).T + np.asarray(center)
+    return Mesh(verts, [t for a, b, c, d in _QUADS for t in ((a, b, c), (a, c, d))])
+
+
+def quad_mesh(center, R, size) -> Mesh:
+    """An open rectangle in the box frame's z = 0 plane (two-sided): corners ``center + R @ (±w/2, ±h/2, 0)``."""
+    half = 0.5 * np.asarray(size, dtype=np.float64)[:2]
+    local = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64) * np.r_[half, 0]
+    return Mesh(local @ np.asarray(R).T + np.asarray(center), [[0, 1, 2], [0, 2, 3]])
+
+
+def plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane of ``normal``, the first as close to world x as possible."""
+    n = normal / np.linalg.norm(normal)
+    e1 = np.array([1.0, 0, 0]) - n[0] * n
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.array([0, 1.0, 0]) - n[1] * n
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+# ---------------------------------------------------------------- fitted to sparse points
+def fit_ground(points: np.ndarray, threshold: float = 0.002, up=(0.0, 0.0, 1.0), max_tilt_deg: float = 30.0):
+    """The ground plane: the largest RANSAC plane whose normal is within ``max_tilt_deg`` of ``up``.
+
+    Returns
+    -------
+    normal : (3,) ndarray
+        Unit normal, on ``up``'s side.
+    offset : float
+        ``normal @ x + offset = 0`` on the plane.
+    inliers : (N,) bool ndarray
+    """
+    import open3d as o3d
+
+    points = np.asarray(points, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    remaining = np.arange(len(points))
+    for _ in range(4):
+        if len(remaining) < 50:
+            break
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[remaining]))
+        model, idx = cloud.segment_plane(distance_threshold=threshold, ransac_n=3, num_iterations=2000,
+                                         probability=0.99999)
+        n = np.asarray(model[:3], dtype=np.float64)
+        if abs(n @ up) / np.linalg.norm(n) >= np.cos(np.radians(max_tilt_deg)):
+            inl = remaining[np.asarray(idx)]
+            # Least-squares refit on the inliers (RANSAC's plane passes through 3 noisy points).
+            centre = points[inl].mean(axis=0)
+            n = np.linalg.svd(points[inl] - centre)[2][-1]
+            n = n if n @ up > 0 else -n
+            d = -n @ centre
+            inliers = np.abs(points @ n + d) < threshold
+            return n, float(d), inliers
+        remaining = np.delete(remaining, np.asarray(idx))
+    raise WorkspaceError("sparse points", expected=f"a ground plane within {max_tilt_deg:g} deg of horizontal among "
+                                                   "the sparse points (is the turntable's top textured?)",
+                         got=f"{len(points)} points, no such plane")
+
+
+def ground_mesh(points: np.ndarray, normal: np.ndarray, offset: float, margin: float = 0.0) -> Mesh:
+    """A rectangle in the ground plane covering ``points`` (its inliers) plus ``margin``."""
+    e1, e2 = plane_basis(normal)
+    a, b = points @ e1, points @ e2
+    lo, hi = np.array([a.min(), b.min()]) - margin, np.array([a.max(), b.max()]) + margin
+    origin = -offset * normal
+    corners = [origin + u * e1 + v * e2 for u, v in ((lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1]))]
+    return Mesh(corners, [[0, 1, 2], [0, 2, 3]])
+
+
+def _box_sdf(local: np.ndarray, half: np.ndarray) -> np.ndarray:
+    q = np.abs(local) - half
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float) -> tuple[Mesh, dict]:
+    """A box standing on the ground plane, fitted to points on its visible faces.
+
+    Footprint (centre, yaw, two edge lengths) and height minimise the robust (soft-L1, 1 mm)
+    distance of the points from the box surface, started from the minimum-area rectangle of
+    the points seen from above.
+    """
+    import cv2
+    from scipy.optimize import least_squares
+
+    e1, e2 = plane_basis(normal)
+    uvh = np.stack([points @ e1, points @ e2, points @ normal + offset], axis=1)
+    (cu, cv), (w, l), ang = cv2.minAreaRect(uvh[:, :2].astype(np.float32))
+    top = float(np.percentile(uvh[:, 2], 98))
+    x0 = np.array([cu, cv, np.radians(ang), max(w, 1e-3), max(l, 1e-3), max(top, 1e-3)])
+
+    def residual(x):
+        c, s = np.cos(x[2]), np.sin(x[2])
+        d = uvh[:, :2] - x[:2]
+        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], uvh[:, 2] - x[5] / 2], axis=1)
+        return _box_sdf(local, np.abs(np.array([x[3], x[4], x[5]])) / 2)
+
+    sol = least_squares(residual, x0, loss="soft_l1", f_scale=1e-3, x_scale=np.r_[0.01, 0.01, 0.1, 0.01, 0.01, 0.01])
+    cu, cv, yaw, w, l, h = sol.x
+    w, l, h = abs(w), abs(l), abs(h)
+    c, s = np.cos(yaw), np.sin(yaw)
+    ax, ay = c * e1 + s * e2, -s * e1 + c * e2
+    R = np.stack([ax, ay, normal], axis=1)
+    center = cu * e1 + cv * e2 + (h / 2 - offset) * normal
+    res = residual(sol.x)
+    return box_mesh(center, R, [w, l, h]), {"points": int(len(points)), "size_m": [w, l, h],
+                                             "rms_mm": float(1e3 * np.sqrt(np.mean(res**2)))}
+
+
+def fit_scene_points(points: np.ndarray, *, ground_threshold: float = 0.002, min_height: float = 0.003,
+                     cluster_eps: float = 0.012, min_points: int = 30) -> list[Modelled]:
+    """The ground plane and the boxes standing on it, from sparse points in the world frame."""
+    import open3d as o3d
+
+    points = np.asarray(points, dtype=np.float64)
+    n, d, inliers = fit_ground(points, ground_threshold)
+    out = [Modelled("ground", ground_mesh(points[inliers], n, d), "phong", None, True, "ground plane (RANSAC)",
+                    {"points": int(inliers.sum()), "normal": n.tolist(), "offset_m": d,
+                     "rms_mm": float(1e3 * np.sqrt(np.mean((points[inliers] @ n + d) ** 2)))})]
+    above = points[(points @ n + d) > min_height]
+    if len(above) >= min_points:
+        labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(above)).cluster_dbscan(
+            eps=cluster_eps, min_points=8))
+        ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+        for k in ids[np.argsort(-counts)]:
+            cluster = above[labels == k]
+            if len(cluster) < min_points:
+                continue
+            mesh, info = fit_resting_box(cluster, n, d)
+            out.append(Modelled(f"box{len(out) - 1}", mesh, "phong", None, True, "box on the ground (fitted)", info))
+    return out
+
+
+# ---------------------------------------------------------------- modelled from marks
+@dataclass
+class Views:
+    """Registered shots: name -> world-to-camera pose, with the shared intrinsics."""
+
+    camera: Camera
+    poses: dict  # name -> (R, t)
+
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        return self.camera.undistort(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+
+    def project(self, name: str, X: np.ndarray) -> np.ndarray:
+        import cv2
+
+        R, t = self.poses[name]
+        uv, _ = cv2.projectPoints(np.asarray(X, dtype=np.float64).reshape(-1, 1, 3), cv2.Rodrigues(R)[0], t,
+                                  self.camera.K, self.camera.dist)
+        return uv.reshape(-1, 2)
+
+
+def load_marks(path) -> list[dict]:
+    """Read and validate a marks file (docs/reconstruction.md); image names are checked later."""
+    path = Path(path)
+    obj = read_json(path)
+    items = obj.get("surfaces")
+    if not isinstance(items, list) or not items:
+        raise WorkspaceError(path, "surfaces", "a non-empty list of marked surfaces", got=items)
+    out = []
+    for i, item in enumerate(items):
+        where = f"surfaces[{i}]"
+        if not isinstance(item, dict):
+            raise WorkspaceError(path, where, "an object", got=item)
+        name = item.get("name")
+        if not isinstance(name, str) or not name:
+            raise WorkspaceError(path, f"{where}.name", "a non-empty string", got=name)
+        shape = item.get("shape", "box")
+        if shape not in ("box", "plane"):
+            raise WorkspaceError(path, f"{where}.shape", "'box' or 'plane'", got=shape)
+        brdf = item.get("brdf", "phong")
+        if brdf not in BRDF_PARAMS:
+            raise WorkspaceError(path, f"{where}.brdf", f"one of {sorted(BRDF_PARAMS)}", got=brdf)
+        ior = item.get("ior")
+        if ior is not None:
+            ior = as_float(ior, path, f"{where}.ior", positive=True)
+            if ior < 1:
+                raise WorkspaceError(path, f"{where}.ior", "null (opaque) or a refraction index >= 1", got=ior)
+            if shape == "plane":
+                raise WorkspaceError(path, f"{where}.shape", "'box' for a transparent surface (a sheet is a thin box "
+                                                             "and must be closed)", got=shape)
+        dims = 3 if shape == "box" else 2
+        size = item.get("size", [None] * dims)
+        if not isinstance(size, list) or len(size) != dims:
+            raise WorkspaceError(path, f"{where}.size", f"a list of {dims} edge lengths or nulls", got=size)
+        size = [None if s is None else as_float(s, path, f"{where}.size[{k}]", positive=True) for k, s in enumerate(size)]
+        corners = item.get("corners")
+        if not isinstance(corners, list) or not corners:
+            raise WorkspaceError(path, f"{where}.corners", "a non-empty list of marked corners", got=corners)
+        parsed = []
+        for j, c in enumerate(corners):
+            cw = f"{where}.corners[{j}]"
+            if not isinstance(c, dict):
+                raise WorkspaceError(path, cw, "an object with 'corner' and 'marks'", got=c)
+            label = as_array(c.get("corner"), (dims,), path, f"{cw}.corner")
+            if not np.all(np.abs(label) == 1):
+                raise WorkspaceError(path, f"{cw}.corner", f"{dims} values of -1 or +1", got=c.get("corner"))
+            marks = c.get("marks")
+            if not isinstance(marks, dict) or len(marks) < 2:
+                raise WorkspaceError(path, f"{cw}.marks", "marks in at least two images ({image: [u, v]})",
+                                     got=f"{0 if not isinstance(marks, dict) else len(marks)} image(s)")
+            uv = {str(k): as_array(v, (2,), path, f"{cw}.marks[{k!r}]") for k, v in marks.items()}
+            parsed.append((np.r_[label, [0.0] * (3 - dims)], uv))
+        out.append({"name": name, "shape": shape, "brdf": brdf, "ior": ior, "size": size + [None] * (3 - dims),
+                    "textured": bool(item.get("textured", ior is None)), "corners": parsed, "where": where,
+                    "path": path})
+    return out
+
+
+def _triangulate_corner(views: Views, marks: dict) -> np.ndarray:
+    from reconstruction.registration import triangulate
+
+    names = list(marks)
+    R = np.stack([views.poses[n][0] for n in names])
+    t = np.stack([views.poses[n][1] for n in names])
+    xy = np.stack([views.undistort(marks[n])[0] for n in names])[:, None]
+    X, _ = triangulate(R, t, xy, np.ones((len(names), 1), bool))
+    return X[0]
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def box_from_marks(spec: dict, views: Views) -> Modelled:
+    """A box (or an open rectangle) fitted to its corners marked in registered shots.
+
+    Initial box: the corners are triangulated, then an affine map from corner labels to points
+    gives centre, axes and edge lengths. Final box: centre, rotation and the free edge lengths
+    minimise the marks' reprojection error (Façade's objective).
+    """
+    import cv2
+    from scipy.optimize import least_squares
+
+    path, where = spec["path"], spec["where"]
+    for j, (_, marks) in enumerate(spec["corners"]):
+        missing = [n for n in marks if n not in views.poses]
+        if missing:
+            raise WorkspaceError(path, f"{where}.corners[{j}].marks",
+                                 f"images among the registered shots ({', '.join(sorted(views.poses)[:3])}, ...)",
+                                 got=missing[0])
+    labels = np.array([c for c, _ in spec["corners"]])
+    P = np.array([_triangulate_corner(views, m) for _, m in spec["corners"]])
+    dims = 3 if spec["shape"] == "box" else 2
+    varying = [a for a in range(dims) if np.ptp(labels[:, a]) > 0]
+    given = np.array([np.nan if s is None else s for s in spec["size"]], dtype=np.float64)
+    for a in range(dims):
+        if a not in varying and not np.isfinite(given[a]):
+            raise WorkspaceError(path, f"{where}.size[{a}]", f"this edge length: the marked corners all lie on one "
+                                                            f"face along axis {a}", got=None)
+    if len(varying) < 2 or len(P) < len(varying) + 1:
+        raise WorkspaceError(path, f"{where}.corners", "at least 3 marked corners spanning two axes of the box",
+                             got=f"{len(P)} corners")
+    # Affine fit P = c + M @ labels over the varying axes.
+    A = np.concatenate([np.ones((len(P), 1)), labels[:, varying]], axis=1)
+    sol, *_ = np.linalg.lstsq(A, P, rcond=None)
+    cols = np.zeros((3, 3))
+    for k, a in enumerate(varying):
+        cols[:, a] = sol[1 + k]
+    if len(varying) == 2:
+        a = ({0, 1, 2} - set(varying)).pop()
+        cols[:, a] = np.cross(cols[:, (a + 1) % 3], cols[:, (a + 2) % 3])
+    R0 = _nearest_rotation(cols / np.maximum(np.linalg.norm(cols, axis=0), 1e-12))
+    half0 = np.where(np.isfinite(given), given / 2, np.linalg.norm(cols, axis=0))
+    if dims == 2:
+        half0[2] = 0.0
+    centre0 = sol[0] - sum(labels[0, a] * half0[a] * R0[:, a] for a in range(3) if a not in varying)
+    free = [a for a in range(dims) if not np.isfinite(given[a])]
+
+    obs = [(k, n, uv) for k, (_, marks) in enumerate(spec["corners"]) for n, uv in marks.items()]
+
+    def unpack(x):
+        half = half0.copy()
+        half[free] = np.abs(x[6:])
+        return x[:3], cv2.Rodrigues(x[3:6])[0], half
+
+    def residual(x):
+        c, R, half = unpack(x)
+        X = c + (labels * half) @ R.T
+        return np.concatenate([views.project(n, X[k])[0] - uv for k, n, uv in obs])
+
+    x0 = np.concatenate([centre0, cv2.Rodrigues(R0)[0].ravel(), half0[free]])
+    fit = least_squares(residual, x0, x_scale=np.r_[[0.01] * 3, [0.1] * 3, [0.01] * len(free)])
+    c, R, half = unpack(fit.x)
+    rms = float(np.sqrt(np.mean(fit.fun**2)))
+    mesh = box_mesh(c, R, 2 * half) if dims == 3 else quad_mesh(c, R, 2 * half)
+    return Modelled(spec["name"], mesh, spec["brdf"], spec["ior"], spec["textured"], "marked corners",
+                    {"corners": int(len(P)), "marks": len(obs), "reprojection_px": rms, "size_m": (2 * half[:dims]).tolist()})
+
+
+# ---------------------------------------------------------------- imported
+def import_mesh(name: str, path, ior: float | None = None, brdf: str = "phong") -> Modelled:
+    """A scanner's mesh (PLY/OBJ, metres, world frame); refused when transparent but not closed."""
+    mesh = Mesh.load(path)
+    if ior is not None and not mesh.is_closed():
+        raise WorkspaceError(path, expected=f"a closed mesh, because surface '{name}' is transparent (ior {ior}): "
+                                            "every edge shared by exactly two triangles", got="an open mesh")
+    return Modelled(name, mesh, brdf, ior, True, f"imported from {Path(path).name}")
+
+
+# ---------------------------------------------------------------- output
+def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -> Scene:
+    """Write ``meshes/<name>.ply`` and scene.json: existing surfaces kept, same names replaced."""
+    root = Path(root)
+    surfaces = list(existing.surfaces) if existing is not None else []
+    for m in modelled:
+        if m.ior is not None and not m.mesh.is_closed():
+            raise WorkspaceError(root / "meshes" / f"{m.name}.ply", expected=f"a closed mesh for transparent surface '{m.name}'",
+                                 got="an open mesh")
+        material = Material.from_json({"brdf": m.brdf, "ior": m.ior}, root / "scene.json", m.name)
+        s = Surface(m.name, f"meshes/{m.name}.ply", material, m.textured, m.mesh, {"source": m.source})
+        names = [x.name for x in surfaces]
+        if m.name in names:
+            surfaces[names.index(m.name)] = s
+        else:
+            surfaces.append(s)
+    scene = Scene(surfaces, root)
+    for s in surfaces:
+        if s.mesh is not None:
+            s.mesh.save(root / s.mesh_path)
+    scene.save(root / "scene.json", write_meshes=False)
+    return scene
+
+
+# ---------------------------------------------------------------- measuring
+def sample_surface(mesh: Mesh, n: int = 20000, seed: int = 0) -> np.ndarray:
+    """``n`` points spread uniformly over a mesh's area (deterministic)."""
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices[mesh.triangles]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    tri = rng.choice(len(area), size=n, p=area / area.sum())
+    a, b = rng.random(n), rng.random(n)
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    return v[tri, 0] + a[:, None] * (v[tri, 1] - v[tri, 0]) + b[:, None] * (v[tri, 2] - v[tri, 0])
+
+
+def distance_to_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance (N,) of points to a mesh's surface (Open3D ray-casting scene)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(np.float64)

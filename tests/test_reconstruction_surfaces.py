@@ -1,0 +1,142 @@
+"""Surfaces from marks, from sparse points and from files, against the simulated lab's true geometry.
+
+Views are the lab camera turned about the turntable axis (the true poses of a sweep); marks are
+the true corners projected into them with 1 px Gaussian noise, as the issue asks.
+"""
+import json
+
+import numpy as np
+import pytest
+
+from hardware.simlab import build_lab
+from hardware.workspace import WorkspaceError
+from reconstruction import surfaces as surf
+from reconstruction.scene import Mesh, Scene
+
+
+def _rot_z(deg):
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def lab():
+    return build_lab(640, 480)
+
+
+def _views(camera, angles):
+    # The object turned by +a about the vertical axis through the origin = camera pose R Rz(a), t.
+    return surf.Views(camera, {f"shot{a:+04d}": (camera.R @ _rot_z(a), camera.t.copy()) for a in angles})
+
+
+def _marks(name, mesh, corners, views, rng, size, ior=None):
+    items = []
+    for k in corners:
+        label = surf.CORNERS[k]
+        marks = {n: (views.project(n, mesh.vertices[k])[0] + rng.normal(0, 1.0, 2)).tolist() for n in views.poses}
+        items.append({"corner": label.tolist(), "marks": marks})
+    return {"name": name, "shape": "box", "ior": ior, "size": size, "corners": items}
+
+
+def _write_marks(tmp_path, items):
+    path = tmp_path / "marks.json"
+    path.write_text(json.dumps({"surfaces": items}))
+    return path
+
+
+def test_mirror_and_sheet_from_marks_within_2mm(lab, tmp_path):
+    rng = np.random.default_rng(1)
+    views = _views(lab.camera, range(-70, 71, 20))  # eight marked shots, as Façade used ≥ 8
+    mirror, sheet = lab.scene[lab.scene.index("mirror")].mesh, lab.scene[lab.scene.index("sheet")].mesh
+    front = [k for k in range(8) if surf.CORNERS[k][1] < 0]  # the face toward the camera (-y)
+    items = [_marks("mirror", mirror, front, views, rng, [None, 0.006, None]),
+             _marks("sheet", sheet, front, views, rng, [None, 0.003, None], ior=1.46)]
+    specs = surf.load_marks(_write_marks(tmp_path, items))
+    for spec, truth in zip(specs, (mirror, sheet)):
+        m = surf.box_from_marks(spec, views)
+        err = np.linalg.norm(m.mesh.vertices - truth.vertices, axis=1)
+        assert err.max() < 2e-3, (spec["name"], err)
+        assert m.mesh.is_closed()
+        assert m.info["reprojection_px"] < 2.0
+    # The transparent sheet is written closed and read back by the scene loader.
+    scene = surf.write_scene(tmp_path, [surf.box_from_marks(s, views) for s in specs])
+    back = Scene.load(tmp_path / "scene.json")
+    assert back.names == ["mirror", "sheet"] and back[1].material.ior == 1.46 and back[1].mesh.is_closed()
+    assert len(scene) == 2
+
+
+def test_box_from_three_faces_of_marks(lab, tmp_path):
+    rng = np.random.default_rng(2)
+    views = _views(lab.camera, [-40, -20, 0, 20, 40])
+    box = lab.scene[lab.scene.index("box")].mesh
+    visible = [k for k in range(8) if surf.CORNERS[k][2] > 0 or surf.CORNERS[k][1] < 0]  # top and front
+    spec = surf.load_marks(_write_marks(tmp_path, [_marks("box", box, visible, views, rng, [None] * 3)]))[0]
+    m = surf.box_from_marks(spec, views)
+    assert np.linalg.norm(m.mesh.vertices - box.vertices, axis=1).max() < 2e-3
+
+
+def test_ground_and_boxes_fitted_to_points_within_1mm(lab):
+    rng = np.random.default_rng(3)
+    ground, box, tile = (lab.scene[lab.scene.index(n)].mesh for n in ("ground", "box", "tile"))
+    # Sparse points as SfM leaves them: on the visible faces (not the bottoms), 0.3 mm noise.
+    pts = [rng.uniform([-0.2, -0.2, 0], [0.25, 0.25, 0], (3000, 3))]
+    for mesh, n in ((box, 800), (tile, 600)):
+        p = surf.sample_surface(mesh, 4 * n, seed=4)
+        pts.append(p[p[:, 2] > 1e-4][:n])
+    ground_pts = pts[0]
+    for mesh in (box, tile):
+        # Ground points under a box are hidden: drop those inside its footprint (box frame from its corners).
+        v = mesh.vertices
+        ex, ey = v[4] - v[0], v[2] - v[0]
+        local = (ground_pts - v.mean(axis=0)) @ np.stack([ex / np.linalg.norm(ex), ey / np.linalg.norm(ey)], 1)
+        ground_pts = ground_pts[np.any(np.abs(local) > [np.linalg.norm(ex) / 2, np.linalg.norm(ey) / 2], axis=1)]
+    pts = np.concatenate([ground_pts] + pts[1:])
+    pts += rng.normal(0, 3e-4, pts.shape)
+    fitted = surf.fit_scene_points(pts)
+    assert fitted[0].name == "ground" and len(fitted) == 3
+    g = surf.sample_surface(fitted[0].mesh, 5000)
+    assert np.sqrt(np.mean(g[:, 2] ** 2)) < 1e-3
+    for m in fitted[1:]:
+        truth = min((box, tile), key=lambda t: np.linalg.norm(t.vertices.mean(0) - m.mesh.vertices.mean(0)))
+        d = surf.distance_to_mesh(truth, surf.sample_surface(m.mesh, 5000))
+        assert np.sqrt(np.mean(d**2)) < 1e-3, (m.name, np.sqrt(np.mean(d**2)))
+        assert m.mesh.is_closed()
+
+
+def test_marks_bad_input_named(lab, tmp_path):
+    views = _views(lab.camera, [0, 20])
+    mirror = lab.scene[lab.scene.index("mirror")].mesh
+    rng = np.random.default_rng(5)
+    item = _marks("mirror", mirror, [0, 1, 4, 5], views, rng, [None, 0.006, None])
+    # An image that is not among the registered shots.
+    bad = json.loads(json.dumps(item))
+    bad["corners"][0]["marks"]["captures/turntable/9999.exr"] = bad["corners"][0]["marks"].pop("shot+000")
+    spec = surf.load_marks(_write_marks(tmp_path, [bad]))[0]
+    with pytest.raises(WorkspaceError, match=r"9999\.exr"):
+        surf.box_from_marks(spec, views)
+    # A corner marked in one image only.
+    one = json.loads(json.dumps(item))
+    one["corners"][1]["marks"] = {"shot+000": [1.0, 2.0]}
+    with pytest.raises(WorkspaceError, match=r"corners\[1\]\.marks.*at least two images"):
+        surf.load_marks(_write_marks(tmp_path, [one]))
+    # One face marked and its thickness not given.
+    thick = json.loads(json.dumps(item))
+    thick["size"] = [None, None, None]
+    with pytest.raises(WorkspaceError, match=r"size\[1\]"):
+        surf.box_from_marks(surf.load_marks(_write_marks(tmp_path, [thick]))[0], views)
+    # A transparent open plane.
+    plane = {"name": "sheet", "shape": "plane", "ior": 1.46, "corners": [{"corner": [1, 1], "marks": {}}]}
+    with pytest.raises(WorkspaceError, match=r"surfaces\[0\]\.shape.*closed"):
+        surf.load_marks(_write_marks(tmp_path, [plane]))
+
+
+def test_imported_mesh_must_be_closed_when_transparent(tmp_path):
+    quad = surf.quad_mesh([0, 0, 0.05], np.eye(3), [0.1, 0.1, 0])
+    quad.save(tmp_path / "open.ply")
+    surf.box_mesh([0, 0, 0.05], np.eye(3), [0.1, 0.1, 0.003]).save(tmp_path / "closed.ply")
+    with pytest.raises(WorkspaceError, match=r"open\.ply.*closed mesh.*'pane'"):
+        surf.import_mesh("pane", tmp_path / "open.ply", ior=1.5)
+    assert surf.import_mesh("pane", tmp_path / "closed.ply", ior=1.5).mesh.is_closed()
+    opaque = surf.import_mesh("card", tmp_path / "open.ply")
+    assert np.allclose(opaque.mesh.vertices, quad.vertices)
+    assert isinstance(opaque.mesh, Mesh)
