@@ -15,7 +15,6 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import serial
@@ -268,8 +267,8 @@ class GrblController:
     Notes
     -----
     Use as a context manager; :meth:`connect` is called on entry. A timeout, a garbled answer,
-    ``error:N`` or an alarm raises a :class:`GrblError` subclass and leaves the controller
-    marked broken; a vanished port is reopened up to ``config.reconnects`` times first.
+    ``error:N`` or an alarm raises a :class:`GrblError` subclass and sends nothing further; a
+    vanished port is reopened up to ``config.reconnects`` times before :class:`DeviceLost`.
     """
 
     def __init__(self, port: str, config: GrblConfig | None = None, log=None):
