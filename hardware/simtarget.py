@@ -24,7 +24,7 @@ def target_points(cols: int, rows: int, spacing: float) -> np.ndarray:
     return np.stack([i.ravel() * spacing, -j.ravel() * spacing, np.zeros(i.size)], axis=1).astype(np.float64)
 
 
-def target_texture(cols: int, rows: int, spacing: float, radius: float, texels_per_m: float = 12000.0):
+def target_texture(cols: int, rows: int, spacing: float, radius: float, texels_per_m: float = 8000.0):
     """Anti-aliased printed target (white paper, black discs) and its extent on the plane.
 
     Returns
@@ -78,11 +78,17 @@ def render_view(camera: Camera, objects: dict, spp: int = 16, oversample: float 
     -------
     (H, W, C) float32 ndarray, all channels the integrator writes.
     """
+    return render_views([camera], objects, spp, oversample)[0]
+
+
+def render_views(cameras: list[Camera], objects: dict, spp: int = 16, oversample: float = 1.5) -> list[np.ndarray]:
+    """:func:`render_view` for several poses of one camera (same intrinsics): the scene loads once."""
     import cv2
 
     from hardware.mitsuba_env import mitsuba
 
     mi = mitsuba()
+    camera = cameras[0]
     W, H = camera.width, camera.height
     v, u = np.mgrid[0:H, 0:W]
     xy = camera.undistort(np.stack([u.ravel(), v.ravel()], 1).astype(np.float64))
@@ -91,31 +97,43 @@ def render_view(camera: Camera, objects: dict, spp: int = 16, oversample: float 
     half_h = np.abs(xy[:, 1]).max() * f + 2
     rw, rh = int(2 * np.ceil(half_w)), int(2 * np.ceil(half_h))
     fov = np.degrees(2 * np.arctan(rw / 2 / f))
-    C = camera.center
-    to_world = mi.ScalarTransform4f().look_at(origin=C.tolist(), target=(C + camera.R[2]).tolist(),
-                                              up=(-camera.R[1]).tolist())
+    # Fine pixel centre of normalised point (x, y): f * (x, y) + ((rw - 1) / 2, (rh - 1) / 2).
+    map_u = (xy[:, 0] * f + (rw - 1) / 2).reshape(H, W).astype(np.float32)
+    map_v = (xy[:, 1] * f + (rh - 1) / 2).reshape(H, W).astype(np.float32)
+
+    def to_world(cam):
+        C = cam.center
+        return mi.ScalarTransform4f().look_at(origin=C.tolist(), target=(C + cam.R[2]).tolist(),
+                                              up=(-cam.R[1]).tolist())
+
     scene = dict(objects, type="scene")
     scene["sensor"] = {
-        "type": "perspective", "fov": float(fov), "fov_axis": "x", "to_world": to_world,
+        "type": "perspective", "fov": float(fov), "fov_axis": "x", "to_world": to_world(camera),
         "near_clip": 1e-3, "far_clip": 1e3,
         "sampler": {"type": "independent", "sample_count": int(spp)},
         "film": {"type": "hdrfilm", "width": rw, "height": rh, "rfilter": {"type": "box"},
                  "pixel_format": "rgb"},
     }
-    fine = np.array(mi.render(mi.load_dict(scene, optimize=False)), dtype=np.float32)
-    # Fine pixel centre of normalised point (x, y): f * (x, y) + ((rw - 1) / 2, (rh - 1) / 2).
-    map_u = (xy[:, 0] * f + (rw - 1) / 2).reshape(H, W).astype(np.float32)
-    map_v = (xy[:, 1] * f + (rh - 1) / 2).reshape(H, W).astype(np.float32)
-    chans = [cv2.remap(np.ascontiguousarray(fine[:, :, c]), map_u, map_v, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE) for c in range(fine.shape[2])]
-    return np.stack(chans, axis=2)
+    scene = mi.load_dict(scene, optimize=False)
+    params = mi.traverse(scene)
+    out = []
+    for k, cam in enumerate(cameras):
+        if not (np.allclose(cam.K, camera.K) and np.allclose(cam.dist, camera.dist)
+                and (cam.width, cam.height) == (W, H)):
+            raise ValueError("render_views: every camera must share the first one's intrinsics")
+        params["sensor.to_world"] = to_world(cam)
+        params.update()
+        fine = np.array(mi.render(scene, seed=k), dtype=np.float32)
+        out.append(np.stack([cv2.remap(np.ascontiguousarray(fine[:, :, c]), map_u, map_v, cv2.INTER_LINEAR,
+                                       borderMode=cv2.BORDER_REPLICATE) for c in range(fine.shape[2])], axis=2))
+    return out
 
 
-def render_target(camera: Camera, cols: int, rows: int, spacing: float, radius: float, *,
-                  noise: float = 0.005, spp: int = 16, seed: int = 0, background: float = 0.3) -> np.ndarray:
-    """Linear RGB image of the printed circle target lying on the plane z = 0.
+def render_targets(cameras: list[Camera], cols: int, rows: int, spacing: float, radius: float, *,
+                   noise: float = 0.005, spp: int = 16, seed: int = 0, background: float = 0.3) -> list[np.ndarray]:
+    """Linear RGB images of the printed circle target lying on the plane z = 0, one per camera.
 
-    The sheet is self-emitting (radiance = its reflectance), so the image has no lighting noise,
+    The sheet is self-emitting (radiance = its reflectance), so the images have no lighting noise,
     over a uniform grey table of radiance ``background``; Gaussian sensor noise of std ``noise``.
     """
     from hardware.mitsuba_env import mitsuba
@@ -126,16 +144,16 @@ def render_target(camera: Camera, cols: int, rows: int, spacing: float, radius: 
     bmp = mi.Bitmap(np.ascontiguousarray(tex[::-1, :, None]))
     black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
     objects = {
-        "integrator": {"type": "direct"},
+        "integrator": {"type": "path", "max_depth": 1},  # emitters seen directly; nothing to sample
         "sheet": {"type": "rectangle", "to_world": _rectangle(extent, 0.0), "bsdf": black,
                   "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": bmp, "raw": True,
                                                            "filter_type": "bilinear"}}},
         "table": {"type": "rectangle", "to_world": _rectangle((-5, 5, -5, 5), -1e-4), "bsdf": black,
                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [background] * 3}}},
     }
-    img = render_view(camera, objects, spp=spp)[:, :, :3]
     rng = np.random.default_rng(seed)
-    return (img + rng.normal(0.0, noise, img.shape)).astype(np.float32)
+    return [(img[:, :, :3] + rng.normal(0.0, noise, img[:, :, :3].shape)).astype(np.float32)
+            for img in render_views(cameras, objects, spp=spp)]
 
 
 def random_target_poses(n: int, cols: int, rows: int, spacing: float, seed: int = 0, *,
