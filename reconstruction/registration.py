@@ -336,8 +336,8 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
                       turntable_centre: str | None = None, overlap: int = 5) -> dict:
     """Structure from motion over ``captures/turntable``, registered into the world frame.
 
-    Writes ``sfm.json`` (per-shot world poses and every report) and ``sparse.ply`` (sparse
-    points, world frame) into the workspace.
+    Writes ``sfm.json`` (per-shot world poses and every report) and ``sparse.ply`` (the sparse
+    points seen in three or more shots with a reprojection error under 1 px, world frame).
 
     Parameters
     ----------
@@ -394,7 +394,9 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
         sim, reg = register_axis(sfm.R, sfm.t, camera, reference, centre)
     reg["scale"] = sim.scale
     Rw, tw = sim.poses(sfm.R, sfm.t)
-    points = sim.points(sfm.points)
+    # Points seen by few shots or reprojecting poorly sit mostly on occluding edges (mismatches).
+    good = (sfm.point_error < 1.0) & (np.array([len(tr) for tr in sfm.tracks], dtype=int) >= 3)
+    points = sim.points(sfm.points[good])
     report = {"sfm": sfm.report, "registration": reg, "reference_shot": names[reference],
               "reference": reference_check(Rw, tw, camera, reference)}
     if angles is not None:

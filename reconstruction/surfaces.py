@@ -121,37 +121,59 @@ def _box_sdf(local: np.ndarray, half: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
 
-def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float) -> tuple[Mesh, dict]:
+def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
+                    ground: np.ndarray | None = None, outlier: float = 0.0025) -> tuple[Mesh, dict]:
     """A box standing on the ground plane, fitted to points on its visible faces.
 
-    Footprint (centre, yaw, two edge lengths) and height minimise the robust (soft-L1, 1 mm)
+    Footprint (centre, yaw, two edge lengths) and height minimise the robust (soft-L1, 0.5 mm)
     distance of the points from the box surface, started from the minimum-area rectangle of
-    the points seen from above.
+    the top face's points seen from above; points farther than ``outlier`` from the first fit are
+    dropped before the second. Points on a thin box's top face say little about its footprint,
+    so ``ground`` points (seen on the ground, hence not under the box) push the footprint's
+    edges out of them: each adds how deep inside the footprint it lies.
     """
     import cv2
     from scipy.optimize import least_squares
 
     e1, e2 = plane_basis(normal)
     uvh = np.stack([points @ e1, points @ e2, points @ normal + offset], axis=1)
-    (cu, cv), (w, l), ang = cv2.minAreaRect(uvh[:, :2].astype(np.float32))
     top = float(np.percentile(uvh[:, 2], 98))
+    # Start from the top face's points: mismatches at the occluding side edges lie below it.
+    on_top = np.abs(uvh[:, 2] - np.median(uvh[uvh[:, 2] > top - outlier, 2])) < outlier
+    (cu, cv), (w, l), ang = cv2.minAreaRect(uvh[on_top if on_top.sum() >= 5 else slice(None), :2].astype(np.float32))
+    if ground is None:
+        ground = np.zeros((0, 3))
+    g2 = np.stack([ground @ e1, ground @ e2], axis=1)
+    near = np.linalg.norm(g2 - [cu, cv], axis=1) < 0.5 * np.hypot(w, l) + 0.02
+    g2 = g2[near]
     x0 = np.array([cu, cv, np.radians(ang), max(w, 1e-3), max(l, 1e-3), max(top, 1e-3)])
 
     def residual(x):
         c, s = np.cos(x[2]), np.sin(x[2])
         d = uvh[:, :2] - x[:2]
         local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], uvh[:, 2] - x[5] / 2], axis=1)
-        return _box_sdf(local, np.abs(np.array([x[3], x[4], x[5]])) / 2)
+        half = np.abs(np.array([x[3], x[4], x[5]])) / 2
+        dg = g2 - x[:2]
+        gl = np.stack([c * dg[:, 0] + s * dg[:, 1], -s * dg[:, 0] + c * dg[:, 1]], axis=1)
+        inside = np.maximum(-_box_sdf(np.c_[gl, np.zeros(len(gl))], np.r_[half[:2], 1.0]), 0.0)
+        return np.concatenate([_box_sdf(local, half), 10.0 * inside])
 
-    sol = least_squares(residual, x0, loss="soft_l1", f_scale=1e-3, x_scale=np.r_[0.01, 0.01, 0.1, 0.01, 0.01, 0.01])
+    scale = np.r_[0.01, 0.01, 0.1, 0.01, 0.01, 0.01]
+    sol = least_squares(residual, x0, loss="soft_l1", f_scale=5e-4, x_scale=scale)
+    # Points far from the first box are mismatches (e.g. at occluding edges): drop them and refit.
+    keep = np.abs(residual(sol.x)[: len(uvh)]) < outlier
+    if keep.sum() >= 0.5 * len(uvh) and not keep.all():
+        uvh = uvh[keep]
+        sol = least_squares(residual, sol.x, loss="soft_l1", f_scale=5e-4, x_scale=scale)
     cu, cv, yaw, w, l, h = sol.x
     w, l, h = abs(w), abs(l), abs(h)
     c, s = np.cos(yaw), np.sin(yaw)
     ax, ay = c * e1 + s * e2, -s * e1 + c * e2
     R = np.stack([ax, ay, normal], axis=1)
     center = cu * e1 + cv * e2 + (h / 2 - offset) * normal
-    res = residual(sol.x)
-    return box_mesh(center, R, [w, l, h]), {"points": int(len(points)), "size_m": [w, l, h],
+    res = residual(sol.x)[: len(uvh)]
+    return box_mesh(center, R, [w, l, h]), {"points": int(len(uvh)), "outliers": int(len(points) - len(uvh)),
+                                             "size_m": [float(w), float(l), float(h)],
                                              "rms_mm": float(1e3 * np.sqrt(np.mean(res**2)))}
 
 
@@ -174,7 +196,7 @@ def fit_scene_points(points: np.ndarray, *, ground_threshold: float = 0.002, min
             cluster = above[labels == k]
             if len(cluster) < min_points:
                 continue
-            mesh, info = fit_resting_box(cluster, n, d)
+            mesh, info = fit_resting_box(cluster, n, d, points[inliers])
             out.append(Modelled(f"box{len(out) - 1}", mesh, "phong", None, True, "box on the ground (fitted)", info))
     return out
 
