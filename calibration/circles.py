@@ -29,12 +29,15 @@ class GridDetection:
         Ellipse areas in px² (used to estimate the printed circles' radius).
     n_blobs : int
         Dark blobs the blob detector saw (a hint when the grid size is wrong).
+    reason : str
+        Why the grid was not accepted (empty when found).
     """
 
     found: bool
     centres: np.ndarray | None
     areas: np.ndarray | None
     n_blobs: int
+    reason: str = ""
 
 
 def parse_grid(text: str) -> tuple[int, int]:
@@ -110,12 +113,29 @@ def detect_grid(image: np.ndarray, cols: int, rows: int) -> GridDetection:
     lo, hi = np.percentile(g, [0.5, 99.5])
     g8 = np.clip(255 * (g - lo) / max(hi - lo, 1e-12), 0, 255).astype(np.uint8)
     detector = _blob_detector(g.shape)
-    n_blobs = len(detector.detect(g8))
+    blobs = np.array([k.pt for k in detector.detect(g8)], dtype=np.float64).reshape(-1, 2)
+    n_blobs = len(blobs)
     found, centres = cv2.findCirclesGrid(g8, (cols, rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID,
                                          blobDetector=detector)
     if not found or centres is None or len(centres) != cols * rows:
-        return GridDetection(False, None, None, n_blobs)
+        return GridDetection(False, None, None, n_blobs, f"no {cols}x{rows} grid among {n_blobs} dark blobs")
     centres = _canonical_order(centres.reshape(-1, 2).astype(np.float64), cols, rows)
+    # findCirclesGrid happily returns a sub-grid of a larger target: look for circles that
+    # continue the grid's rows or columns one step beyond its border.
+    j, i = np.mgrid[0:rows, 0:cols]
+    Hg, _ = cv2.findHomography(np.stack([i.ravel(), j.ravel()], 1).astype(np.float64), centres)
+    if Hg is not None and n_blobs > cols * rows:
+        q = np.column_stack([blobs, np.ones(n_blobs)]) @ np.linalg.inv(Hg).T
+        q = q[:, :2] / q[:, 2:3]
+        near = np.all(np.abs(q - np.round(q)) < 0.2, axis=1)
+        qi, qj = np.round(q[:, 0]), np.round(q[:, 1])
+        outside = (qi < 0) | (qi >= cols) | (qj < 0) | (qj >= rows)
+        adjacent = (qi >= -1) & (qi <= cols) & (qj >= -1) & (qj <= rows)
+        extra = int(np.sum(near & outside & adjacent))
+        if extra:
+            return GridDetection(False, None, None, n_blobs,
+                                 f"the target continues beyond a {cols}x{rows} grid ({extra} more circles "
+                                 "in line with it): the grid size is wrong")
 
     # Local paper level: grey dilation wider than the largest circle removes the dark discs.
     step = np.median(np.linalg.norm(np.diff(centres.reshape(rows, cols, 2), axis=1), axis=2))
@@ -129,7 +149,7 @@ def detect_grid(image: np.ndarray, cols: int, rows: int) -> GridDetection:
     ij[:, 1] = ij[:, 1].clip(0, g.shape[0] - 1)
     ids = labels[ij[:, 1], ij[:, 0]]
     if np.any(ids == 0) or len(np.unique(ids)) != len(ids):
-        return GridDetection(False, None, None, n_blobs)  # a centre off its blob, or two merged
+        return GridDetection(False, None, None, n_blobs, "circles touch each other or the border")
     lut = np.zeros(n_lab, np.float32)
     lut[ids] = np.arange(1, len(ids) + 1)
     grown = cv2.dilate(lut[labels], np.ones((5, 5), np.uint8)).astype(np.int64)  # 0 = none, k+1 = circle k
@@ -142,7 +162,7 @@ def detect_grid(image: np.ndarray, cols: int, rows: int) -> GridDetection:
     mu = np.bincount(grown.ravel(), (w * u).ravel(), len(ids) + 1)[1:] / np.maximum(m00, 1e-12)
     mv = np.bincount(grown.ravel(), (w * v).ravel(), len(ids) + 1)[1:] / np.maximum(m00, 1e-12)
     if np.any(m00 < 3):
-        return GridDetection(False, None, None, n_blobs)
+        return GridDetection(False, None, None, n_blobs, "circles too small (< 3 px²)")
     return GridDetection(True, np.stack([mu, mv], axis=1), m00, n_blobs)
 
 
@@ -192,3 +212,39 @@ def ellipse_centres(R: np.ndarray, t: np.ndarray, points: np.ndarray, radius: fl
         out = -np.stack([A[..., 1, 1] * b[..., 0] - A[..., 0, 1] * b[..., 1],
                          A[..., 0, 0] * b[..., 1] - A[..., 1, 0] * b[..., 0]], axis=-1) / det[..., None]
     return out[0] if single else out
+
+
+def ellipse_boundaries(R: np.ndarray, t: np.ndarray, points: np.ndarray, radius: float,
+                       samples: int = 16) -> np.ndarray:
+    """Points on the imaged circles' boundaries, normalised undistorted coordinates.
+
+    Evenly spaced in the ellipse's parametric angle, so a polygon through them keeps the ellipse's
+    centre and, once mapped through the lens distortion, gives the distorted disc's centroid
+    (:func:`polygon_centroids`), which is what :func:`detect_grid` measures.
+
+    Returns
+    -------
+    (V, N, samples, 2) ndarray (V = 1 for a single pose)
+    """
+    R, t = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3), np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    H = np.concatenate([R[:, :, :2], t[:, :, None]], axis=2)
+    Hinv = np.linalg.inv(H)
+    C = np.einsum("vji,njk,vkl->vnil", Hinv, circle_conics(points, radius), Hinv, optimize=True)
+    A, b, c = C[..., :2, :2], C[..., :2, 2], C[..., 2, 2]
+    e = -np.linalg.solve(A, b[..., None])[..., 0]
+    k = -(c + np.einsum("...i,...i->...", b, e))  # (x - e)^T A (x - e) = k on the boundary
+    L = np.linalg.cholesky(np.linalg.inv(A) * k[..., None, None])
+    a = np.linspace(0, 2 * np.pi, samples, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a)], axis=1)
+    return e[:, :, None, :] + np.einsum("vnij,sj->vnsi", L, ring)
+
+
+def polygon_centroids(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroids (..., 2) and areas (...) of closed polygons (..., S, 2) (shoelace formula)."""
+    x, y = poly[..., 0], poly[..., 1]
+    x1, y1 = np.roll(x, -1, axis=-1), np.roll(y, -1, axis=-1)
+    cross = x * y1 - x1 * y
+    area = cross.sum(-1) / 2
+    cx = ((x + x1) * cross).sum(-1) / (6 * area)
+    cy = ((y + y1) * cross).sum(-1) / (6 * area)
+    return np.stack([cx, cy], axis=-1), np.abs(area)

@@ -277,8 +277,17 @@ def detect_rod_marks(image: np.ndarray, *, red_ratio: float = 1.8, shadow_level:
         foot = cr + dr * (t.max() if end > 0 else t.min())
     if (cs - foot) @ ds < 0:
         ds = -ds
-    tip = foot + ds * ((ps - foot) @ ds).max()
-    return foot, tip
+    # The shadow ends in the round shadow of the rod's top disc, centred on the true tip: step
+    # back from the far end by the strip's half-width there (coverage-weighted, just before the end).
+    t_end = ((ps - foot) @ ds).max()
+    v, u = np.mgrid[0 : lum.shape[0], 0 : lum.shape[1]]
+    rel = np.stack([u - foot[0], v - foot[1]], axis=-1)
+    along, across = rel @ ds, np.abs(rel @ np.array([-ds[1], ds[0]]))
+    dark = np.clip(1 - lum / np.maximum(ground, 1e-12), 0, None)
+    coverage = np.clip(dark / np.median(dark[vs, us]), 0, 1)
+    band = (along > t_end - 10) & (along < t_end - 4) & (across < 8) & ~near_rod
+    half_width = coverage[band].sum() / 6 / 2 if band.any() else 0.0
+    return foot, foot + ds * (t_end - half_width)
 
 
 def lamp_intensity(image: np.ndarray, camera: Camera, lamp: np.ndarray, kd, *, region=None,

@@ -18,9 +18,10 @@ Tsai's distortion maps distorted to undistorted sensor coordinates, ``X_u = X_d 
 (millimetres, ``r_d`` the distorted radius); projection therefore inverts it with Newton steps.
 OpenCV's maps undistorted normalised coordinates to distorted ones.
 
-Observations are ellipse centres; with ``bias_correction`` the model predicts ellipse centres
-(:func:`calibration.circles.ellipse_centres`, Heikkilä 2000), otherwise projected circle centres,
-which is what OpenCV's circle-grid calibration does.
+Observations are the centroids of the imaged discs. With ``bias_correction`` the model predicts
+exactly those: the perspective ellipse of each circle (Heikkilä 2000), sampled as a 16-gon, sent
+through the lens distortion, its area centroid taken. Without it the model predicts projected
+circle centres, which is what OpenCV's circle-grid calibration does.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.camera import Camera
-from calibration.circles import ellipse_centres
+from calibration.circles import ellipse_boundaries, ellipse_centres, polygon_centroids
 
 
 class CalibrationError(ValueError):
@@ -196,8 +197,7 @@ def _refine(pixels, intr0, poses, obs, points, radius):
 
     def residuals(x):
         p = x[ni:].reshape(nv, 6)
-        e = ellipse_centres(rodrigues(p[:, :3]), p[:, 3:], points, radius)
-        return (pixels(x[:ni], e[..., 0], e[..., 1]) - obs).ravel()
+        return (_centres(pixels, x[:ni], rodrigues(p[:, :3]), p[:, 3:], points, radius)[0] - obs).ravel()
 
     sparsity = lil_matrix((2 * npt * nv, len(x0)), dtype=int)
     sparsity[:, :ni] = 1
@@ -215,20 +215,18 @@ def _refine(pixels, intr0, poses, obs, points, radius):
     return sol.x[:ni].copy(), poses, res.reshape(nv, npt, 2), cov[:ni, :ni]
 
 
-def _ellipse_areas(R, t, points, radius, fx, fy, k1, k2):
-    """Predicted ellipse areas in px² (conic area times the lens' local area magnification)."""
-    from calibration.circles import circle_conics
+def _centres(pixels, intr, R, t, points, radius):
+    """Predicted measured centres (V, N, 2) and disc areas (V, N) in pixels.
 
-    H = np.column_stack([R[:, 0], R[:, 1], t])
-    Hinv = np.linalg.inv(H)
-    C = np.einsum("ji,njk,kl->nil", Hinv, circle_conics(points, radius), Hinv)
-    detA = np.linalg.det(C[:, :2, :2])
-    area = np.pi * np.abs(np.linalg.det(C) / detA) / np.sqrt(np.abs(detA))
-    e = ellipse_centres(R, t, points, radius)
-    r = np.hypot(e[:, 0], e[:, 1])
-    fac = 1 + k1 * r**2 + k2 * r**4
-    dfac = 2 * k1 * r + 4 * k2 * r**3
-    return area * fx * fy * fac * (fac + r * dfac)
+    ``radius = 0``: projected circle centres (areas 0). Otherwise the centroid of each disc's
+    image through the lens: a 16-gon on the perspective ellipse, distorted vertex by vertex, which
+    carries both the perspective bias and the (same-sized) bias distortion adds.
+    """
+    if radius == 0:
+        e = ellipse_centres(R, t, points, 0.0)
+        return pixels(intr, e[..., 0], e[..., 1]), np.zeros(e.shape[:-1])
+    b = ellipse_boundaries(R, t, points, radius)
+    return polygon_centroids(pixels(intr, b[..., 0], b[..., 1]))
 
 
 def _opencv_crosscheck(obs, points, size, ours: Camera) -> dict:
@@ -322,10 +320,9 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     x_t, poses, res_t, cov_t = _refine(tsai_model, np.array([np.median(fs), np.median(kappas), Cx0, Cy0, 1.0]),
                                        poses, obs, points, r_fit)
     if bias_correction and radius is None and areas is not None:
-        kn = x_t[1] * x_t[0] ** 2
-        pred = np.concatenate([_ellipse_areas(R, t, points, rad, x_t[4] * x_t[0] / dx, x_t[0] / dy, -kn, 3 * kn**2)
-                               for R, t in poses])
-        rad *= float(np.sqrt(np.median(np.concatenate(areas) / pred)))
+        pred = _centres(tsai_model, x_t, np.array([R for R, _ in poses]), np.array([t for _, t in poses]),
+                        points, rad)[1]
+        rad *= float(np.sqrt(np.median(np.asarray(areas) / pred)))
         x_t, poses, res_t, cov_t = _refine(tsai_model, x_t, poses, obs, points, rad)
     f, kappa1, Cx, Cy, sx = x_t
     tsai = {"f": f, "kappa1": kappa1, "sx": sx, "Cx": Cx, "Cy": Cy, "dx": dx, "dy": dy}

@@ -90,7 +90,7 @@ def _camera(args) -> int:
         raise ValueError(f"no target images given and none in {ws.captures / 'calibration'}")
     if not 0 <= args.reference < len(paths):
         raise ValueError(f"--reference {args.reference} is not an image index (0..{len(paths) - 1})")
-    used, obs, areas, blobs = [], [], [], []
+    used, obs, areas, blobs, reasons = [], [], [], [], ""
     size = None
     for i, path in enumerate(paths):
         img = read_image(path)
@@ -102,12 +102,13 @@ def _camera(args) -> int:
         det = detect_grid(img, cols, rows)
         blobs.append(det.n_blobs)
         if not det.found:
-            print(f"skipping {path}: grid {cols}x{rows} not found ({det.n_blobs} dark blobs seen)")
+            reasons += det.reason
+            print(f"skipping {path}: grid {cols}x{rows} not found: {det.reason}")
             continue
         used.append(i)
         obs.append(det.centres)
         areas.append(det.areas)
-    if not used and np.median(blobs) != cols * rows:
+    if not used and (np.median(blobs) != cols * rows or "grid size" in reasons):
         raise ValueError(f"grid {cols}x{rows} ({cols * rows} circles) found in none of {len(paths)} images; "
                          f"they show about {int(np.median(blobs))} dark blobs: check --grid (COLSxROWS)")
     if args.reference not in used:
