@@ -418,14 +418,13 @@ def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
 
 
 class _NFMap:
-    """NF-TBO's unconstrained variables z ↔ bounded parameters (free ones only), preconditioned."""
+    """NF-TBO's unconstrained variables z ↔ bounded parameters (free ones only)."""
 
     def __init__(self, pb: Problem, p: Params, free: Free):
         self.pb, self.base, self.free = pb, p, free
         self.q = np.flatnonzero(free.theta)
         srch = pb.search
         self.lo, self.hi = srch.lo[self.q], srch.hi[self.q]
-        self.scale = 1.0
 
     def to_z(self, p: Params) -> np.ndarray:
         w = np.sqrt(np.maximum(p.x[self.free.x], 0.0))
@@ -433,11 +432,10 @@ class _NFMap:
         u = self.pb.search.to_u(p.theta)[self.q]
         span = np.maximum(self.hi - self.lo, 1e-300)
         psi = np.arcsin(np.sqrt(np.clip((u - self.lo) / span, 0.0, 1.0)))
-        return np.concatenate([w, phi, psi]) * self.scale
+        return np.concatenate([w, phi, psi])
 
     def to_params(self, z):
         """Parameters and dparam/dz (diagonal) of the free ones."""
-        z = z / self.scale
         nx, ns = int(self.free.x.sum()), int(self.free.s.sum())
         w, phi, psi = z[:nx], z[nx:nx + ns], z[nx + ns:]
         p = self.base.copy()
@@ -448,7 +446,7 @@ class _NFMap:
         u[self.q] = self.lo + span * np.sin(psi) ** 2
         p.theta = self.pb.search.to_theta(u)
         d = np.concatenate([2.0 * w, np.sin(2.0 * phi), span * np.sin(2.0 * psi) * self.pb.search.dtheta_du(p.theta)[self.q]])
-        return p, d / self.scale
+        return p, d
 
 
 def _gradient(pb: Problem, p: Params, A, grad, res):
@@ -468,46 +466,114 @@ def _gradient(pb: Problem, p: Params, A, grad, res):
     return gx, gs, gth
 
 
-def _nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=20000):
-    """NF-TBO: Polak–Ribière conjugate gradient on all free parameters at once."""
-    from scipy.optimize import minimize
+def _nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=5000):
+    """NF-TBO: preconditioned Polak–Ribière (PR+) conjugate gradient on all free parameters at once.
 
+    Works on the bounded reparametrisation of :class:`_NFMap`. The preconditioner is the diagonal
+    of the Gauss–Newton matrix, refreshed at every restart (every n iterations, or when the
+    direction stops descending); the step length is the Gauss–Newton minimiser along the
+    direction, backtracked until the error falls (Armijo).
+    """
     fac = pb.fac
     m = _NFMap(pb, p, free)
-    # Diagonal preconditioner: unit Gauss–Newton curvature of each variable at the start.
-    z0 = m.to_z(p)
-    m.scale = 1.0 / np.sqrt(np.maximum(_gn_diagonal(pb, m, z0), 1e-300))
-    m.scale = np.where(np.isfinite(m.scale), m.scale, 1.0)
-    z0 = m.to_z(p)
-    last = {}
+    n = len(m.to_z(p))
 
-    def fun(z):
+    def evaluate(z):
         cur, d = m.to_params(z)
         A, grad = fac.matrices_and_grad(cur.theta)
-        res = pb.residual(A, fac.y(cur.x, cur.s))
+        y = fac.y(cur.x, cur.s)
+        res = pb.residual(A, y)
         pb.evaluations += 1
         gx, gs, gth = _gradient(pb, cur, A, grad, res)
         g = np.concatenate([gx[free.x], gs[free.s], gth[m.q]]) * d / pb.norm
-        last["rms"], last["p"] = pb.rms(res), cur
-        return float(np.sum(res * res)) / pb.norm, g
+        return {"z": z, "E": float(np.sum(res * res)) / pb.norm, "g": g, "p": cur, "d": d, "A": A, "grad": grad, "y": y, "res": res}
 
-    def callback(zk):
-        trace.append(_trace_point(t0, last["rms"]))
+    st = evaluate(m.to_z(p))
+    trace.append(_trace_point(t0, pb.rms(st["res"])))
+    if n == 0:
+        return st["p"], 0, "nothing to fit"
+    cap_theta = np.where(pb.search.log[m.q], np.log(2.0) * st["p"].theta[m.q], 0.1 * (m.hi - m.lo))
+    message, it, since_restart, direction, prev = f"stopped after {maxiter} iterations", 0, n, None, None
+    stalls = 0
+    for it in range(1, maxiter + 1):
+        if since_restart >= n or direction is None:
+            diag = _gn_diagonal(pb, m, st["z"])
+            precond = 1.0 / np.maximum(diag, 1e-10 * max(diag.max(), 1e-300))
+            since_restart, prev = 0, None
+        s = precond * st["g"]
+        cap = np.concatenate([np.maximum(st["p"].x[free.x], 0.1), np.full(int(free.s.sum()), 0.25),
+                              np.where(pb.search.log[m.q], np.log(2.0) * st["p"].theta[m.q], cap_theta)])
+        if prev is None:
+            direction = -s
+        else:
+            beta = max(0.0, float(st["g"] @ (s - prev[1])) / max(float(prev[0] @ prev[1]), 1e-300))
+            direction = -s + beta * direction
+        slope = float(st["g"] @ direction)
+        if slope >= 0:
+            direction, slope = -s, float(-(st["g"] @ s))
+        curv = 2.0 * float(np.sum(_directional(pb, st, m, direction) ** 2)) / pb.norm
+        alpha = -slope / curv if curv > 0 else 1.0
+        # Trust region: to first order no x moves by more than max(x, 0.1), no r or t by more
+        # than 0.25, no log2 θ by more than 1 (flat valleys such as ks → ∞ with ns → ∞ stay shut).
+        move = np.abs(direction * st["d"])
+        alpha = min(alpha, float(np.min(cap / np.maximum(move, 1e-300))))
+        new = None
+        for _ in range(30):  # Armijo backtracking
+            trial = evaluate(st["z"] + alpha * direction)
+            if trial["E"] <= st["E"] + 1e-4 * alpha * slope:
+                new = trial
+                break
+            alpha *= 0.25
+        if new is None:
+            if since_restart == 0:
+                message = "converged: no descent step lowers the error"
+                break
+            direction = None  # restart along the preconditioned gradient
+            continue
+        gain = st["E"] - new["E"]
+        prev = (st["g"], s)
+        st = new
+        since_restart += 1
+        trace.append(_trace_point(t0, pb.rms(st["res"])))
+        stalls = stalls + 1 if gain <= 1e-13 * (st["E"] + gain) else 0
+        if st["E"] == 0.0 or stalls >= 3:
+            message = "converged: error change below tolerance"
+            break
+    return st["p"], it, message
 
-    fun(z0)
-    callback(z0)
-    if len(z0) == 0:
-        return last["p"], 0, "nothing to fit"
-    res = minimize(fun, z0, jac=True, method="CG", callback=callback, options={"maxiter": maxiter, "gtol": 1e-14})
-    out, _ = m.to_params(res.x)
-    return out, int(res.nit), str(res.message)
+
+def _directional(pb: Problem, st: dict, m: "_NFMap", dz) -> np.ndarray:
+    """Image change (3, R) along ``dz`` to first order (Gauss–Newton), z-space direction."""
+    fac, free, p = pb.fac, m.free, st["p"]
+    dpar = dz * st["d"]
+    nx, ns = int(free.x.sum()), int(free.s.sum())
+    dx, ds = np.zeros_like(p.x), np.zeros_like(p.s)
+    dx[free.x], ds[free.s] = dpar[:nx], dpar[nx:nx + ns]
+    dy = dx[fac.col_x] * fac.factor_products(p.s)
+    for f in np.flatnonzero(free.s.any(axis=1)):
+        e = fac.exponents[:, f]
+        rest = fac.factor_products(p.s, skip=f)
+        dy += np.where(e[:, None] > 0, e[:, None] * p.s[f][None, :] ** np.maximum(e[:, None] - 1, 0) * rest, 0.0) * p.x[fac.col_x] * ds[f][None, :]
+    out = np.stack([st["A"][c] @ dy[:, c] for c in range(BANDS)])
+    if len(m.q):
+        img = st["grad"].images(st["y"])[m.q]
+        out += np.einsum("q,qcr->cr", dpar[nx + ns:], img)
+    return out
 
 
 def _gn_diagonal(pb: Problem, m: _NFMap, z) -> np.ndarray:
-    """Gauss–Newton curvature ‖∂B/∂z_i‖² / norm of each NF-TBO variable."""
+    """Gauss–Newton curvature ‖∂B/∂z_i‖² / norm of each NF-TBO variable (z order)."""
     cur, d = m.to_params(z)
-    H = _normal_matrix(pb, cur, m.free, np.ones(BANDS))[0]
-    return np.diag(H) * d * d / pb.norm
+    H, labels = _normal_matrix(pb, cur, m.free, np.ones(BANDS))
+    pos = {"x": np.full(m.free.x.shape, -1), "s": np.full(m.free.s.shape, -1)}
+    nx, ns = int(m.free.x.sum()), int(m.free.s.sum())
+    pos["x"][m.free.x] = np.arange(nx)
+    pos["s"][m.free.s] = nx + np.arange(ns)
+    theta_pos = {q: nx + ns + k for k, q in enumerate(m.q)}
+    order = [pos[kind][i, c] if kind != "theta" else theta_pos[i] for kind, i, c in labels]
+    diag = np.zeros(len(z))
+    diag[order] = np.diag(H)
+    return diag * d * d / pb.norm
 
 
 def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None):
@@ -730,3 +796,62 @@ def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: di
 def _sigma_list(sig, free) -> list:
     """Per-band sigma, None where the band is undetermined (JSON null, never NaN/inf)."""
     return [float(v) if f and np.isfinite(v) else None for v, f in zip(sig, free)]
+
+
+def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
+                  maxiter: int | None = None) -> tuple[dict, FitResult]:
+    """Run the fit stage on a workspace and write its fit.json.
+
+    Parameters
+    ----------
+    workspace : path-like
+        Folder with camera.json, lights.json, scene.json (+ meshes) and the input image.
+    method : {"ftbo", "nftbo"}
+    depth : int
+        Maximum internal nodes per tree path.
+    saturation : float, optional
+        Pixel value at which the camera clips; default: detect a clipped plateau
+        (:func:`saturated_pixels`).
+    maxiter : int, optional
+        Outer iteration cap.
+
+    Returns
+    -------
+    report : dict
+        What was written to fit.json.
+    result : FitResult
+    """
+    from calibration.camera import Camera
+    from calibration.lights import Lights
+    from hardware.images import read_image
+    from hardware.workspace import Workspace, write_json
+    from inverse.models import get_model
+    from inverse.trees import build_trees
+    from reconstruction.scene import Scene
+
+    ws = Workspace(workspace)
+    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
+    lights = Lights.load(ws.require(ws.lights, "reflab calibrate lights"))
+    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
+    image_path = ws.require(ws.input_image, "reflab capture input")
+    image = check_image(read_image(image_path), camera.width, camera.height, image_path)
+    saturated = saturated_pixels(image, saturation)
+    if saturated.all():
+        raise WorkspaceError(image_path, "pixels", "some pixels below the saturation level", got="every pixel saturated")
+    t0 = time.perf_counter()
+    trees = build_trees(scene, camera, lights, depth=depth)
+    t1 = time.perf_counter()
+    fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], lights.intensities, mask=~saturated)
+    t2 = time.perf_counter()
+    if fac.n_columns == 0:
+        raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
+                             got="no pixel sees a lit surface")
+    result = fit(fac, image, [s.material for s in scene], method, **({} if maxiter is None else {"maxiter": maxiter}))
+    extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
+                       "saturated_pixels": int(saturated.sum()),
+                       "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
+             "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
+             "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths)}}
+    report = fit_json(result, fac, scene, depth, extra)
+    write_json(ws.fit, report)
+    return report, result
