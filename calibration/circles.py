@@ -166,15 +166,18 @@ def detect_grid(image: np.ndarray, cols: int, rows: int) -> GridDetection:
     return GridDetection(True, np.stack([mu, mv], axis=1), m00, n_blobs)
 
 
-def circle_conics(points: np.ndarray, radius: float) -> np.ndarray:
-    """(N, 3, 3) conic matrices of circles of ``radius`` centred at plane points (N, >=2)."""
-    x, y = points[:, 0], points[:, 1]
-    Q = np.zeros((len(points), 3, 3))
-    Q[:, 0, 0] = Q[:, 1, 1] = 1.0
-    Q[:, 0, 2] = Q[:, 2, 0] = -x
-    Q[:, 1, 2] = Q[:, 2, 1] = -y
-    Q[:, 2, 2] = x**2 + y**2 - radius**2
-    return Q
+def _image_conics(Hinv: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """(V, N, 3, 3) image conics ``Hinv^T Q Hinv`` of circles of ``radius`` at plane ``points``.
+
+    The circle's conic factors as ``Q = T^T diag(1, 1, -radius^2) T`` with ``T`` the translation
+    to its centre, so ``C = g0 g0^T + g1 g1^T - radius^2 g2 g2^T`` with ``g = T Hinv`` row by row.
+    """
+    h0, h1, h2 = (Hinv[:, None, k, :] for k in range(3))
+    g0 = h0 - points[None, :, 0, None] * h2
+    g1 = h1 - points[None, :, 1, None] * h2
+    g2 = np.broadcast_to(h2, g0.shape)
+    outer = lambda g: g[..., :, None] * g[..., None, :]  # noqa: E731
+    return outer(g0) + outer(g1) - radius**2 * outer(g2)
 
 
 def ellipse_centres(R: np.ndarray, t: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
@@ -204,8 +207,7 @@ def ellipse_centres(R: np.ndarray, t: np.ndarray, points: np.ndarray, radius: fl
         p = np.einsum("vij,nj->vni", H, np.column_stack([points[:, 0], points[:, 1], np.ones(len(points))]))
         out = p[..., :2] / p[..., 2:3]
     else:
-        Hinv = np.linalg.inv(H)
-        C = np.einsum("vji,njk,vkl->vnil", Hinv, circle_conics(points, radius), Hinv, optimize=True)
+        C = _image_conics(np.linalg.inv(H), points, radius)
         A, b = C[..., :2, :2], C[..., :2, 2]
         det = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
         # -A^-1 b for symmetric 2x2 A, written out (fast for many small systems).
@@ -228,15 +230,14 @@ def ellipse_boundaries(R: np.ndarray, t: np.ndarray, points: np.ndarray, radius:
     """
     R, t = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3), np.asarray(t, dtype=np.float64).reshape(-1, 3)
     H = np.concatenate([R[:, :, :2], t[:, :, None]], axis=2)
-    Hinv = np.linalg.inv(H)
-    C = np.einsum("vji,njk,vkl->vnil", Hinv, circle_conics(points, radius), Hinv, optimize=True)
+    C = _image_conics(np.linalg.inv(H), points, radius)
     A, b, c = C[..., :2, :2], C[..., :2, 2], C[..., 2, 2]
     e = -np.linalg.solve(A, b[..., None])[..., 0]
-    k = -(c + np.einsum("...i,...i->...", b, e))  # (x - e)^T A (x - e) = k on the boundary
+    k = -(c + (b * e).sum(-1))  # (x - e)^T A (x - e) = k on the boundary
     L = np.linalg.cholesky(np.linalg.inv(A) * k[..., None, None])
     a = np.linspace(0, 2 * np.pi, samples, endpoint=False)
     ring = np.stack([np.cos(a), np.sin(a)], axis=1)
-    return e[:, :, None, :] + np.einsum("vnij,sj->vnsi", L, ring)
+    return e[:, :, None, :] + np.swapaxes(L @ ring.T, -1, -2)
 
 
 def polygon_centroids(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

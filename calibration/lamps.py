@@ -280,6 +280,9 @@ def detect_rod_marks(image: np.ndarray, *, red_ratio: float = 1.8, shadow_level:
     # The shadow ends in the round shadow of the rod's top disc, centred on the true tip: step
     # back from the far end by the strip's half-width there (coverage-weighted, just before the end).
     t_end = ((ps - foot) @ ds).max()
+    end = ps[np.argmax((ps - foot) @ ds)]
+    if end.min() < 1 or end[0] > lum.shape[1] - 2 or end[1] > lum.shape[0] - 2:
+        raise ValueError("the shadow runs out of the image; move the rod or mark the tip by hand")
     v, u = np.mgrid[0 : lum.shape[0], 0 : lum.shape[1]]
     rel = np.stack([u - foot[0], v - foot[1]], axis=-1)
     along, across = rel @ ds, np.abs(rel @ np.array([-ds[1], ds[0]]))

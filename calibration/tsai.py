@@ -69,7 +69,7 @@ def tsai_distort(xu: np.ndarray, yu: np.ndarray, kappa1: float) -> tuple[np.ndar
     """Distorted sensor coordinates from undistorted ones under ``X_u = X_d (1 + kappa1 r_d^2)``."""
     ru = np.hypot(xu, yu)
     rd = ru.copy()
-    for _ in range(12):  # Newton on rd + kappa1 rd^3 = ru, from rd = ru
+    for _ in range(6):  # Newton on rd + kappa1 rd^3 = ru, from rd = ru (quadratic convergence)
         rd = rd - (rd + kappa1 * rd**3 - ru) / np.maximum(1 + 3 * kappa1 * rd**2, 0.1)
     scale = np.where(ru > 1e-15, rd / np.maximum(ru, 1e-15), 1.0)
     return xu * scale, yu * scale
