@@ -1,0 +1,562 @@
+"""Diffuse texture recovery (METHOD.md §4, dissertation §2.3): the sparse system E z = b − Q.
+
+With every non-Lambertian parameter fixed, a tree node ``n`` on a textured surface adds
+``P_n · basis_n[kd] · ρ(p_n)`` to its pixel (docs/architecture.md; ``P_n`` the product of r and t
+along its path, ``basis_n[kd]`` the Fresnel-weighted irradiance times the model's diffuse factor).
+``ρ(p)`` is the bilinear blend of four texels of the surface's atlas (:mod:`inverse.texels`), so
+each pixel and band is one sparse row over the texels of every surface it sees, directly, in
+mirrors or through transparent sheets (eq. 2.13). ``Q`` is everything else the trees predict
+(specular lobes, untextured surfaces at their homogeneous ``kd``).
+
+Solving (NOTES.md, "Sparse least squares"): columns scaled to unit norm (Jacobi), then CGLS
+(conjugate gradient on the normal equations without forming them), which converges in tens of
+iterations where bounded solvers take minutes. The unknowns are split into the
+connected components of the system (scipy.sparse.csgraph); large components are solved one by
+one, small ones together as one block-diagonal system. Bounds are then enforced by a short
+active-set loop (fix the violators at their bound, re-solve the rest) and a final projection.
+
+A weak prior pulls each texel toward the surface's homogeneous ``kd`` (the fitted value) with a
+weight relative to the texel's own data (``prior``, dimensionless): it fixes the directions the
+image does not determine — two textured layers seen through one transparent sheet — and barely
+moves determined texels (by about ``prior`` times their deviation). An optional smoothness term
+ties neighbouring texels. Texels that no lit, unsaturated pixel sees are left out and masked.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hardware.workspace import Workspace, WorkspaceError, atomic_write, read_json, write_json
+from inverse.texels import TexelMap, build_texel_map, choose_texel_size, pixel_footprint
+
+#: Flag bits of the per-texel diagnostics.
+AMPLIFIED, SATURATED, CLIPPED = 1, 2, 4
+
+
+@dataclass
+class TextureOptions:
+    """Settings of the texture stage.
+
+    Attributes
+    ----------
+    texel_scale : float
+        Texel size as a multiple of the pixel footprint on the surface.
+    texel_size : float or None
+        Texel size in metres for every surface (overrides ``texel_scale``).
+    texel_quantile : float
+        Which quantile of a surface's node footprints sets its texel size.
+    prior : float
+        Relative weight of the prior toward the homogeneous ``kd`` (0 disables it; null-space
+        directions then still stay at the homogeneous value, CGLS starting there).
+    smoothness : float
+        Relative weight of the first-difference term between neighbouring texels (0 = off).
+    bounds : (float, float)
+        Albedo bounds.
+    saturation : float or None
+        Pixel values at or above this are dropped (per band). None: detect a clipped plateau
+        (the image maximum shared by several pixels).
+    min_coverage : float
+        A texel is known when the bilinear weights of the lit, unsaturated nodes on it sum to
+        at least this (in pixels).
+    amplification_limit : float
+        Flag texels whose observations are attenuated by more than this (faint reflections).
+    tol : float
+        CGLS stops when its normal-equation residual has dropped by this factor.
+    max_iter : int
+        Iteration cap per CGLS call.
+    small_component : int
+        Components with fewer unknowns are solved together as one block-diagonal system.
+    """
+
+    texel_scale: float = 1.0
+    texel_size: float | None = None
+    texel_quantile: float = 0.5
+    prior: float = 1e-3
+    smoothness: float = 0.01
+    bounds: tuple[float, float] = (0.0, 1.0)
+    saturation: float | None = None
+    min_coverage: float = 0.1
+    amplification_limit: float = 10.0
+    tol: float = 1e-3
+    max_iter: int = 3000
+    small_component: int = 20000
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad setting."""
+        checks = [("texel_scale", self.texel_scale > 0), ("prior", self.prior >= 0),
+                  ("smoothness", self.smoothness >= 0), ("min_coverage", self.min_coverage > 0),
+                  ("amplification_limit", self.amplification_limit > 1), ("tol", self.tol > 0),
+                  ("max_iter", self.max_iter >= 1),
+                  ("texel_quantile", 0 < self.texel_quantile <= 1),
+                  ("bounds", len(self.bounds) == 2 and self.bounds[0] < self.bounds[1]),
+                  ("texel_size", self.texel_size is None or self.texel_size > 0),
+                  ("saturation", self.saturation is None or self.saturation > 0)]
+        for name, ok in checks:
+            value = getattr(self, name)
+            if not ok or not np.all(np.isfinite(np.asarray(value if value is not None else 0.0, dtype=float))):
+                raise ValueError(f"texture option {name}: invalid value {value!r}")
+
+
+@dataclass
+class TextureResult:
+    """Recovered textures, per textured surface index (arrays are atlas-shaped, (H, W, …)).
+
+    ``kd`` holds the homogeneous value where ``mask`` is False; ``weight`` is the observation
+    weight per band (bilinear weight × Fresnel × r/t products, in pixels seen directly);
+    ``amplification`` is coverage / weight (1 for direct views, 1/r for a reflection);
+    ``flags`` has the bits :data:`AMPLIFIED`, :data:`SATURATED`, :data:`CLIPPED`.
+    """
+
+    maps: dict[int, TexelMap]
+    kd: dict[int, np.ndarray]
+    mask: dict[int, np.ndarray]
+    weight: dict[int, np.ndarray]
+    amplification: dict[int, np.ndarray]
+    flags: dict[int, np.ndarray]
+    stats: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------- inputs
+def load_materials(workspace, scene) -> tuple[list, str]:
+    """Materials in surface order: fit.json's when it exists, else scene.json's.
+
+    Returns
+    -------
+    materials : list of Material
+    source : str
+        ``"fit.json"`` or ``"scene.json"``.
+    """
+    from reconstruction.scene import Material
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    materials = [s.material for s in scene]
+    if not ws.fit.exists():
+        return materials, "scene.json"
+    fit = read_json(ws.fit)
+    items = fit.get("surfaces")
+    if not isinstance(items, list):
+        raise WorkspaceError(ws.fit, "surfaces", "a list of fitted surfaces", got=items)
+    by_name = {}
+    for i, item in enumerate(items):
+        if not isinstance(item, dict) or "name" not in item or "material" not in item:
+            raise WorkspaceError(ws.fit, f"surfaces[{i}]", "an object with 'name' and 'material'", got=item)
+        by_name[item["name"]] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
+    return [by_name.get(s.name, s.material) for s in scene], "fit.json"
+
+
+def saturation_threshold(image: np.ndarray) -> float | None:
+    """The clip level of an image when several pixels share its maximum (a clipped plateau)."""
+    top = float(np.max(image)) if image.size else 0.0
+    return top if top > 0 and np.count_nonzero(image >= top) >= 4 else None
+
+
+def build_maps(scene, trees, options: TextureOptions) -> dict[int, TexelMap]:
+    """A texel atlas for each textured surface that some node lies on, sized from its footprint."""
+    maps = {}
+    for s, surf in enumerate(scene):
+        sel = np.nonzero(trees.surface == s)[0]
+        if not surf.textured or len(sel) == 0:
+            continue
+        size = options.texel_size
+        if size is None:
+            fp = pixel_footprint(trees.pixel[sel], trees.path[sel], trees.point[sel], trees.width)
+            size = choose_texel_size(fp, options.texel_scale, options.texel_quantile)
+        if size is None:  # isolated single-pixel sightings only: one texel per pixel-ish
+            size = float(np.ptp(surf.mesh.vertices, axis=0).max()) / max(trees.width, trees.height)
+        maps[s] = build_texel_map(s, surf.name, surf.mesh, size)
+    return maps
+
+
+# ---------------------------------------------------------------------- the system
+@dataclass
+class _System:
+    E: object  # scipy.sparse.csr_matrix, rows = (band, pixel), cols = (band, texel) compressed
+    rhs: np.ndarray
+    row_pixel: np.ndarray  # (R,) pixel of each row
+    row_band: np.ndarray
+    col_global: np.ndarray  # (C,) band * n_texels + global texel index
+    prior: np.ndarray  # (C,) homogeneous kd of each column
+    coverage: np.ndarray  # (3 * n_texels,) over all texels
+    weight: np.ndarray
+    saturated_touch: np.ndarray  # (3 * n_texels,) bool
+    offsets: dict  # surface -> global texel offset
+    n_texels: int
+    n_saturated: int
+    n_unmodelled: int  # pixel-band rows dropped: their textured node's texels are unsupported
+
+
+def build_system(trees, materials, intensities, image, maps, options: TextureOptions) -> _System:
+    """Assemble E, b − Q and the per-texel coverage / weight (vectorised over nodes)."""
+    import scipy.sparse as sp
+
+    from inverse.rendering import linear_basis, node_radiance, path_products
+
+    npix = trees.width * trees.height
+    img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
+    sat_level = options.saturation if options.saturation is not None else saturation_threshold(img)
+    saturated = img >= sat_level if sat_level is not None else np.zeros_like(img, dtype=bool)
+
+    basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd is slot 0
+    atten = path_products(trees, materials)  # (N, 3)
+    textured = np.zeros(len(trees), dtype=bool)
+    offsets, total = {}, 0
+    for s, m in maps.items():
+        offsets[s] = total
+        total += m.n_texels
+        textured |= trees.surface == s
+    kd_fixed = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials])[trees.surface]
+    q_nodes = node_radiance(trees, materials, intensities, kd_nodes=np.where(textured[:, None], 0.0, kd_fixed), basis=basis)
+    Q = np.stack([np.bincount(trees.pixel, weights=q_nodes[:, c], minlength=npix) for c in range(3)], axis=1)
+
+    nodes = np.nonzero(textured)[0]
+    idx = np.zeros((len(nodes), 4), dtype=np.int64)
+    w = np.zeros((len(nodes), 4))
+    for s, m in maps.items():
+        sel = trees.surface[nodes] == s
+        i, ww = m.bilinear(trees.triangle[nodes[sel]], trees.barycentric[nodes[sel]])
+        idx[sel], w[sel] = i + offsets[s], ww
+    coef = atten[nodes] * basis[nodes, :, 0]  # (n, 3): E's value per unit bilinear weight
+    visible_frac = trees.fresnel[nodes, None] * atten[nodes]  # attenuation between camera and node
+
+    # Entries per band: row (band, pixel), column (band, texel).
+    band = np.arange(3)
+    pix = trees.pixel[nodes]
+    lit = coef > 0
+    ok = lit & ~saturated[pix]  # (n, 3)
+    sat_hit = lit & saturated[pix]
+    n_i, b_i, j_i = np.nonzero(np.broadcast_to(ok[:, :, None], (len(nodes), 3, 4)) & (w[:, None, :] > 0))
+    cols_all = b_i * total + idx[n_i, j_i]
+    wj = w[n_i, j_i]
+    # Texels that carry less than min_coverage pixels of weight are not modelled: each node's
+    # weights are renormalised over its supported texels, and a pixel whose node keeps less than
+    # half its weight is dropped. This removes the near-null columns at the edges of what the
+    # image sees, which would otherwise dominate the solver's iterations.
+    supported = np.bincount(cols_all, weights=wj, minlength=3 * total) >= options.min_coverage
+    keep = supported[cols_all]
+    node_band = n_i * 3 + b_i
+    kept = np.bincount(node_band, weights=wj * keep, minlength=3 * len(nodes))
+    bad_rows = np.unique(b_i[kept[node_band] < 0.5] * npix + pix[n_i[kept[node_band] < 0.5]])
+    row_key = b_i * npix + pix[n_i]
+    keep &= (kept[node_band] >= 0.5) & ~np.isin(row_key, bad_rows)
+    n_i, b_i, cols_all, row_key = n_i[keep], b_i[keep], cols_all[keep], row_key[keep]
+    wj = wj[keep] / kept[node_band[keep]]
+    vals = coef[n_i, b_i] * wj
+    coverage = np.bincount(cols_all, weights=wj, minlength=3 * total)
+    weight = np.bincount(cols_all, weights=wj * visible_frac[n_i, b_i], minlength=3 * total)
+    sn, sb = np.nonzero(sat_hit)
+    saturated_touch = np.zeros(3 * total, dtype=bool)
+    saturated_touch[(sb[:, None] * total + idx[sn]).ravel()] = True
+
+    # Compress columns to the texels that some entry touches, rows to the pixels that have entries.
+    col_global = np.unique(cols_all)
+    cols = np.searchsorted(col_global, cols_all)
+    row_ids, rows = np.unique(row_key, return_inverse=True)
+    E = sp.csr_matrix((vals, (rows.ravel(), cols)), shape=(len(row_ids), len(col_global)))
+    E.sum_duplicates()
+    row_band, row_pixel = row_ids // npix, row_ids % npix
+    rhs = img[row_pixel, row_band] - Q[row_pixel, row_band]
+
+    kd0 = np.zeros(3 * total)
+    for s, m in maps.items():
+        for c in band:
+            kd0[c * total + offsets[s]: c * total + offsets[s] + m.n_texels] = materials[s]["kd"][c]
+    return _System(E, rhs, row_pixel, row_band, col_global, kd0[col_global], coverage, weight,
+                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), len(bad_rows))
+
+
+def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
+    """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system."""
+    texel = system.col_global % system.n_texels
+    pairs_i, pairs_j = [], []
+    for s, m in maps.items():
+        off = system.offsets[s]
+        for step, edge_ok in ((1, lambda t: (t - off) % m.width != m.width - 1), (m.width, lambda t: t - off < m.n_texels - m.width)):
+            inside = (texel >= off) & (texel < off + m.n_texels)
+            cand = np.nonzero(inside & edge_ok(texel))[0]
+            want = system.col_global[cand] + step
+            pos = np.searchsorted(system.col_global, want)
+            pos = np.minimum(pos, len(system.col_global) - 1)
+            hit = system.col_global[pos] == want
+            pairs_i.append(cand[hit])
+            pairs_j.append(pos[hit])
+    if not pairs_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(pairs_i), np.concatenate(pairs_j)
+
+
+# ---------------------------------------------------------------------- the solver
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    # einsum, not BLAS: multithreaded BLAS level-1 calls stall for milliseconds on a loaded 2-core box.
+    return float(np.einsum("i,i->", a, b))
+
+
+def _cgls(A, AT, rhs, x, damp2, free, tol, max_iter) -> tuple[np.ndarray, int]:
+    """CGLS: min |A x − rhs|² + Σ damp2 x² over the free unknowns, from x (fixed ones stay put).
+
+    Stops when the normal-equation residual has dropped by ``tol`` from its start.
+    """
+    r = rhs - A @ x
+    s = np.where(free, AT @ r - damp2 * x, 0.0)
+    p = s.copy()
+    gamma = _dot(s, s)
+    stop = gamma * tol * tol
+    it = 0
+    while it < max_iter and gamma > stop and gamma > 0:
+        q = A @ p
+        delta = _dot(q, q) + _dot(damp2 * p, p)
+        if delta <= 0:
+            break
+        alpha = gamma / delta
+        x = x + alpha * p
+        r -= alpha * q
+        s = np.where(free, AT @ r - damp2 * x, 0.0)
+        gamma, old = _dot(s, s), gamma
+        p = s + (gamma / old) * p
+        it += 1
+    return x, it
+
+
+def _solve_block(A, rhs, y0, lo, hi, damp2, options: TextureOptions) -> tuple[np.ndarray, int, int]:
+    """Bounded scaled least squares on one block: min |A y − rhs|² + damp2 |y − y0|², lo ≤ y ≤ hi.
+
+    Unbounded CGLS from y0, then up to four active-set rounds that fix the violators at their
+    bound and re-solve the free unknowns (warm started); a final projection guarantees the
+    bounds. Returns (y, iterations, active-set rounds).
+    """
+    A = A.tocsr()
+    AT = A.T.tocsr()
+    free = np.ones(len(y0), dtype=bool)
+    rhs0 = rhs - A @ y0  # solve for the offset from the prior: its damping pulls toward y0
+    d = np.zeros(len(y0))
+    iters = rounds = 0
+    for rounds in range(5):
+        d, it = _cgls(A, AT, rhs0, d, damp2, free, options.tol, options.max_iter)
+        iters += it
+        y = y0 + d
+        viol = free & ((y < lo) | (y > hi))
+        if not viol.any():
+            break
+        d = np.where(viol, np.clip(y, lo, hi) - y0, d)
+        free &= ~viol
+    return np.clip(y0 + d, lo, hi), iters, rounds
+
+
+def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, dict]:
+    """Solve the bounded, regularised system by connected components; returns (z per column, stats)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    E, ncol = system.E, system.E.shape[1]
+    t0 = time.perf_counter()
+    if ncol == 0:
+        return np.zeros(0), {"components": 0, "iterations": 0, "active_set_rounds": 0, "solve_s": 0.0}
+    # Texels sharing a row are coupled: link every entry to its row's first column.
+    first = np.repeat(E.indices[E.indptr[:-1]], np.diff(E.indptr))
+    pi, pj = (_smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2)
+    graph = sp.coo_matrix((np.ones(len(first) + len(pi)), (np.concatenate([first, pi]), np.concatenate([E.indices, pj]))),
+                          shape=(ncol, ncol))
+    n_comp, label = connected_components(graph, directed=False)
+    sizes = np.bincount(label)
+    group = np.where(sizes[label] >= options.small_component, label, -1)  # -1: the batch of small ones
+
+    colnorm = np.sqrt(np.asarray(E.multiply(E).sum(axis=0)).ravel())
+    colnorm = np.maximum(colnorm, 1e-300)
+    # The prior's weight is relative to the data a texel would have if seen directly: a texel seen
+    # only through an attenuation a gets (1/a)² times more, so faint reflections and sheets lean
+    # on the homogeneous kd instead of making the system ill-conditioned.
+    cov = system.coverage[system.col_global]
+    amp = np.divide(cov, system.weight[system.col_global], out=np.ones(ncol), where=system.weight[system.col_global] > 0)
+    damp2 = options.prior * np.maximum(amp, 1.0) ** 2
+    lo, hi = options.bounds
+    z = np.empty(ncol)
+    row_group = group[E.indices[E.indptr[:-1]]]
+    iters, rounds = 0, 0
+    for g in np.unique(group):
+        cols = np.nonzero(group == g)[0]
+        rows = np.nonzero(row_group == g)[0]
+        A = E[rows][:, cols] @ sp.diags(1.0 / colnorm[cols])
+        rhs = system.rhs[rows]
+        if options.smoothness > 0:
+            # Rows sqrt(mu) * sqrt(c_i c_j) * (z_i - z_j): relative to the two texels' data.
+            pos = np.full(ncol, -1)
+            pos[cols] = np.arange(len(cols))
+            sel = (pos[pi] >= 0) & (pos[pj] >= 0)
+            a, b = pos[pi[sel]], pos[pj[sel]]
+            k = np.sqrt(options.smoothness * colnorm[cols][a] * colnorm[cols][b])
+            m = len(a)
+            S = sp.csr_matrix((np.concatenate([k / colnorm[cols][a], -k / colnorm[cols][b]]),
+                               (np.tile(np.arange(m), 2), np.concatenate([a, b]))), shape=(m, len(cols)))
+            A, rhs = sp.vstack([A, S]).tocsr(), np.concatenate([rhs, np.zeros(m)])
+        y, it, rd = _solve_block(A, rhs, system.prior[cols] * colnorm[cols], lo * colnorm[cols], hi * colnorm[cols],
+                                 damp2[cols], options)
+        z[cols] = y / colnorm[cols]
+        iters, rounds = iters + it, max(rounds, rd)
+    stats = {"components": int(n_comp), "largest_component": int(sizes.max()),
+             "solves": int(len(np.unique(group))), "iterations": iters, "active_set_rounds": rounds,
+             "solve_s": time.perf_counter() - t0}
+    return z, stats
+
+
+def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None) -> TextureResult:
+    """Recover the diffuse texture of every textured surface the trees reach.
+
+    Parameters
+    ----------
+    scene : reconstruction.scene.Scene
+        Surfaces with meshes; ``textured`` says which get a texture.
+    trees : inverse.trees.Trees
+        Trees of the input camera and lights.
+    materials : list of Material
+        Fixed non-Lambertian parameters (and the homogeneous ``kd``), surface order.
+    intensities : (K, 3) array_like
+        Light intensities.
+    image : (H, W, 3) array_like
+        The linear input image (same size as the trees).
+    options : TextureOptions, optional
+
+    Returns
+    -------
+    TextureResult
+    """
+    options = options or TextureOptions()
+    options.validate()
+    image = np.asarray(image, dtype=np.float64)
+    if image.shape != (trees.height, trees.width, 3):
+        raise ValueError(f"image: expected shape ({trees.height}, {trees.width}, 3) like the trees, got {image.shape}")
+    if not np.all(np.isfinite(image)):
+        raise ValueError("image: NaN or inf pixel values")
+    t0 = time.perf_counter()
+    maps = build_maps(scene, trees, options)
+    t_maps = time.perf_counter()
+    system = build_system(trees, materials, intensities, image, maps, options)
+    t_sys = time.perf_counter()
+    z, stats = solve(system, maps, options)
+
+    resid = system.E @ z - system.rhs if len(z) else np.zeros(0)
+    rms = [float(np.sqrt(np.mean(resid[system.row_band == c] ** 2))) if np.any(system.row_band == c) else 0.0 for c in range(3)]
+    total = system.n_texels
+    full = np.full(3 * total, np.nan)
+    full[system.col_global] = z
+    lo, hi = options.bounds
+    clipped = np.zeros(3 * total, dtype=bool)
+    clipped[system.col_global] = (z <= lo) | (z >= hi)
+    known3 = system.coverage >= options.min_coverage
+    amp3 = np.divide(system.coverage, system.weight, out=np.full(3 * total, np.inf), where=system.weight > 0)
+
+    result = TextureResult(maps, {}, {}, {}, {}, {}, {})
+    for s, m in maps.items():
+        sl = np.stack([np.arange(system.offsets[s], system.offsets[s] + m.n_texels) + c * total for c in range(3)], axis=1)
+        known = known3[sl].all(axis=1)
+        kd = np.where(known[:, None], full[sl], materials[s]["kd"][None, :])
+        kd = np.nan_to_num(kd, nan=0.0)
+        amp = np.where(known3[sl], amp3[sl], 0.0)
+        flags = (np.where((amp > options.amplification_limit).any(1) & known, AMPLIFIED, 0)
+                 | np.where(system.saturated_touch[sl].any(1), SATURATED, 0)
+                 | np.where(clipped[sl].any(1) & known, CLIPPED, 0)).astype(np.uint8)
+        shape = (m.height, m.width)
+        result.kd[s] = kd.reshape(*shape, 3)
+        result.mask[s] = known.reshape(shape)
+        result.weight[s] = system.weight[sl].reshape(*shape, 3)
+        result.amplification[s] = amp.reshape(*shape, 3)
+        result.flags[s] = flags.reshape(shape)
+    stats.update(
+        rows=int(system.E.shape[0]), unknowns=int(system.E.shape[1]), nonzeros=int(system.E.nnz),
+        residual_rms=rms, saturated_values=system.n_saturated,
+        texels_known=int(sum(int(v.sum()) for v in result.mask.values())),
+        texels_amplified=int(sum(int(np.count_nonzero(f & AMPLIFIED)) for f in result.flags.values())),
+        texels_clipped=int(sum(int(np.count_nonzero(f & CLIPPED)) for f in result.flags.values())),
+        maps_s=t_maps - t0, system_s=t_sys - t_maps, total_s=time.perf_counter() - t0,
+    )
+    result.stats = stats
+    return result
+
+
+# ---------------------------------------------------------------------- files
+def write_textures(workspace, scene, result: TextureResult, extra: dict | None = None) -> list:
+    """Write textures/<surface>.exr, _mask.png, _diag.exr (and _uv.npy for UV atlases), then
+    textures/index.json last, so the index never names a missing file. Returns the paths."""
+    from hardware.images import write_image
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    written, entries = [], []
+    for s, m in result.maps.items():
+        name = scene[s].name
+        files = {"kd": f"{name}.exr", "mask": f"{name}_mask.png", "diag": f"{name}_diag.exr"}
+        written.append(write_image(ws.textures / files["kd"], result.kd[s]))
+        written.append(write_image(ws.textures / files["mask"], result.mask[s].astype(np.float32)))
+        diag = np.stack([result.weight[s].min(axis=2), result.amplification[s].max(axis=2),
+                         result.flags[s].astype(np.float32)], axis=2)
+        written.append(write_image(ws.textures / files["diag"], diag))
+        if m.kind == "uvatlas":
+            files["uv"] = f"{name}_uv.npy"
+            with atomic_write(ws.textures / files["uv"], "wb") as f:
+                np.save(f, m.tri_uv.astype(np.float64))
+            written.append(ws.textures / files["uv"])
+        entry = m.to_json()
+        entry.update(files=files, texels_known=int(result.mask[s].sum()),
+                     texels_amplified=int(np.count_nonzero(result.flags[s] & AMPLIFIED)))
+        entries.append(entry)
+    index = {"surfaces": entries, "stats": result.stats, **(extra or {})}
+    written.append(write_json(ws.textures / "index.json", index))
+    return written
+
+
+def load_texture_maps(workspace, scene) -> dict[int, tuple[TexelMap, np.ndarray, np.ndarray]]:
+    """Read textures/index.json: surface index -> (map, kd (H, W, 3), mask (H, W) bool)."""
+    from hardware.images import read_image
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    path = ws.require(ws.textures / "index.json", "reflab texture")
+    index = read_json(path)
+    items = index.get("surfaces")
+    if not isinstance(items, list):
+        raise WorkspaceError(path, "surfaces", "a list of texture entries", got=items)
+    out = {}
+    for i, item in enumerate(items):
+        where = f"surfaces[{i}]"
+        if not isinstance(item, dict) or item.get("surface") not in scene.names:
+            raise WorkspaceError(path, f"{where}.surface", f"one of the scene's surfaces {scene.names}", got=item.get("surface") if isinstance(item, dict) else item)
+        s = scene.index(item["surface"])
+        files = item.get("files", {})
+        tri_uv = None
+        if item.get("kind") == "uvatlas":
+            uv_path = ws.textures / str(files.get("uv", ""))
+            if not uv_path.is_file():
+                raise WorkspaceError(path, f"{where}.files.uv", "an existing .npy of per-corner texel coordinates", got=str(uv_path))
+            tri_uv = np.load(uv_path, allow_pickle=False)
+        m = TexelMap.from_json(item, s, scene[s].mesh, path, where, tri_uv)
+        kd = read_image(ws.textures / str(files.get("kd", "")))
+        mask = read_image(ws.textures / str(files.get("mask", "")))[:, :, 0] > 0.5
+        if kd.shape[:2] != (m.height, m.width) or mask.shape != (m.height, m.width):
+            raise WorkspaceError(path, f"{where}.files", f"images of {m.height}x{m.width} texels", got=[kd.shape, mask.shape])
+        out[s] = (m, kd.astype(np.float64), mask)
+    return out
+
+
+def albedo_nodes(workspace, scene, trees) -> np.ndarray:
+    """Recovered diffuse albedo (N, 3) at every tree node; NaN where it is unknown.
+
+    Textured surfaces: bilinear blend of their known texels (weights renormalised over the known
+    ones; NaN when the known ones carry less than half the weight, e.g. beyond the region the
+    input saw). Untextured surfaces: their homogeneous ``kd`` (fit.json, else scene.json).
+    Textured surfaces that the texture stage never saw: NaN.
+    """
+    textures = load_texture_maps(workspace, scene)
+    materials, _ = load_materials(workspace, scene)
+    out = np.full((len(trees), 3), np.nan)
+    for s, surf in enumerate(scene):
+        sel = np.nonzero(trees.surface == s)[0]
+        if len(sel) == 0:
+            continue
+        if not surf.textured:
+            out[sel] = materials[s]["kd"]
+        elif s in textures:
+            m, kd, mask = textures[s]
+            idx, w = m.bilinear(trees.triangle[sel], trees.barycentric[sel])
+            w = w * mask.ravel()[idx]
+            wsum = w.sum(axis=1)
+            val = np.einsum("nj,njc->nc", w, kd.reshape(-1, 3)[idx]) / np.maximum(wsum, 1e-300)[:, None]
+            out[sel] = np.where((wsum >= 0.5)[:, None], val, np.nan)
+    return out
