@@ -1,0 +1,28 @@
+"""`reflab report` summarises what the stages wrote, with the numbers that are in the files."""
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from hardware.simlab import build_lab, write_lab
+from hardware.workspace import write_json
+
+
+def test_report_summarises_workspace(tmp_path, capsys):
+    lab = build_lab(80, 60)
+    write_lab(tmp_path, lab)
+    write_json(tmp_path / "fit.json", {"method": "ftbo", "depth": 3, "time_s": 1.5, "rms": [0.01, 0.02, 0.03],
+                                       "trace": [[0.1, [0.1, 0.1, 0.1]], [1.5, [0.01, 0.02, 0.03]]],
+                                       "surfaces": [{"name": lab.scene[0].name, "undetermined": ["ns"]}]})
+    assert main(["report", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert [s["name"] for s in report["scene"]] == lab.scene.names
+    np.testing.assert_allclose([l["position"] for l in report["lights"]], lab.lights.positions)
+    assert report["fit"]["undetermined"] == {lab.scene[0].name: ["ns"]} and report["fit"]["trace_points"] == 2
+    assert "[fit]" in capsys.readouterr().out
+
+
+def test_report_names_missing_workspace(tmp_path, capsys):
+    assert main(["report", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err
