@@ -257,19 +257,28 @@ def _planar_charts(vertices, triangles, texel_size) -> tuple[list[Chart], np.nda
         cols, rows = (np.ceil(ext / texel_size).astype(int) + 1 + 2 * PAD)
         origin = lo[0] * axis_u + lo[1] * axis_v + (normal @ pts[0]) * normal
         frames.append((origin, axis_u, axis_v, rows, cols))
-    # Shelf packing, tallest first, into a roughly square atlas.
-    order = sorted(range(len(frames)), key=lambda i: -frames[i][3])
-    total = sum(f[3] * f[4] for f in frames)
-    width = max(max(f[4] for f in frames), int(np.ceil(np.sqrt(total) * 1.1)))
-    charts: list[Chart | None] = [None] * len(frames)
+    sizes = [(f[3], f[4]) for f in frames]
+    total = sum(r * c for r, c in sizes)
+    widest = max(c for _, c in sizes)
+    # Try a few atlas widths, keep the smallest area.
+    widths = {widest, sum(c for _, c in sizes)} | {max(widest, int(np.ceil(np.sqrt(total) * k))) for k in (1.0, 1.2, 1.5)}
+    width, pos, height = min(((w, *_shelf_pack(sizes, w)) for w in widths), key=lambda t: t[0] * t[2])
+    charts = [Chart(origin, au, av, np.array([x + PAD, y + PAD], float), (rows, cols))
+              for (origin, au, av, rows, cols), (x, y) in zip(frames, pos)]
+    return charts, label, width, height
+
+
+def _shelf_pack(sizes: list[tuple[int, int]], width: int) -> tuple[list[tuple[int, int]], int]:
+    """Shelf packing, tallest first: the (x, y) corner of each (rows, cols) block, and the height."""
+    pos: list[tuple[int, int]] = [(0, 0)] * len(sizes)
     x = y = shelf = 0
-    for i in order:
-        origin, au, av, rows, cols = frames[i]
+    for i in sorted(range(len(sizes)), key=lambda i: -sizes[i][0]):
+        rows, cols = sizes[i]
         if x + cols > width:
             x, y, shelf = 0, y + shelf, 0
-        charts[i] = Chart(origin, au, av, np.array([x + PAD, y + PAD], float), (rows, cols))
+        pos[i] = (x, y)
         x, shelf = x + cols, max(shelf, rows)
-    return charts, label, width, y + shelf
+    return pos, y + shelf
 
 
 def _planar_tri_uv(vertices, triangles, charts, texel_size, path="", where="") -> np.ndarray:

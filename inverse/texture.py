@@ -138,12 +138,14 @@ def load_materials(workspace, scene) -> tuple[list, str]:
     items = fit.get("surfaces")
     if not isinstance(items, list):
         raise WorkspaceError(ws.fit, "surfaces", "a list of fitted surfaces", got=items)
-    by_name = {}
     for i, item in enumerate(items):
-        if not isinstance(item, dict) or "name" not in item or "material" not in item:
+        if not isinstance(item, dict) or "material" not in item:
             raise WorkspaceError(ws.fit, f"surfaces[{i}]", "an object with 'name' and 'material'", got=item)
-        by_name[item["name"]] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
-    return [by_name.get(s.name, s.material) for s in scene], "fit.json"
+        name = item.get("name", scene[i].name if i < len(scene) else None)  # by name, else by position
+        if name not in scene.names:
+            raise WorkspaceError(ws.fit, f"surfaces[{i}].name", f"one of the scene's surfaces {scene.names}", got=name)
+        materials[scene.index(name)] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
+    return materials, "fit.json"
 
 
 def saturation_threshold(image: np.ndarray) -> float | None:
@@ -535,6 +537,19 @@ def load_texture_maps(workspace, scene) -> dict[int, tuple[TexelMap, np.ndarray,
     return out
 
 
+def sample_texture(texel_map: TexelMap, kd: np.ndarray, mask: np.ndarray, triangle, barycentric) -> np.ndarray:
+    """Albedo (N, 3) at points on one surface (triangle and Open3D barycentric coordinates).
+
+    Bilinear over the known texels, weights renormalised over them; NaN where the known texels
+    carry less than half the weight (beyond what the input saw).
+    """
+    idx, w = texel_map.bilinear(triangle, barycentric)
+    w = w * mask.ravel()[idx]
+    wsum = w.sum(axis=1)
+    val = np.einsum("nj,njc->nc", w, kd.reshape(-1, 3)[idx]) / np.maximum(wsum, 1e-300)[:, None]
+    return np.where((wsum >= 0.5)[:, None], val, np.nan)
+
+
 def albedo_nodes(workspace, scene, trees) -> np.ndarray:
     """Recovered diffuse albedo (N, 3) at every tree node; NaN where it is unknown.
 
@@ -553,10 +568,5 @@ def albedo_nodes(workspace, scene, trees) -> np.ndarray:
         if not surf.textured:
             out[sel] = materials[s]["kd"]
         elif s in textures:
-            m, kd, mask = textures[s]
-            idx, w = m.bilinear(trees.triangle[sel], trees.barycentric[sel])
-            w = w * mask.ravel()[idx]
-            wsum = w.sum(axis=1)
-            val = np.einsum("nj,njc->nc", w, kd.reshape(-1, 3)[idx]) / np.maximum(wsum, 1e-300)[:, None]
-            out[sel] = np.where((wsum >= 0.5)[:, None], val, np.nan)
+            out[sel] = sample_texture(*textures[s], trees.triangle[sel], trees.barycentric[sel])
     return out

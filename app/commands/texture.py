@@ -1,0 +1,108 @@
+"""Recover the diffuse texture of every surface point the input photograph sees, directly, in
+mirrors or through transparent sheets (METHOD.md §4, the sparse system E z = b − Q).
+
+Non-Lambertian parameters come from fit.json when it exists, else from scene.json's materials
+(a user who knows them need not fit). Surfaces marked ``"textured": false`` keep their one
+homogeneous albedo. Writes WORKSPACE/textures/: ``<surface>.exr`` (kd per band per texel),
+``<surface>_mask.png`` (texels the image determines), ``<surface>_diag.exr`` (observation
+weight, amplification, flags) and ``index.json`` (which texel maps to which surface point,
+solver statistics).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "recover per-texel diffuse albedo of every surface seen directly or indirectly (textures/)"
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return value
+
+
+def _nonneg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def _depth(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("workspace", type=Path, help="workspace folder (camera.json, lights.json, scene.json, input image)")
+    parser.add_argument("--depth", type=_depth, default=None, help="maximum internal nodes per path (default: fit.json's, else 3)")
+    parser.add_argument("--texel-scale", type=_positive, default=1.0,
+                        help="texel size as a multiple of the pixel footprint on each surface (default 1)")
+    parser.add_argument("--texel-size", type=_positive, default=None, help="texel size in metres for every surface (overrides --texel-scale)")
+    parser.add_argument("--prior", type=_nonneg, default=1e-3,
+                        help="relative weight of the pull toward each surface's homogeneous kd (default 1e-3)")
+    parser.add_argument("--smoothness", type=_nonneg, default=0.01, help="relative weight of neighbouring-texel smoothness (default 0.01)")
+    parser.add_argument("--saturation", type=_positive, default=None,
+                        help="pixel value at which the camera clips (default: detect a clipped plateau)")
+    parser.add_argument("--max-albedo", type=_positive, default=1.0, help="upper bound of kd (default 1)")
+
+
+def run(args) -> int:
+    import numpy as np
+
+    from calibration.camera import Camera
+    from calibration.lights import Lights
+    from hardware.images import read_image
+    from hardware.workspace import Workspace, WorkspaceError, read_json
+    from inverse.texture import TextureOptions, load_materials, recover_texture, write_textures
+    from inverse.trees import build_trees
+    from reconstruction.scene import Scene
+
+    ws = Workspace(args.workspace)
+    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
+    lights = Lights.load(ws.require(ws.lights, "reflab calibrate lights"))
+    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
+    image_path = ws.require(ws.input_image, "reflab capture input")
+    image = read_image(image_path)
+    if image.shape[:2] != (camera.height, camera.width):
+        raise WorkspaceError(image_path, expected=f"a {camera.width}x{camera.height} image like camera.json",
+                             got=f"{image.shape[1]}x{image.shape[0]}")
+    materials, source = load_materials(ws, scene)
+    depth = args.depth
+    if depth is None:
+        depth = int(read_json(ws.fit).get("depth", 3)) if ws.fit.exists() else 3
+    options = TextureOptions(texel_scale=args.texel_scale, texel_size=args.texel_size, prior=args.prior,
+                             smoothness=args.smoothness, saturation=args.saturation, bounds=(0.0, args.max_albedo))
+    trees = build_trees(scene, camera, lights, depth=depth)
+    result = recover_texture(scene, trees, materials, lights.intensities, image, options)
+    extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
+             "options": {"texel_scale": options.texel_scale, "texel_size": options.texel_size, "prior": options.prior,
+                         "smoothness": options.smoothness, "saturation": options.saturation,
+                         "bounds": list(options.bounds), "min_coverage": options.min_coverage,
+                         "amplification_limit": options.amplification_limit}}
+    written = write_textures(ws, scene, result, extra)
+    st = result.stats
+    rms = ", ".join(f"{v:.3g}" for v in st["residual_rms"])
+    print(f"reflab texture: materials from {source}; {st['rows']} equations, {st['unknowns']} unknowns, "
+          f"{st['components']} components")
+    print(f"reflab texture: {st['iterations']} CGLS iterations, solve {st['solve_s']:.2f} s, total {st['total_s']:.2f} s "
+          f"(+ trees {trees.stats.get('build_s', float('nan')):.2f} s); residual RMS per band [{rms}]")
+    for s, m in result.maps.items():
+        print(f"  {m.name}: {m.kind} {m.width}x{m.height} texels of {m.texel_size * 1000:.2f} mm, "
+              f"{int(result.mask[s].sum())} known, {int(np.count_nonzero(result.flags[s] & 1))} amplified > "
+              f"{options.amplification_limit:g}x")
+    print(f"reflab texture: wrote {len(written)} files in {ws.textures}")
+    return 0
