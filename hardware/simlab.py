@@ -185,15 +185,7 @@ class SimLab:
 
 def _surface_mean(mesh: Mesh, tex: _Texture, n: int = 20000) -> np.ndarray:
     """Area-weighted mean of a texture over a mesh (deterministic sample)."""
-    rng = np.random.default_rng(0)
-    v = mesh.vertices[mesh.triangles]
-    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    tri = rng.choice(len(area), size=n, p=area / area.sum())
-    a, b = rng.random(n), rng.random(n)
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    pts = v[tri, 0] + a[:, None] * (v[tri, 1] - v[tri, 0]) + b[:, None] * (v[tri, 2] - v[tri, 0])
-    return tex(pts).mean(axis=0)
+    return tex(mesh.sample_points(n)).mean(axis=0)
 
 
 def _material(brdf: str, ior=None, **params) -> Material:

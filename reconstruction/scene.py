@@ -127,6 +127,17 @@ class Mesh:
         n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
+    def sample_points(self, n: int = 20000, seed: int = 0) -> np.ndarray:
+        """``n`` points spread uniformly over the mesh's area (deterministic for a given seed)."""
+        rng = np.random.default_rng(seed)
+        v = self.vertices[self.triangles]
+        area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+        tri = rng.choice(len(area), size=n, p=area / area.sum())
+        a, b = rng.random(n), rng.random(n)
+        flip = a + b > 1
+        a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+        return v[tri, 0] + a[:, None] * (v[tri, 1] - v[tri, 0]) + b[:, None] * (v[tri, 2] - v[tri, 0])
+
     @classmethod
     def load(cls, path) -> "Mesh":
         path = Path(path)

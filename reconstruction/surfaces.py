@@ -395,16 +395,6 @@ def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -
 
 
 # ---------------------------------------------------------------- measuring
-def sample_surface(mesh: Mesh, n: int = 20000, seed: int = 0) -> np.ndarray:
-    """``n`` points spread uniformly over a mesh's area (deterministic)."""
-    rng = np.random.default_rng(seed)
-    v = mesh.vertices[mesh.triangles]
-    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    tri = rng.choice(len(area), size=n, p=area / area.sum())
-    a, b = rng.random(n), rng.random(n)
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    return v[tri, 0] + a[:, None] * (v[tri, 1] - v[tri, 0]) + b[:, None] * (v[tri, 2] - v[tri, 0])
 
 
 def distance_to_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:

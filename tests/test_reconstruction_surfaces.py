@@ -81,7 +81,7 @@ def test_ground_and_boxes_fitted_to_points_within_1mm(lab):
     # Sparse points as SfM leaves them: on the visible faces (not the bottoms), 0.3 mm noise.
     pts = [rng.uniform([-0.2, -0.2, 0], [0.25, 0.25, 0], (3000, 3))]
     for mesh, n in ((box, 800), (tile, 600)):
-        p = surf.sample_surface(mesh, 4 * n, seed=4)
+        p = mesh.sample_points(4 * n, seed=4)
         pts.append(p[p[:, 2] > 1e-4][:n])
     ground_pts = pts[0]
     for mesh in (box, tile):
@@ -94,11 +94,11 @@ def test_ground_and_boxes_fitted_to_points_within_1mm(lab):
     pts += rng.normal(0, 3e-4, pts.shape)
     fitted = surf.fit_scene_points(pts)
     assert fitted[0].name == "ground" and len(fitted) == 3
-    g = surf.sample_surface(fitted[0].mesh, 5000)
+    g = fitted[0].mesh.sample_points(5000)
     assert np.sqrt(np.mean(g[:, 2] ** 2)) < 1e-3
     for m in fitted[1:]:
         truth = min((box, tile), key=lambda t: np.linalg.norm(t.vertices.mean(0) - m.mesh.vertices.mean(0)))
-        d = surf.distance_to_mesh(truth, surf.sample_surface(m.mesh, 5000))
+        d = surf.distance_to_mesh(truth, m.mesh.sample_points(5000))
         assert np.sqrt(np.mean(d**2)) < 1e-3, (m.name, np.sqrt(np.mean(d**2)))
         assert m.mesh.is_closed()
 

@@ -164,12 +164,12 @@ def test_ground_and_boxes_within_1mm(sweep):
     root, *_ = sweep
     scene = Scene.load(root / "scene.json")
     assert scene.names[0] == "ground"
-    g = surf.sample_surface(scene[0].mesh, 5000)
+    g = scene[0].mesh.sample_points(5000)
     assert np.sqrt(np.mean(g[:, 2] ** 2)) < 1e-3
     found = {}
     for s in scene.surfaces[1:]:
         name = min(BOXES, key=lambda n: np.linalg.norm(true_box(n).vertices.mean(0) - s.mesh.vertices.mean(0)))
-        d = surf.distance_to_mesh(true_box(name), surf.sample_surface(s.mesh, 5000))
+        d = surf.distance_to_mesh(true_box(name), s.mesh.sample_points(5000))
         found[name] = float(np.sqrt(np.mean(d**2)))
         assert s.mesh.is_closed()
     assert set(found) == set(BOXES), found
