@@ -1,17 +1,15 @@
 """`reflab render` end to end on a small simulated-lab workspace, checked against the independent
 reference renderer (hardware/reference.py) with the same materials, lights, camera and texture."""
-import sys
-import types
-
 import numpy as np
 import pytest
 
 from app.cli import main
 from calibration.lights import Lights
-from hardware.images import read_image
+from hardware.images import read_image, write_image
 from hardware.reference import render_reference
 from hardware.simlab import build_lab, write_lab
 from hardware.workspace import write_json
+from inverse.trees import build_trees
 from reconstruction.scene import Scene
 
 
@@ -72,35 +70,26 @@ def test_render_uses_fit_json_new_lights_and_camera(ws, tmp_path):
     assert _rel_rms(before, ref) > 0.02  # the fitted tile really changed the image
 
 
-def test_render_uses_texture_stage_albedo(ws, monkeypatch, capsys):
+def test_render_uses_texture_stage_albedo(ws, capsys):
     root, lab = ws
-    (root / "textures").mkdir()
-    calls = []
-
-    def albedo_nodes(workspace, scene, trees):
-        calls.append(len(trees))
-        kd = lab.albedo_at(trees.surface, trees.point)
-        kd[trees.surface == scene.index("mirror")] = np.nan  # unknown: falls back to homogeneous kd
-        return kd
-
-    # The texture stage's hook, stood in by the true albedo (textures/ exists).
-    monkeypatch.setitem(sys.modules, "inverse.texture", types.SimpleNamespace(albedo_nodes=albedo_nodes))
+    photo = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)
+    write_image(root / "input.exr", photo)
+    assert main(["render", str(root), "-o", str(root / "flat.exr")]) == 0  # one kd per surface
+    assert main(["texture", str(root)]) == 0
     assert main(["render", str(root), "-o", str(root / "tex.exr")]) == 0
-    assert calls and "unknown" in capsys.readouterr().out
-    ref = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)
-    assert _rel_rms(read_image(root / "tex.exr"), ref) < 0.01
-    # The albedo AOV keeps the unknown as NaN and the recovered values elsewhere.
+    assert "unknown" in capsys.readouterr().out
+    # 80x60 texels are coarse against the procedural texture: 3.9% measured, against 20%+ flat.
+    flat, tex = _rel_rms(read_image(root / "flat.exr"), photo), _rel_rms(read_image(root / "tex.exr"), photo)
+    assert tex < 0.06 and tex < 0.5 * flat
+    # The albedo AOV: recovered values where the texture stage saw the point, NaN elsewhere.
     assert main(["render", str(root), "--aov", "albedo"]) == 0
-    alb = _read_with_nan(root / "albedo.exr")
-    assert np.isnan(alb).any()
-    from inverse.trees import build_trees
-
+    alb = _read_with_nan(root / "albedo.exr").reshape(-1, 3)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=1)
-    want = np.full((60 * 80, 3), np.nan)
-    want[trees.pixel] = lab.albedo_at(trees.surface, trees.point)
-    want[trees.pixel[trees.surface == lab.scene.index("mirror")]] = np.nan
-    np.testing.assert_allclose(alb.reshape(-1, 3), want, atol=1e-6)  # NaN where both are NaN
-    assert np.isfinite(want).all(axis=1).mean() > 0.8
+    true = np.full((60 * 80, 3), np.nan)
+    true[trees.pixel] = lab.albedo_at(trees.surface, trees.point)
+    known = np.isfinite(alb).all(axis=1)
+    assert 0 < (~known).sum() < 0.1 * len(known)
+    assert np.sqrt(np.mean((alb[known] - true[known]) ** 2)) < 0.03
 
 
 def test_render_albedo_aov_without_textures(ws):

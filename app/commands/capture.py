@@ -12,24 +12,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from app.commands._args import float_list, image_size
+
 HELP = "capture calibration, rod-shadow, turntable or input images (hardware or simulated devices)"
-
-
-def _floats(text: str) -> list[float]:
-    try:
-        return [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
-    if w < 2 or h < 2:
-        raise argparse.ArgumentTypeError(f"image size must be at least 2x2, got {text!r}")
-    return w, h
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", required=True, help="serial port of the GRBL board, or 'sim' for the simulated board")
     parser.add_argument("--camera", required=True, help="sim | opencv:N | opencv:URL | folder:PATH (tethered camera)")
     parser.add_argument("--config", help="hardware JSON (default: WORKSPACE/hardware.json when it exists)")
-    parser.add_argument("--angles", type=_floats, default=[0.0], help="turntable angles for calibration/lights (default 0)")
+    parser.add_argument("--angles", type=float_list, default=[0.0], help="turntable angles for calibration/lights (default 0)")
     parser.add_argument("--count", type=int, default=36, help="sweep: number of shots over 360 degrees (default 36)")
     parser.add_argument("--start", type=float, default=0.0, help="sweep: first angle; input: the angle (default 0)")
     parser.add_argument("--ambient", action="store_true", help="input: also take a lamps-off frame and subtract it")
@@ -52,9 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trigger", help="folder camera: command that takes a shot (e.g. 'gphoto2 --trigger-capture')")
     parser.add_argument("--camera-timeout", type=float, default=60.0, help="folder camera: seconds to wait for a file")
     sim = parser.add_argument_group("simulated camera (--camera sim)")
-    sim.add_argument("--size", type=_size, default=(320, 240), help="image size WxH (default 320x240)")
+    sim.add_argument("--size", type=image_size, default=(320, 240), help="image size WxH (default 320x240)")
     sim.add_argument("--depth", type=int, default=3, help="ray depth of the simulated camera (default 3)")
-    sim.add_argument("--centre", type=_floats, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
+    sim.add_argument("--centre", type=float_list, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
     sim.add_argument("--room-light", type=float, default=0.0, help="ambient radiance added to every pixel")
 
 

@@ -5,7 +5,7 @@
    true materials go to truth.json;
 2. renders input.exr with the independent reference renderer (hardware/reference.py) and the
    true textures, optionally with Gaussian noise;
-3. runs the later stages (`reflab fit`, `reflab texture`) where this installation has them;
+3. runs the later stages (`reflab fit`, `reflab texture`);
 4. renders the recovered model (`reflab render`) and prints its RMS error against input.exr.
 """
 from __future__ import annotations
@@ -15,58 +15,27 @@ import importlib
 import time
 from pathlib import Path
 
+from app.commands._args import image_size, nonneg_float
+
 HELP = "the simulated lab end to end: write a workspace, render its photograph, fit, texture, re-render"
 
-#: Later stages, in order, run through their own subcommand modules when installed.
+#: Later stages, in order, run through their own subcommand modules.
 STAGES = ("fit", "texture")
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 320x240, got {text!r}") from None
-    if w < 2 or h < 2:
-        raise argparse.ArgumentTypeError(f"image size must be at least 2x2, got {text!r}")
-    return w, h
-
-
-def _nonneg(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workspace", nargs="?", default="demo-workspace", help="folder to write (default ./demo-workspace)")
-    parser.add_argument("--size", type=_size, default=(320, 240), help="image size WIDTHxHEIGHT (default 320x240)")
-    parser.add_argument("--noise", type=_nonneg, default=0.0,
+    parser.add_argument("--size", type=image_size, default=(320, 240), help="image size WIDTHxHEIGHT (default 320x240)")
+    parser.add_argument("--noise", type=nonneg_float, default=0.0,
                         help="standard deviation of Gaussian noise added to input.exr, linear units (peak ~0.9)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed")
     parser.add_argument("--depth", type=int, default=3, choices=range(1, 7), metavar="D",
                         help="internal nodes per path for the photograph and the model (default 3)")
 
 
-def _stage(name: str):
-    """The subcommand module of a later stage, or None when it is not installed yet."""
-    try:
-        return importlib.import_module(f"app.commands.{name}")
-    except ModuleNotFoundError as exc:
-        if exc.name != f"app.commands.{name}":
-            raise
-        return None
-
-
 def _run_stage(name: str, workspace: Path) -> bool:
-    """Run a later stage on the workspace; False when it failed (a missing stage is skipped)."""
-    module = _stage(name)
-    if module is None:
-        print(f"[demo] stage {name} not available yet (no `reflab {name}` in this installation): skipped")
-        return True
+    """Run a later stage's subcommand on the workspace; False when it failed."""
+    module = importlib.import_module(f"app.commands.{name}")
     parser = argparse.ArgumentParser(prog=f"reflab {name}")
     module.add_arguments(parser)
     args = parser.parse_args([str(workspace)])

@@ -12,17 +12,9 @@ import argparse
 import time
 from pathlib import Path
 
+from app.commands._args import positive_int
+
 HELP = "render the scene model (scene.json, or fit.json + textures/ when present) to an EXR image"
-
-
-def _depth(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,52 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", help="camera.json to render from (novel view); default the workspace's")
     parser.add_argument("--lights", help="lights.json to light with (relighting); default the workspace's")
     parser.add_argument("--aov", choices=["albedo"], help="write the kd of the surface seen at each pixel instead")
-    parser.add_argument("--depth", type=_depth, default=3, help="maximum internal nodes per path (default 3)")
-
-
-def texture_albedo(workspace, scene, trees):
-    """Per-node albedo (N, 3) from the texture stage, NaN where unknown; None without textures.
-
-    Uses ``inverse.texture.albedo_nodes(workspace, scene, trees)`` when WORKSPACE/textures/
-    exists and that function is available.
-    """
-    from hardware.workspace import Workspace
-
-    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    if not ws.textures.is_dir():
-        return None
-    try:
-        import inverse.texture as texture
-    except ImportError:
-        texture = None
-    albedo_nodes = getattr(texture, "albedo_nodes", None)
-    if albedo_nodes is None:
-        print(f"{ws.textures}: texture stage not available in this installation; using homogeneous kd")
-        return None
-    return albedo_nodes(ws, scene, trees)
-
-
-def fitted_materials(workspace, scene) -> tuple[list, str]:
-    """Materials in surface order: fit.json's "surfaces"[i]["material"] when it exists (matched by
-    name, else by position), else scene.json's; returns them and the file they came from."""
-    from hardware.workspace import Workspace, WorkspaceError, read_json
-    from reconstruction.scene import Material
-
-    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    materials = [s.material for s in scene]
-    if not ws.fit.exists():
-        return materials, "scene.json"
-    items = read_json(ws.fit).get("surfaces")
-    if not isinstance(items, list):
-        raise WorkspaceError(ws.fit, "surfaces", "a list of fitted surfaces", got=items)
-    for i, item in enumerate(items):
-        if not isinstance(item, dict) or "material" not in item:
-            raise WorkspaceError(ws.fit, f"surfaces[{i}]", "an object with 'name' and 'material'", got=item)
-        name = item.get("name", scene[i].name if i < len(scene) else None)
-        if name not in scene.names:
-            raise WorkspaceError(ws.fit, f"surfaces[{i}].name", f"one of the scene's surfaces {scene.names}", got=name)
-        materials[scene.index(name)] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
-    return materials, "fit.json"
+    parser.add_argument("--depth", type=positive_int, default=3, help="maximum internal nodes per path (default 3)")
 
 
 def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3) -> tuple:
@@ -105,6 +52,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     from calibration.lights import Lights
     from hardware.workspace import Workspace
     from inverse.rendering import render, render_albedo
+    from inverse.texture import albedo_nodes, load_materials
     from inverse.trees import build_trees
     from reconstruction.scene import Scene
 
@@ -112,12 +60,12 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     cam = Camera.load(camera or ws.require(ws.camera, "reflab calibrate camera"))
     lig = Lights.load(lights or ws.require(ws.lights, "reflab calibrate lights"))
     scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
-    materials, source = fitted_materials(ws, scene)
+    materials, source = load_materials(ws, scene)
 
     t0 = time.perf_counter()
     trees = build_trees(scene, cam, lig, depth=depth)
     t1 = time.perf_counter()
-    kd_nodes = texture_albedo(ws, scene, trees)
+    kd_nodes = albedo_nodes(ws, scene, trees) if ws.textures.is_dir() else None
     info = {"materials": source, "texture_nodes": None, "unknown_albedo": 0}
     if kd_nodes is not None:
         unknown = ~np.all(np.isfinite(kd_nodes), axis=1)

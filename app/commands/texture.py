@@ -13,51 +13,23 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from app.commands._args import nonneg_float, positive_float, positive_int
+
 HELP = "recover per-texel diffuse albedo of every surface seen directly or indirectly (textures/)"
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return value
-
-
-def _nonneg(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not 0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return value
-
-
-def _depth(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workspace", type=Path, help="workspace folder (camera.json, lights.json, scene.json, input image)")
-    parser.add_argument("--depth", type=_depth, default=None, help="maximum internal nodes per path (default: fit.json's, else 3)")
-    parser.add_argument("--texel-scale", type=_positive, default=1.0,
+    parser.add_argument("--depth", type=positive_int, default=None, help="maximum internal nodes per path (default: fit.json's, else 3)")
+    parser.add_argument("--texel-scale", type=positive_float, default=1.0,
                         help="texel size as a multiple of the pixel footprint on each surface (default 1)")
-    parser.add_argument("--texel-size", type=_positive, default=None, help="texel size in metres for every surface (overrides --texel-scale)")
-    parser.add_argument("--prior", type=_nonneg, default=1e-3,
+    parser.add_argument("--texel-size", type=positive_float, default=None, help="texel size in metres for every surface (overrides --texel-scale)")
+    parser.add_argument("--prior", type=nonneg_float, default=1e-3,
                         help="relative weight of the pull toward each surface's homogeneous kd (default 1e-3)")
-    parser.add_argument("--smoothness", type=_nonneg, default=0.01, help="relative weight of neighbouring-texel smoothness (default 0.01)")
-    parser.add_argument("--saturation", type=_positive, default=None,
+    parser.add_argument("--smoothness", type=nonneg_float, default=0.01, help="relative weight of neighbouring-texel smoothness (default 0.01)")
+    parser.add_argument("--saturation", type=positive_float, default=None,
                         help="pixel value at which the camera clips (default: detect a clipped plateau)")
-    parser.add_argument("--max-albedo", type=_positive, default=1.0, help="upper bound of kd (default 1)")
+    parser.add_argument("--max-albedo", type=positive_float, default=1.0, help="upper bound of kd (default 1)")
 
 
 def run(args) -> int:
