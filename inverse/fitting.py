@@ -33,11 +33,14 @@ from reconstruction.scene import INITIAL, SCALAR_RANGE
 
 #: Nonlinear parameters searched in log2 (scale parameters spanning decades).
 LOG2 = frozenset({"ns", "alpha"})
-#: A parameter whose one-sigma exceeds this fraction of its scale is undetermined.
-RESOLVE = 0.25
+#: A parameter whose one-sigma exceeds this fraction of its scale (its value or initial value for
+#: x, the range [0, 1] for r and t, a factor 2 for a log2 parameter) is undetermined.
+RESOLVE = 1.0
 #: Noise assumed at least this fraction of the image peak: a noise-free float image still carries
 #: rounding, so σ never reaches 0 and a parameter with vanishing signal stays undetermined.
 NOISE_FLOOR = 1e-6
+#: Within this (relative) distance of a bound a parameter counts as pinned there.
+BOUND_TOL = 1e-3
 #: Column signal below this fraction of the image peak counts as none.
 SIGNAL_FLOOR = 1e-9
 #: At least this many pixel values at the image maximum make a clipped (saturated) plateau.
@@ -647,10 +650,10 @@ def uncertainty(pb: Problem, p: Params, free: Free, res) -> Params:
 def _structural_free(pb: Problem, p: Params) -> Free:
     """Parameters with signal in their columns at the initial θ (exact zeros left out)."""
     fac, lay = pb.fac, pb.fac.layout
-    A, grad = fac.matrices_and_grad(p.theta)
     floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
-    colmax = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1)  # (C, 3)
-    live = colmax > floor
+    A0 = fac.matrices(p.theta)
+    live = np.stack([abs(A0[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor  # (C, 3)
+    A, grad = fac.matrices_and_grad(p.theta)
     x_free = np.zeros((lay.n_x, BANDS), dtype=bool)
     np.logical_or.at(x_free, fac.col_x, live)
     s_free = np.zeros((lay.n_factors, BANDS), dtype=bool)
@@ -670,8 +673,10 @@ def _structural_free(pb: Problem, p: Params) -> Free:
 def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params) -> Free:
     """Free parameters whose one-sigma exceeds :data:`RESOLVE` of their scale."""
     xs = np.maximum(np.maximum(np.abs(p.x), np.abs(init.x)), 1e-3)
-    bad_x = free.x & ~(sig.x <= RESOLVE * xs)
-    bad_s = free.s & ~(sig.s <= RESOLVE)
+    # A parameter pinned at a bound is held there by the data (moving inside would show), even
+    # where the linearisation is blind to it (t² has zero slope at t = 0).
+    bad_x = free.x & ~(sig.x <= RESOLVE * xs) & (p.x > BOUND_TOL * xs)
+    bad_s = free.s & ~(sig.s <= RESOLVE) & (p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)
     srch = pb.search
     sig_u = np.where(srch.log, sig.theta / np.maximum(p.theta * np.log(2.0), 1e-300), sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
     bad_t = free.theta & ~(sig_u <= RESOLVE)

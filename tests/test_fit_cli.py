@@ -1,0 +1,74 @@
+"""`reflab fit` on a simulated workspace: fit.json contents, bad input, saturated pixels."""
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from hardware.images import write_image
+from hardware.workspace import write_json
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    from hardware.simlab import build_lab, write_lab
+    from inverse.rendering import render
+    from inverse.trees import build_trees
+
+    root = tmp_path_factory.mktemp("fitws")
+    lab = build_lab(64, 48, textured=False)
+    write_lab(root, lab)
+    truth = [s.material for s in lab.scene]
+    img = render(build_trees(lab.scene, lab.camera, lab.lights, depth=3), truth, lab.lights.intensities)
+    # What a user knows before fitting: brdf and ior (and that the paper ground does not mirror).
+    scene = json.loads((root / "scene.json").read_text())
+    for item, m in zip(scene["surfaces"], truth):
+        item["material"] = {"brdf": m.brdf, "ior": m.ior, **({"r": 0.0} if m.brdf == "lambert" else {})}
+    write_json(root / "scene.json", scene)
+    return root, img, truth
+
+
+def test_fit_writes_materials_sigmas_trace_and_columns(workspace):
+    root, img, truth = workspace
+    write_image(root / "input.exr", img)
+    assert main(["fit", str(root)]) == 0
+    fit = json.loads((root / "fit.json").read_text())
+    assert fit["method"] == "ftbo" and fit["depth"] == 3 and fit["image"]["saturated_pixels"] == 0
+    assert 0 < fit["columns"]["used"] < fit["columns"]["dense_dissertation"]
+    assert len(fit["trace"]) >= 2 and all(len(t) == 2 and len(t[1]) == 3 for t in fit["trace"])
+    by_name = {s["name"]: s for s in fit["surfaces"]}
+    tile = by_name["tile"]["material"]
+    # float32 EXR input: parameters to float32 precision, far from the initial 0.1 / 2^6.5.
+    np.testing.assert_allclose(tile["kd"], truth[4]["kd"], rtol=1e-4)
+    np.testing.assert_allclose(tile["ns"], truth[4]["ns"], rtol=1e-3)
+    assert by_name["tile"]["sigma"]["ns"] > 0
+    # `reflab render` reads these materials back.
+    from reconstruction.scene import Material
+
+    for i, s in enumerate(fit["surfaces"]):
+        Material.from_json(s["material"], root / "fit.json", f"surfaces[{i}].material")
+
+
+def test_saturated_pixels_are_masked_and_counted(workspace):
+    root, img, truth = workspace
+    level = np.percentile(img, 99.5)
+    clipped = np.minimum(img, level)
+    write_image(root / "input.exr", clipped)
+    assert main(["fit", str(root)]) == 0
+    fit = json.loads((root / "fit.json").read_text())
+    stored = clipped.astype(np.float32)
+    n_sat = int(np.any(stored == stored.max(), axis=2).sum())
+    assert fit["image"]["saturated_pixels"] == n_sat > 0
+    kd = {s["name"]: s["material"]["kd"] for s in fit["surfaces"]}
+    np.testing.assert_allclose(kd["ground"], truth[0]["kd"], rtol=1e-4)
+
+
+@pytest.mark.parametrize("case", ["size", "black"])
+def test_bad_input_is_a_clear_error(workspace, case, capsys):
+    root, img, _ = workspace
+    bad = np.zeros((30, 40, 3)) + 0.1 if case == "size" else np.zeros_like(img)
+    write_image(root / "input.exr", bad)
+    assert main(["fit", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert "input.exr" in err
+    assert ("64x48" in err and "40x30" in err) if case == "size" else "black" in err
