@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--saturation", type=_level, default=None,
                         help="pixel value at which the camera clips (default: detect a clipped plateau)")
     parser.add_argument("--max-iterations", type=_positive_int, default=None,
-                        help="cap on outer iterations (default: 100 for ftbo, 20000 for nftbo)")
+                        help="cap on outer iterations (default: 100 for ftbo, 5000 for nftbo)")
 
 
 def run(args) -> int:
