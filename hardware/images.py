@@ -114,3 +114,14 @@ def write_preview(path, img: np.ndarray, exposure: float | None = None) -> Path:
         if not _cv2().imwrite(str(tmp), to_display(img, exposure)[:, :, ::-1]):
             raise OSError(f"{path}: OpenCV could not write the preview")
     return path
+
+
+def clip_level(image: np.ndarray, plateau: int = 3) -> float | None:
+    """The level at which an image clips, or None when it does not.
+
+    A sensor or a 16-bit file clips to a plateau: at least ``plateau`` values sit exactly on the
+    image's maximum. A rendered or unclipped highlight has one brightest value.
+    """
+    image = np.asarray(image)
+    top = float(image.max()) if image.size else 0.0
+    return top if top > 0 and np.count_nonzero(image == top) >= plateau else None

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hardware.images import clip_level
 from hardware.workspace import WorkspaceError
 from inverse.factorization import BANDS, Factorization
 from reconstruction.scene import INITIAL, SCALAR_RANGE
@@ -83,10 +84,9 @@ def saturated_pixels(image, level: float | None = None) -> np.ndarray:
     """
     flat = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)
     if level is None:
-        peak = flat.max()
-        if np.count_nonzero(flat == peak) < PLATEAU:
+        level = clip_level(flat, PLATEAU)
+        if level is None:
             return np.zeros(len(flat), dtype=bool)
-        level = peak
     return np.any(flat >= level, axis=1)
 
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hardware.images import clip_level
 from hardware.workspace import Workspace, WorkspaceError, atomic_write, read_json, write_json
 from inverse.texels import TexelMap, build_texel_map, choose_texel_size, pixel_footprint
 
@@ -148,12 +149,6 @@ def load_materials(workspace, scene) -> tuple[list, str]:
     return materials, "fit.json"
 
 
-def saturation_threshold(image: np.ndarray) -> float | None:
-    """The clip level of an image when several pixels share its maximum (a clipped plateau)."""
-    top = float(np.max(image)) if image.size else 0.0
-    return top if top > 0 and np.count_nonzero(image >= top) >= 4 else None
-
-
 def build_maps(scene, trees, options: TextureOptions) -> dict[int, TexelMap]:
     """A texel atlas for each textured surface that some node lies on, sized from its footprint."""
     maps = {}
@@ -197,7 +192,7 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
 
     npix = trees.width * trees.height
     img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
-    sat_level = options.saturation if options.saturation is not None else saturation_threshold(img)
+    sat_level = options.saturation if options.saturation is not None else clip_level(img)
     saturated = img >= sat_level if sat_level is not None else np.zeros_like(img, dtype=bool)
 
     basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd is slot 0

@@ -11,37 +11,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from app.commands._args import positive_float, positive_int
+
 HELP = "fit kd, ks, shininess, r and t of every surface from the input image (F-TBO or NF-TBO)"
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
-
-
-def _level(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workspace", type=Path, help="workspace folder (camera.json, lights.json, scene.json, input image)")
     parser.add_argument("--method", choices=["ftbo", "nftbo"], default="ftbo",
                         help="ftbo: factorized (default, faster); nftbo: all parameters by conjugate gradient")
-    parser.add_argument("--depth", type=_positive_int, default=3, help="maximum internal nodes per path (default 3)")
-    parser.add_argument("--saturation", type=_level, default=None,
+    parser.add_argument("--depth", type=positive_int, default=3, help="maximum internal nodes per path (default 3)")
+    parser.add_argument("--saturation", type=positive_float, default=None,
                         help="pixel value at which the camera clips (default: detect a clipped plateau)")
-    parser.add_argument("--max-iterations", type=_positive_int, default=None,
+    parser.add_argument("--max-iterations", type=positive_int, default=None,
                         help="cap on outer iterations (default: 100 for ftbo, 5000 for nftbo)")
 
 
