@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
-from hardware.workspace import WorkspaceError, as_array, as_float, field as req, read_json, write_json
+from hardware.workspace import WorkspaceError, as_array, as_float, field as req, object_items, read_json, write_json
 
 
 @dataclass
@@ -38,14 +38,9 @@ def read_marks(path) -> tuple[float, list[Mark]]:
     """Read marks.json (INTERFACES.md): ``(rod_height, marks)``, validated field by field."""
     obj = read_json(path)
     height = as_float(req(obj, "rod_height", path), path, "rod_height", positive=True)
-    items = req(obj, "marks", path)
-    if not isinstance(items, list) or not items:
-        raise WorkspaceError(path, "marks", "a non-empty list of marks", got=items)
     marks = []
-    for i, item in enumerate(items):
-        where = f"marks[{i}]"
-        if not isinstance(item, dict):
-            raise WorkspaceError(path, where, "an object with image, light, base, tip", got=item)
+    for where, item in object_items(req(obj, "marks", path), path, "marks", "marks",
+                                    "an object with image, light, base, tip"):
         light = req(item, "light", path, where)
         if isinstance(light, bool) or not isinstance(light, int) or light < 0:
             raise WorkspaceError(path, f"{where}.light", "a lamp index (integer >= 0)", got=light)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError, as_array, read_json, write_json
+from hardware.workspace import WorkspaceError, as_array, object_items, read_json, write_json
 
 
 @dataclass
@@ -65,14 +65,8 @@ class Lights:
 
     @classmethod
     def from_json(cls, obj: dict, path="lights.json") -> "Lights":
-        items = obj.get("lights")
-        if not isinstance(items, list) or not items:
-            raise WorkspaceError(path, "lights", "a non-empty list of lights", got=items)
         lights = []
-        for i, item in enumerate(items):
-            where = f"lights[{i}]"
-            if not isinstance(item, dict):
-                raise WorkspaceError(path, where, "an object", got=item)
+        for where, item in object_items(obj.get("lights"), path, "lights", "lights"):
             if item.get("type", "point") != "point":
                 raise WorkspaceError(path, f"{where}.type", "'point'", got=item.get("type"))
             for key in ("position", "intensity"):

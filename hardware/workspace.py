@@ -150,6 +150,20 @@ def field(obj: dict, key: str, path, where: str = "", required: bool = True, def
     return obj[key]
 
 
+def object_items(items, path, name: str, what: str, item_expected: str = "an object") -> Iterator[tuple[str, dict]]:
+    """Yield ``(where, item)`` for a non-empty JSON list of objects, naming ``name[i]`` in errors.
+
+    ``what`` describes the list (e.g. "lights"); ``item_expected`` what each element must be.
+    """
+    if not isinstance(items, list) or not items:
+        raise WorkspaceError(path, name, f"a non-empty list of {what}", got=items)
+    for i, item in enumerate(items):
+        where = f"{name}[{i}]"
+        if not isinstance(item, dict):
+            raise WorkspaceError(path, where, item_expected, got=item)
+        yield where, item
+
+
 def as_array(value, shape: tuple, path, name: str, *, nonneg: bool = False) -> np.ndarray:
     """Convert a JSON value to a float64 array of ``shape`` (-1 = any), finite, optionally ≥ 0."""
     want = "x".join("N" if s == -1 else str(s) for s in shape)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError, as_array, as_float, atomic_path, read_json, write_json
+from hardware.workspace import WorkspaceError, as_array, as_float, atomic_path, object_items, read_json, write_json
 
 #: Parameters of each BRTDF model: name -> per-band (3 values) or scalar (1 value).
 #: The models themselves live in inverse/models.py; the file format owns the names.
@@ -225,14 +225,8 @@ class Scene:
     @classmethod
     def from_json(cls, obj: dict, path="scene.json", *, load_meshes: bool = True) -> "Scene":
         path = Path(path)
-        items = obj.get("surfaces")
-        if not isinstance(items, list) or not items:
-            raise WorkspaceError(path, "surfaces", "a non-empty list of surfaces", got=items)
         surfaces, seen = [], set()
-        for i, item in enumerate(items):
-            where = f"surfaces[{i}]"
-            if not isinstance(item, dict):
-                raise WorkspaceError(path, where, "an object", got=item)
+        for i, (where, item) in enumerate(object_items(obj.get("surfaces"), path, "surfaces", "surfaces")):
             name = item.get("name", f"surface{i}")
             if not isinstance(name, str) or not name or name in seen:
                 raise WorkspaceError(path, f"{where}.name", "a unique non-empty string", got=name)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
-from hardware.workspace import WorkspaceError, as_array, as_float, read_json
+from hardware.workspace import WorkspaceError, as_array, as_float, object_items, read_json
 from reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
 
 #: Box corner labels in the order of :func:`box_mesh`'s vertices.
@@ -225,14 +225,8 @@ def load_marks(path) -> list[dict]:
     """Read and validate a marks file (docs/reconstruction.md); image names are checked later."""
     path = Path(path)
     obj = read_json(path)
-    items = obj.get("surfaces")
-    if not isinstance(items, list) or not items:
-        raise WorkspaceError(path, "surfaces", "a non-empty list of marked surfaces", got=items)
     out = []
-    for i, item in enumerate(items):
-        where = f"surfaces[{i}]"
-        if not isinstance(item, dict):
-            raise WorkspaceError(path, where, "an object", got=item)
+    for where, item in object_items(obj.get("surfaces"), path, "surfaces", "marked surfaces"):
         name = item.get("name")
         if not isinstance(name, str) or not name:
             raise WorkspaceError(path, f"{where}.name", "a non-empty string", got=name)
