@@ -26,3 +26,15 @@ def test_report_summarises_workspace(tmp_path, capsys):
 def test_report_names_missing_workspace(tmp_path, capsys):
     assert main(["report", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_report_names_an_unreadable_file_instead_of_treating_it_as_absent(tmp_path, capsys):
+    lab = build_lab(80, 60)
+    write_lab(tmp_path, lab)
+    (tmp_path / "fit.json").write_text('{"method": "ftbo", "rms": [0.1,')  # cut off mid-write
+    assert main(["report", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert "fit" not in report and list(report["unreadable"]) == [str(tmp_path / "fit.json")]
+    assert "JSONDecodeError" in report["unreadable"][str(tmp_path / "fit.json")]
+    err = capsys.readouterr().err
+    assert "fit.json is unreadable" in err

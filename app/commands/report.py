@@ -7,6 +7,7 @@ scene, the benchmark quoted in docs/forward-model.md.
 from __future__ import annotations
 
 import json
+import sys
 
 HELP = "summarise each stage's outputs, errors and run times (and benchmark the forward model)"
 
@@ -17,11 +18,17 @@ def add_arguments(p):
     p.add_argument("--depth", type=int, default=3, help="tree depth for --bench (default 3)")
 
 
-def _load(path):
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+def _loader(unreadable: dict):
+    """A JSON reader that returns None for a missing file and records why a present one failed."""
+    def load(path):
+        if not path.is_file():
+            return None
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            unreadable[str(path)] = f"{type(err).__name__}: {err}"
+            return None
+    return load
 
 
 def _fmt(x, digits=4):
@@ -34,7 +41,8 @@ def _fmt(x, digits=4):
 
 def summarise(ws) -> dict:
     """A JSON-ready summary of what each stage left in the workspace ``ws`` (a Workspace)."""
-    out = {}
+    out, unreadable = {}, {}
+    _load = _loader(unreadable)
     cam = _load(ws.camera)
     if cam:
         cal = cam.get("calibration", {})
@@ -56,10 +64,13 @@ def summarise(ws) -> dict:
     if fit:
         out["fit"] = {"method": fit.get("method"), "depth": fit.get("depth"), "time_s": fit.get("time_s"),
                       "rms": fit.get("rms"), "trace_points": len(fit.get("trace", [])),
+                      "status": fit.get("status"), "warnings": fit.get("warnings"),
                       "undetermined": {s.get("name"): s.get("undetermined", []) for s in fit.get("surfaces", [])}}
     tex = _load(ws.textures / "index.json")
     if tex:
         out["texture"] = {k: v for k, v in tex.items() if k != "surfaces"}
+    if unreadable:
+        out["unreadable"] = unreadable
     return out
 
 
@@ -72,9 +83,13 @@ def run(args) -> int:
     if not Path(args.workspace).is_dir():
         raise WorkspaceError(args.workspace, expected="a workspace folder", got="missing")
     summary = summarise(ws)
+    for path, why in summary.get("unreadable", {}).items():
+        print(f"warning: {path} is unreadable, its stage is left out of the report ({why})", file=sys.stderr)
     if not summary:
         print(f"{ws.root}: no stage output found (camera.json, lights.json, scene.json, fit.json, textures/)")
     for stage, info in summary.items():
+        if stage == "unreadable":
+            continue
         print(f"[{stage}]")
         if isinstance(info, list):
             for item in info:
