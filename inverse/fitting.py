@@ -46,7 +46,18 @@ BOUND_TOL = 1e-3
 SIGNAL_FLOOR = 1e-9
 #: At least this many pixel values at the image maximum make a clipped (saturated) plateau.
 PLATEAU = 3
+#: Values per θ of F-TBO's coarse global scan over the whole search range, and sweeps over the θs.
+SCAN_POINTS = 12
+SCAN_SWEEPS = 2
+#: A scan candidate must lower the squared error by this many times the image noise variance (per
+#: band): far beyond what fitting noise with a band's linear parameters gains (≈ 1 each).
+SCAN_GAIN = 25.0
 METHODS = ("ftbo", "nftbo")
+#: The diagnosis flags a pixel whose residual exceeds this many image-noise σ plus DIAG_FLOOR of the peak.
+DIAG_SIGMAS = 6.0
+DIAG_FLOOR = 1e-4
+#: fit.json's ``message`` when a method stops for ``max_seconds``.
+BUDGET_MESSAGE = "stopped: wall-clock budget (max_seconds) spent before convergence"
 
 
 # ---------------------------------------------------------------------- input checks
@@ -88,6 +99,40 @@ def saturated_pixels(image, level: float | None = None) -> np.ndarray:
         if level is None:
             return np.zeros(len(flat), dtype=bool)
     return np.any(flat >= level, axis=1)
+
+
+def image_noise(image, used=None) -> np.ndarray:
+    """Gaussian noise σ per band estimated from one image (Immerkær 1996, median form).
+
+    The 3×3 mask ``[1 −2 1; −2 4 −2; 1 −2 1]`` (a product of two second differences) cancels
+    shading that is locally linear or quadratic along rows and columns, and sends white noise of
+    σ to σ·6; the median of its absolute response over 0.6745 is robust to edges and highlights.
+
+    Parameters
+    ----------
+    image : (H, W, 3) array_like
+    used : (H, W) bool, optional
+        Pixels to trust (e.g. not saturated); a mask response counts only where all 9 are used.
+
+    Returns
+    -------
+    (3,) ndarray
+        0 where no 3×3 window is available.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    if img.shape[0] < 3 or img.shape[1] < 3:
+        return np.zeros(BANDS)
+    row = img[:, :-2] - 2.0 * img[:, 1:-1] + img[:, 2:]
+    resp = row[:-2] - 2.0 * row[1:-1] + row[2:]  # (H-2, W-2, 3)
+    ok = np.ones(resp.shape[:2], dtype=bool)
+    if used is not None:
+        u = np.asarray(used, dtype=bool)
+        for dv in range(3):
+            for du in range(3):  # 9 shifted views of the mask, not a pixel loop
+                ok &= u[dv:dv + resp.shape[0], du:du + resp.shape[1]]
+    if not ok.any():
+        return np.zeros(BANDS)
+    return np.median(np.abs(resp[ok]), axis=0) / (0.6745 * 6.0)
 
 
 # ---------------------------------------------------------------------- parameters
@@ -185,10 +230,20 @@ class Problem:
         self.bb = np.einsum("cr,cr->c", self.b, self.b)
         self.norm = float(self.bb.sum()) or 1.0
         self.peak = float(self.b.max()) if self.b.size else 0.0
+        used = np.zeros(fac.width * fac.height, dtype=bool)
+        used[fac.rows] = True
+        #: Noise σ per band estimated from the image alone, never below NOISE_FLOOR of the peak.
+        self.noise = np.maximum(image_noise(image, used.reshape(fac.height, fac.width)), NOISE_FLOOR * self.peak)
         self.search = _Search(fac)
         self.onehot = np.zeros((fac.n_columns, fac.layout.n_x))
         self.onehot[np.arange(fac.n_columns), fac.col_x] = 1.0
         self.evaluations = 0
+        #: perf_counter() time after which the methods stop (None: no wall-clock budget).
+        self.deadline = None
+
+    def out_of_time(self) -> bool:
+        """True once the wall-clock budget of the fit is spent."""
+        return self.deadline is not None and time.perf_counter() > self.deadline
 
     def residual(self, A, y) -> np.ndarray:
         """Model minus image (3, R)."""
@@ -267,7 +322,8 @@ class _Inner:
         deriv = coef[1:] * np.arange(1, len(coef))
         if np.any(deriv[1:]):
             roots = np.polynomial.polynomial.polyroots(deriv)
-            cand += [float(r.real) for r in roots if abs(r.imag) <= 1e-9 * (1 + abs(r.real)) and 0.0 < r.real < 1.0]
+            # A root within rounding of a bound is that bound (a t of 1e-23 would only trouble later stages).
+            cand += [float(r.real) for r in roots if abs(r.imag) <= 1e-9 * (1 + abs(r.real)) and 1e-12 < r.real < 1.0 - 1e-12]
         cand = np.array(cand)
         vals = np.polynomial.polynomial.polyval(cand, coef)
         p.s[f, c] = cand[int(np.argmin(vals))]
@@ -299,6 +355,8 @@ class _Inner:
         step = np.zeros_like(z)
         step[fr] = -(V[:, keep] / w[keep]) @ (V[:, keep].T @ g[fr])
         new = np.clip(z + step, 0.0, hi)
+        # Within rounding of a bound is on it (a t of 1e-23 would only trouble later stages).
+        new = np.where(new < 1e-12, 0.0, np.where(hi - new < 1e-12, hi, new))
         trial = p.copy()
         for (k, i), v in zip(labels, new):
             (trial.x if k == "x" else trial.s)[i, c] = v
@@ -349,8 +407,10 @@ def _trace_point(t0, rms):
     return [round(time.perf_counter() - t0, 6), [float(v) for v in rms]]
 
 
-def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100):
+def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True):
     """F-TBO: θ (search space) by Levenberg–Marquardt over the exact inner linear solution.
+
+    With ``scan``, a coarse global step (:func:`_scan`) first picks each θ's basin.
 
     The profiled objective's gradient is the partial derivative at the inner optimum (envelope
     theorem); its Gauss–Newton curvature is the Schur complement of the full normal matrix on
@@ -378,9 +438,15 @@ def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100):
     trace.append(_trace_point(t0, pb.rms(res)))
     if len(q) == 0:
         return cur, 0, "no nonlinear parameter to fit: one exact linear solve"
+    if scan:
+        u, (E, g, cur, A, grad, res) = _scan(pb, q, u, (E, g, cur, A, grad, res), evaluate, t0, trace)
     lam, message, it = 1e-3, f"stopped after {maxiter} iterations", 0
     lo, hi = srch.lo[q], srch.hi[q]
     for it in range(1, maxiter + 1):
+        if pb.out_of_time():
+            it -= 1
+            message = BUDGET_MESSAGE
+            break
         S = _theta_curvature(pb, cur, free, A, grad) * np.outer(srch.dtheta_du(cur.theta)[q], srch.dtheta_du(cur.theta)[q])
         S = 2.0 * S / pb.norm
         improved = False
@@ -403,6 +469,37 @@ def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100):
             message = "converged: step or error change below tolerance"
             break
     return cur, it, message
+
+
+def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
+    """Coarse coordinate-wise scan of each free θ over its whole search range (global step).
+
+    The linear parameters are solved exactly for every candidate θ, so a handful of values per
+    surface (:data:`SCAN_POINTS`, log2 for shininess) tells which basin holds the highlight: a
+    start at ns = 2^14 sees flat highlights that a local method cannot leave. A candidate is kept
+    only when it lowers ε by more than :data:`SCAN_GAIN` times the image noise variance per band,
+    so a θ whose columns carry no signal (hidden highlight) is never moved by noise or rounding.
+    """
+    srch = pb.search
+    gain_min = SCAN_GAIN * float(np.sum(pb.noise**2)) / pb.norm
+    for _ in range(SCAN_SWEEPS):
+        moved = False
+        for k, qk in enumerate(q):  # coordinate-wise: one θ at a time, the others at their best so far
+            best_u, best = None, state
+            for value in np.linspace(srch.lo[qk], srch.hi[qk], SCAN_POINTS):
+                if abs(value - u[k]) < 1e-12 or pb.out_of_time():
+                    continue
+                trial_u = u.copy()
+                trial_u[k] = value
+                trial = evaluate(trial_u, state[2])
+                if trial[0] < best[0] - gain_min:
+                    best_u, best = trial_u, trial
+            if best_u is not None:
+                u, state, moved = best_u, best, True
+                trace.append(_trace_point(t0, pb.rms(state[5])))
+        if not moved:
+            break
+    return u, state
 
 
 def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
@@ -499,6 +596,10 @@ def _nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=5000):
     message, it, since_restart, direction, prev = f"stopped after {maxiter} iterations", 0, n, None, None
     stalls = 0
     for it in range(1, maxiter + 1):
+        if pb.out_of_time():
+            it -= 1
+            message = BUDGET_MESSAGE
+            break
         if since_restart >= n or direction is None:
             diag = _gn_diagonal(pb, m, st["z"])
             precond = 1.0 / np.maximum(diag, 1e-10 * max(diag.max(), 1e-300))
@@ -648,12 +749,27 @@ def uncertainty(pb: Problem, p: Params, free: Free, res) -> Params:
 
 
 def _structural_free(pb: Problem, p: Params) -> Free:
-    """Parameters with signal in their columns at the initial θ (exact zeros left out)."""
-    fac, lay = pb.fac, pb.fac.layout
+    """Parameters with signal in their columns (exact zeros left out).
+
+    Signal counts at the initial θ or anywhere on the global scan's grid (:func:`_scan`): a start
+    at ns = 2^14 hides every highlight that a broader lobe would show.
+    """
+    fac, lay, srch = pb.fac, pb.fac.layout, pb.search
     floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
-    A0 = fac.matrices(p.theta)
-    live = np.stack([abs(A0[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor  # (C, 3)
-    A, grad = fac.matrices_and_grad(p.theta)
+    live = np.zeros((fac.n_columns, BANDS), dtype=bool)
+    th_free = np.zeros(lay.n_theta, dtype=bool)
+    u0 = srch.to_u(p.theta)
+    for k in range(SCAN_POINTS + 1 if lay.n_theta else 1):  # the initial θ, then the scan grid
+        u = u0 if k == 0 else srch.lo + (srch.hi - srch.lo) * (k - 1) / (SCAN_POINTS - 1)
+        A, grad = fac.matrices_and_grad(srch.to_theta(u))
+        now = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor  # (C, 3)
+        live |= now
+        if lay.n_theta:
+            # θ acts through the columns of its surface's x: only those with signal count.
+            img = grad.images(now.T.astype(np.float64))
+            th_free |= np.abs(img).max(axis=(1, 2)) > floor
+            if th_free.all() and k > 0:
+                break
     x_free = np.zeros((lay.n_x, BANDS), dtype=bool)
     np.logical_or.at(x_free, fac.col_x, live)
     s_free = np.zeros((lay.n_factors, BANDS), dtype=bool)
@@ -662,20 +778,23 @@ def _structural_free(pb: Problem, p: Params) -> Free:
     for i, transparent in enumerate(pb.transparent):
         if not transparent:
             s_free[2 * i + 1] = False
-    th_free = np.zeros(lay.n_theta, dtype=bool)
-    if lay.n_theta:
-        # θ acts through the columns of its surface's x: only those with signal count.
-        img = grad.images(x_free[fac.col_x].T.astype(np.float64))
-        th_free = np.abs(img).max(axis=(1, 2)) > floor
     return Free(x_free, s_free, th_free)
 
 
-def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params) -> Free:
-    """Free parameters whose one-sigma exceeds :data:`RESOLVE` of their scale."""
+def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A) -> Free:
+    """Free parameters whose one-sigma exceeds :data:`RESOLVE` of their scale.
+
+    ``A`` = ``fac.matrices(p.theta)``, the system at the fitted θ.
+    """
+    fac = pb.fac
     xs = np.maximum(np.maximum(np.abs(p.x), np.abs(init.x)), 1e-3)
     # A parameter pinned at a bound is held there by the data (moving inside would show), even
-    # where the linearisation is blind to it (t² has zero slope at t = 0).
-    bad_x = free.x & ~(sig.x <= RESOLVE * xs) & (p.x > BOUND_TOL * xs)
+    # where the linearisation is blind to it (t² has zero slope at t = 0) — but only if its
+    # columns show at the fitted θ (ks = 0 under a held ns = 2^14 is seen by no pixel).
+    live = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > SIGNAL_FLOOR * max(pb.peak, 1e-300)
+    seen = np.zeros_like(free.x)
+    np.logical_or.at(seen, fac.col_x, live)
+    bad_x = free.x & ~(sig.x <= RESOLVE * xs) & ((p.x > BOUND_TOL * xs) | ~seen)
     bad_s = free.s & ~(sig.s <= RESOLVE) & (p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)
     srch = pb.search
     sig_u = np.where(srch.log, sig.theta / np.maximum(p.theta * np.log(2.0), 1e-300), sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
@@ -684,7 +803,8 @@ def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params) -
 
 
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int = 3,
-        maxiter: int | None = None) -> FitResult:
+        maxiter: int | None = None, max_seconds: float | None = None, textured=None,
+        names=None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -700,7 +820,15 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     max_rounds : int
         Fit → find unresolved parameters → fix them → refit, at most this many times.
     maxiter : int, optional
-        Outer iteration cap (L-BFGS-B for F-TBO, CG for NF-TBO).
+        Outer iteration cap (Levenberg–Marquardt for F-TBO, CG for NF-TBO).
+    max_seconds : float, optional
+        Wall-clock budget of the fit: the methods stop at their next iteration once it is spent
+        (``message`` = :data:`BUDGET_MESSAGE`), and the uncertainties are computed where they stopped.
+    textured : list of bool, optional
+        Per surface: its albedo varies (scene.json ``textured``), so the diagnosis
+        (:func:`diagnose`) excuses a residual up to its diffuse radiance. Default: none textured.
+    names : list of str, optional
+        Surface names for the diagnosis' warnings (default ``surface 0``, …).
 
     Returns
     -------
@@ -712,6 +840,8 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         raise ValueError(f"{len(materials)} materials for {len(fac.models)} surfaces")
     t0 = time.perf_counter()
     pb = Problem(fac, image, [m.transparent for m in materials])
+    if max_seconds is not None:
+        pb.deadline = t0 + float(max_seconds)
     init = params_of(fac, materials)
     srch = pb.search
     init.theta = srch.to_theta(srch.to_u(init.theta))
@@ -721,14 +851,17 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
     for rounds in range(1, max_rounds + 1):
-        runner = _ftbo if method == "ftbo" else _nftbo
-        p, nit, message = runner(pb, p, free, t0, trace, **kw)
+        if method == "ftbo":
+            # The global scan picks the basins once; later rounds only hold parameters.
+            p, nit, message = _ftbo(pb, p, free, t0, trace, scan=rounds == 1, **kw)
+        else:
+            p, nit, message = _nftbo(pb, p, free, t0, trace, **kw)
         iterations += nit
         A = fac.matrices(p.theta)
         res = pb.residual(A, fac.y(p.x, p.s))
         sig = uncertainty(pb, p, free, res)
-        bad = _unresolved(pb, p, init, free, sig)
-        if bad.count() == 0:
+        bad = _unresolved(pb, p, init, free, sig, A)
+        if bad.count() == 0 or pb.out_of_time():
             break
         if bad.theta.any():
             # θ first: an unresolved shininess inflates its ks's σ; with θ held, ks is judged alone.
@@ -745,9 +878,81 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     elapsed = time.perf_counter() - t0
     rms = pb.rms(res)
     trace.append(_trace_point(t0, rms))
+    status, warnings = diagnose(pb, p, A, res, textured, names)
+    if message.startswith("stopped"):  # iteration cap or wall-clock budget
+        warnings.insert(0, f"the fit did not converge ({message})")
+        status = "not converged" if status == "ok" else status
     return FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace,
                      _undetermined(fac, free, materials), rounds, pb.evaluations, iterations, message,
-                     {"used_pixels": int(fac.n_rows), "free_parameters": free.count()})
+                     {"used_pixels": int(fac.n_rows), "free_parameters": free.count(),
+                      "noise": [float(v) for v in pb.noise], "status": status, "warnings": warnings})
+
+
+def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple[str, list]:
+    """Does the fitted model explain the image? A safety net for a wrong basin or a bad scene.
+
+    A pixel is *unexplained* when its residual in some band exceeds :data:`DIAG_SIGMAS` times the
+    noise σ estimated from the image itself (:func:`image_noise`) plus :data:`DIAG_FLOOR` of the
+    peak, plus — on textured surfaces — the diffuse radiance that their homogeneous ``kd`` predicts
+    there (albedo variation is the texture stage's job, not a misfit). With Gaussian noise no pixel
+    gets there; a highlight left in the wrong place, a missing reflection or wrong geometry does.
+
+    Parameters
+    ----------
+    pb : Problem
+    p : Params
+        The fitted parameters.
+    A : list of CSR
+        ``fac.matrices(p.theta)``.
+    res : (3, R) ndarray
+        Model minus image.
+    textured : list of bool, optional
+        Per surface (default: none).
+    names : list of str, optional
+        Surface names for the messages.
+
+    Returns
+    -------
+    status : {"ok", "poor fit", "texture pending"}
+        "texture pending" instead of "poor fit" when some surface is textured: its albedo may vary
+        by more than the allowance, so only ``reflab texture`` can tell. :func:`fit` turns "ok"
+        into "not converged" when a method stopped at its cap.
+    warnings : list of str
+        Plain-language diagnosis (empty when ``status == "ok"``).
+    """
+    fac = pb.fac
+    n_surf = len(fac.models)
+    textured = [False] * n_surf if textured is None else [bool(t) for t in textured]
+    names = [f"surface {i}" for i in range(n_surf)] if names is None else list(names)
+    tol = np.broadcast_to((DIAG_SIGMAS * pb.noise + DIAG_FLOOR * pb.peak)[:, None], res.shape).copy()
+    diffuse = np.array([textured[s] and fac.layout.x_names[i][1] == "kd"
+                        for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
+    if diffuse.any():
+        y = fac.y(p.x, p.s)
+        tol += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
+    bad = np.any(np.abs(res) > tol, axis=0)
+    if not bad.any():
+        return "ok", []
+    # Which surface each unexplained pixel sees first (its primary hit).
+    tr = fac.trees
+    first = np.full(fac.width * fac.height, -1, dtype=np.int64)
+    primary = np.asarray(tr.level) == 1
+    first[np.asarray(tr.pixel)[primary]] = np.asarray(tr.surface)[primary]
+    where = first[fac.rows[bad]]
+    counts = np.bincount(where[where >= 0], minlength=n_surf)
+    share = float(np.sum(res[:, bad] ** 2) / max(np.sum(res**2), 1e-300))
+    parts = ", ".join(f"{names[i]} {int(counts[i])}" for i in np.argsort(-counts) if counts[i])
+    rms = ", ".join(f"{v:.3g}" for v in pb.rms(res))
+    noise = ", ".join(f"{v:.3g}" for v in pb.noise)
+    pending = any(textured)
+    return ("texture pending" if pending else "poor fit"), [
+        f"the fitted {'homogeneous ' if pending else ''}model does not explain {int(bad.sum())} of {fac.n_rows} pixels (residual above "
+        f"{DIAG_SIGMAS:g} times the image noise [{noise}]{' plus textured albedo' if diffuse.any() else ''}); "
+        f"they hold {100 * share:.0f}% of the squared residual; first seen surface: {parts or 'none'}",
+        f"RMS residual per band [{rms}]: "
+        + ("texture (run reflab texture and compare its re-render), or " if pending else "")
+        + "a wrong basin (try another starting shininess in scene.json), a wrong BRTDF model, "
+        "or geometry, lights or camera that do not match the image"]
 
 
 def _undetermined(fac: Factorization, free: Free, materials) -> list:
@@ -804,7 +1009,7 @@ def _sigma_list(sig, free) -> list:
 
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
-                  maxiter: int | None = None) -> tuple[dict, FitResult]:
+                  maxiter: int | None = None, max_seconds: float | None = None) -> tuple[dict, FitResult]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -819,6 +1024,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         (:func:`saturated_pixels`).
     maxiter : int, optional
         Outer iteration cap.
+    max_seconds : float, optional
+        Wall-clock budget of the fit itself (trees and factorization excluded).
 
     Returns
     -------
@@ -851,7 +1058,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if fac.n_columns == 0:
         raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
                              got="no pixel sees a lit surface")
-    result = fit(fac, image, [s.material for s in scene], method, **({} if maxiter is None else {"maxiter": maxiter}))
+    result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
+                 textured=[s.textured for s in scene], names=scene.names)
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
                        "saturated_pixels": int(saturated.sum()),
                        "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},

@@ -4,16 +4,27 @@ Builds the pixel-intensity trees, factorizes the image into A(θ) y = b keeping 
 columns that occur in this scene, and minimises the squared error with F-TBO (exact linear
 sub-problems, shininess on top; default) or NF-TBO (all parameters by conjugate gradient).
 Saturated pixels are left out. Writes WORKSPACE/fit.json: fitted materials, one-sigma
-uncertainties, the parameters the image leaves undetermined, and the error-against-time trace.
+uncertainties, the parameters the image leaves undetermined, the error-against-time trace, and a
+``status`` with ``warnings`` in words.
+
+Exit status: 3 when fit.json's status is "poor fit" (homogeneous surfaces only, and the model
+leaves pixels unexplained far above the image's noise: a wrong basin, model or geometry; fit.json is
+written all the same); 2 for bad input; else 0 ("ok"; "not converged" at --max-iterations or
+--max-seconds with the image explained; "texture pending" when pixels are unexplained but textured
+surfaces may account for them — the warnings are printed either way).
 """
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from app.commands._args import positive_float, positive_int
 
 HELP = "fit kd, ks, shininess, r and t of every surface from the input image (F-TBO or NF-TBO)"
+
+#: Exit status when the fitted model does not explain the image (fit.json status "poor fit").
+EXIT_POOR_FIT = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,13 +36,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pixel value at which the camera clips (default: detect a clipped plateau)")
     parser.add_argument("--max-iterations", type=positive_int, default=None,
                         help="cap on outer iterations (default: 100 for ftbo, 5000 for nftbo)")
+    parser.add_argument("--max-seconds", type=positive_float, default=None,
+                        help="wall-clock budget of the fit (trees excluded); it stops at the next iteration "
+                             "and fit.json's message says so (default: none)")
 
 
 def run(args) -> int:
     from inverse.fitting import fit_workspace
 
     report, result = fit_workspace(args.workspace, args.method, args.depth, saturation=args.saturation,
-                                   maxiter=args.max_iterations)
+                                   maxiter=args.max_iterations, max_seconds=args.max_seconds)
     img, cols = report["image"], report["columns"]
     print(f"reflab fit: {img['width']}x{img['height']} image, {img['saturated_pixels']} saturated pixels masked, "
           f"{report['trees']['nodes']} tree nodes")
@@ -43,6 +57,14 @@ def run(args) -> int:
         und = ", ".join(item["undetermined"]) or "none"
         print(f"  {item['name']}: {_material_text(item['material'])}; undetermined: {und}")
     print(f"reflab fit: wrote {Path(args.workspace) / 'fit.json'}")
+    status = report["status"]
+    for text in report["warnings"]:
+        print(f"reflab fit: warning: {text}", file=sys.stderr)
+    if status == "poor fit":
+        print(f"reflab fit: status {status}: the fitted parameters do not explain the image (exit {EXIT_POOR_FIT})",
+              file=sys.stderr)
+        return EXIT_POOR_FIT
+    print(f"reflab fit: status {status}")
     return 0
 
 
