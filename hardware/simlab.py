@@ -128,17 +128,35 @@ def _tile_albedo(local: np.ndarray) -> np.ndarray:
     return _mix([0.85, 0.78, 0.62], [0.12, 0.22, 0.55], 0.8 * checker * (0.4 + 0.6 * rings))
 
 
+def _grain(local: np.ndarray, amplitude: float) -> np.ndarray:
+    """Multiplicative print grain in [1 - amplitude, 1 + amplitude]: 32 plane waves, periods 2-8 mm.
+
+    Fixed directions, periods and phases (seed 1), in the surface's own frame; their sum is
+    noise-like (not periodic over a surface), which is what feature matching needs.
+    """
+    rng = np.random.default_rng(1)
+    k = 32
+    angle, period, phase = rng.uniform(0, np.pi, k), rng.uniform(0.002, 0.008, k), rng.uniform(0, 2 * np.pi, k)
+    waves = np.stack([np.cos(angle), np.sin(angle), 0.5 * rng.normal(size=k)], axis=1) / period[:, None]
+    s = np.sin(2 * np.pi * local @ waves.T + phase).sum(axis=1) / np.sqrt(k / 2)
+    return 1.0 + amplitude * np.tanh(s)
+
+
 @dataclass
 class _Texture:
-    """A procedural albedo in a surface's own frame: ``fn((points - origin) @ frame)``."""
+    """A procedural albedo in a surface's own frame: ``fn((points - origin) @ frame)``, times the grain."""
 
     fn: object
     origin: np.ndarray
     frame: np.ndarray  # columns are the surface's own axes in world coordinates
+    grain: float = 0.0
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         local = (np.asarray(points, dtype=np.float64).reshape(-1, 3) - self.origin) @ self.frame
-        return np.clip(self.fn(local), *ALBEDO_RANGE)
+        value = self.fn(local)
+        if self.grain:
+            value = value * _grain(local, self.grain)[:, None]
+        return np.clip(value, *ALBEDO_RANGE)
 
 
 # ---------------------------------------------------------------- the lab
@@ -196,7 +214,8 @@ def _material(brdf: str, ior=None, **params) -> Material:
     return Material(brdf, full, ior)
 
 
-def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured: bool = True) -> SimLab:
+def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured: bool = True,
+              grain: float = 0.0) -> SimLab:
     """Build the simulated lab at ``width`` x ``height`` (the 640x480 camera, scaled).
 
     Parameters
@@ -205,6 +224,10 @@ def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured
         Image size; any size keeps the full-resolution camera's field of view.
     textured : bool
         False gives the homogeneous variant (every surface its constant ``kd``).
+    grain : float
+        Amplitude of a fine print grain (2-8 mm) multiplying every texture, 0 = none. The
+        procedural textures alone vary over centimetres and repeat: structure from motion finds
+        too few distinctive features on them (docs/reconstruction.md); 0.2 is enough.
 
     Returns
     -------
@@ -230,9 +253,9 @@ def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured
         "tile": box_mesh((0.12, 0.12, 0.008), (0.11, -0.06, 0.004), R_tile),
     }
     textures = {
-        0: _Texture(_ground_albedo, np.zeros(3), np.eye(3)),
-        1: _Texture(_box_albedo, np.array([-0.07, 0.03, 0.03]), R_box),
-        4: _Texture(_tile_albedo, np.array([0.11, -0.06, 0.008]), R_tile),
+        0: _Texture(_ground_albedo, np.zeros(3), np.eye(3), grain),
+        1: _Texture(_box_albedo, np.array([-0.07, 0.03, 0.03]), R_box, grain),
+        4: _Texture(_tile_albedo, np.array([0.11, -0.06, 0.008]), R_tile, grain),
     }
     kd = {i: _surface_mean(geometry[name], textures[i]) for i, name in ((0, "ground"), (1, "box"), (4, "tile"))}
     materials = {
