@@ -197,6 +197,7 @@ class Factorization:
         self._indptr = np.searchsorted(slot_key // max(n_col, 1), np.arange(self.n_rows + 1)).astype(np.int64)
         self._n_slots = len(slot_key)
         self._static = {}
+        self._last = {}  # surface -> (θ, entry values, their θ-derivatives or None): the last evaluation
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -219,7 +220,9 @@ class Factorization:
     def _entries(self, theta, grad: bool):
         """Entry values (E, 3) and, with ``grad``, a list of (start, count, dvalues (count, 3, P), θ offset).
 
-        Surfaces whose model has no nonlinear parameter are evaluated once and cached.
+        Surfaces whose model has no nonlinear parameter are evaluated once and cached; the others'
+        last evaluation is reused while their θ is unchanged (a scan over one surface's θ
+        recomputes only that surface).
         """
         a = np.empty((len(self.entry_col), BANDS))
         das = []
@@ -229,8 +232,14 @@ class Factorization:
             if s in self._static:
                 a[start:start + len(idx) * J] = self._static[s]
                 continue
-            nodes = self.node[idx]
             th = np.asarray(theta[self.layout.theta_offset[s]:self.layout.theta_offset[s + 1]], dtype=np.float64)
+            hit = self._last.get(s)
+            if hit is not None and np.array_equal(hit[0], th) and (hit[2] is not None or not grad):
+                a[start:start + len(idx) * J] = hit[1]
+                if grad and hit[2] is not None:
+                    das.append((start, len(idx) * J, hit[2], self.layout.theta_offset[s]))
+                continue
+            nodes = self.node[idx]
             n, v = tr.normal[nodes], tr.view[nodes]
             w = self.weight[idx]  # (n, K, 3)
             K, P = w.shape[1], len(th)
@@ -243,11 +252,14 @@ class Factorization:
                 g, dg = model.g(*args), None
             acc = np.einsum("nkc,nkj->ncj", w, g.reshape(len(idx), K, J))
             a[start:start + len(idx) * J] = acc.transpose(0, 2, 1).reshape(-1, BANDS)
+            dacc = None
             if dg is not None:
-                dacc = np.einsum("nkc,nkjp->njcp", w, dg.reshape(len(idx), K, J, P))
-                das.append((start, len(idx) * J, dacc.reshape(-1, BANDS, P), self.layout.theta_offset[s]))
+                dacc = np.einsum("nkc,nkjp->njcp", w, dg.reshape(len(idx), K, J, P)).reshape(-1, BANDS, P)
+                das.append((start, len(idx) * J, dacc, self.layout.theta_offset[s]))
             if P == 0:
                 self._static[s] = a[start:start + len(idx) * J].copy()
+            else:
+                self._last[s] = (th.copy(), a[start:start + len(idx) * J].copy(), dacc)
         if not grad:
             return a
         return a, das

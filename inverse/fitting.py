@@ -46,8 +46,11 @@ BOUND_TOL = 1e-3
 SIGNAL_FLOOR = 1e-9
 #: At least this many pixel values at the image maximum make a clipped (saturated) plateau.
 PLATEAU = 3
-#: Values per θ of F-TBO's coarse global scan over the whole search range, and sweeps over the θs.
-SCAN_POINTS = 12
+#: Values per θ of F-TBO's coarse global scan, and sweeps over the θs.
+SCAN_POINTS = 8
+#: The scan's range in search units (log2 for LOG2 names; others scan their whole range). Shininess
+#: below 2 is a lobe flat enough to pass for diffuse light: ks would trade with kd and fit noise.
+SCAN_RANGE = {"ns": (1.0, 16.0), "alpha": (-8.0, 0.0)}
 SCAN_SWEEPS = 2
 #: A scan candidate must lower the squared error by this many times the image noise variance (per
 #: band): far beyond what fitting noise with a band's linear parameters gains (≈ 1 each).
@@ -235,6 +238,9 @@ class Problem:
         #: Noise σ per band estimated from the image alone, never below NOISE_FLOOR of the peak.
         self.noise = np.maximum(image_noise(image, used.reshape(fac.height, fac.width)), NOISE_FLOOR * self.peak)
         self.search = _Search(fac)
+        names = [name for _, name in fac.layout.theta_names]
+        self.scan_lo = np.array([SCAN_RANGE.get(n, (lo, hi))[0] for n, lo, hi in zip(names, self.search.lo, self.search.hi)])
+        self.scan_hi = np.array([SCAN_RANGE.get(n, (lo, hi))[1] for n, lo, hi in zip(names, self.search.lo, self.search.hi)])
         self.onehot = np.zeros((fac.n_columns, fac.layout.n_x))
         self.onehot[np.arange(fac.n_columns), fac.col_x] = 1.0
         self.evaluations = 0
@@ -486,7 +492,7 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
         moved = False
         for k, qk in enumerate(q):  # coordinate-wise: one θ at a time, the others at their best so far
             best_u, best = None, state
-            for value in np.linspace(srch.lo[qk], srch.hi[qk], SCAN_POINTS):
+            for value in np.linspace(pb.scan_lo[qk], pb.scan_hi[qk], SCAN_POINTS):
                 if abs(value - u[k]) < 1e-12 or pb.out_of_time():
                     continue
                 trial_u = u.copy()
@@ -760,7 +766,7 @@ def _structural_free(pb: Problem, p: Params) -> Free:
     th_free = np.zeros(lay.n_theta, dtype=bool)
     u0 = srch.to_u(p.theta)
     for k in range(SCAN_POINTS + 1 if lay.n_theta else 1):  # the initial θ, then the scan grid
-        u = u0 if k == 0 else srch.lo + (srch.hi - srch.lo) * (k - 1) / (SCAN_POINTS - 1)
+        u = u0 if k == 0 else pb.scan_lo + (pb.scan_hi - pb.scan_lo) * (k - 1) / (SCAN_POINTS - 1)
         A, grad = fac.matrices_and_grad(srch.to_theta(u))
         now = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor  # (C, 3)
         live |= now
@@ -787,7 +793,9 @@ def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A
     ``A`` = ``fac.matrices(p.theta)``, the system at the fitted θ.
     """
     fac = pb.fac
-    xs = np.maximum(np.maximum(np.abs(p.x), np.abs(init.x)), 1e-3)
+    # Scale of x: its value, but at most 1 (albedo units) — a ks of 1e9 under a faint lobe tail
+    # must not count as resolved relative to itself — and at least its initial value.
+    xs = np.maximum(np.maximum(np.minimum(np.abs(p.x), 1.0), np.abs(init.x)), 1e-3)
     # A parameter pinned at a bound is held there by the data (moving inside would show), even
     # where the linearisation is blind to it (t² has zero slope at t = 0) — but only if its
     # columns show at the fitted θ (ks = 0 under a held ns = 2^14 is seen by no pixel).

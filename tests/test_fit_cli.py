@@ -72,3 +72,24 @@ def test_bad_input_is_a_clear_error(workspace, case, capsys):
     err = capsys.readouterr().err
     assert "input.exr" in err
     assert ("64x48" in err and "40x30" in err) if case == "size" else "black" in err
+
+
+def test_poor_fit_is_reported_and_exits_3(workspace, capsys):
+    """A bright spot no surface model can make, on surfaces all declared homogeneous."""
+    root, img, truth = workspace
+    scene = json.loads((root / "scene.json").read_text())
+    original = json.dumps(scene)
+    for item in scene["surfaces"]:
+        item["textured"] = False
+    write_json(root / "scene.json", scene)
+    spot = img.copy()
+    spot[30:33, 10:13] += 0.3 * img.max()
+    write_image(root / "input.exr", spot)
+    try:
+        assert main(["fit", str(root), "--max-seconds", "60"]) == 3
+    finally:
+        write_json(root / "scene.json", json.loads(original))
+    err = capsys.readouterr().err
+    assert "poor fit" in err and "does not explain" in err
+    fit = json.loads((root / "fit.json").read_text())
+    assert fit["status"] == "poor fit" and fit["warnings"] and len(fit["noise"]) == 3
