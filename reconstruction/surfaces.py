@@ -165,7 +165,7 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
     if keep.sum() >= 0.5 * len(uvh) and not keep.all():
         uvh = uvh[keep]
         sol = least_squares(residual, sol.x, loss="soft_l1", f_scale=5e-4, x_scale=scale)
-    cu, cv, yaw, w, l, h = sol.x
+    cu, cv, yaw, w, l, h = _side_edges(uvh, sol.x)
     w, l, h = abs(w), abs(l), abs(h)
     c, s = np.cos(yaw), np.sin(yaw)
     ax, ay = c * e1 + s * e2, -s * e1 + c * e2
@@ -175,6 +175,41 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
     return box_mesh(center, R, [w, l, h]), {"points": int(len(uvh)), "outliers": int(len(points) - len(uvh)),
                                              "size_m": [float(w), float(l), float(h)],
                                              "rms_mm": float(1e3 * np.sqrt(np.mean(res**2)))}
+
+
+def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.003, min_points: int = 8) -> np.ndarray:
+    """Each footprint edge placed by the points of its own side face, else between two biased bounds.
+
+    The least-squares footprint rests on indirect evidence where a side carries few points:
+    ground points near the base (some of them on the box's foot) push an edge outward, while the
+    top face's points thin out within a few pixels of its edges (features straddling an occluding
+    edge do not match), so their reach falls short of it. A side face seen with ``min_points``
+    points or more (within ``band`` of it, away from its top, bottom and vertical edges) places
+    its edge as their median; otherwise an edge that the fit put beyond the top face's reach (its
+    third outermost point) moves halfway back toward it.
+    """
+    cu, cv, yaw, w, l, h = x
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = uvh[:, :2] - [cu, cv]
+    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+    height = abs(h)
+    middle = (uvh[:, 2] > 0.15 * height) & (uvh[:, 2] < 0.85 * height)
+    top = np.abs(uvh[:, 2] - height) < band
+    half = np.abs([w, l]) / 2
+    edges = np.stack([-half, half])  # (sign, axis): edge coordinates in the box frame
+    for a in (0, 1):
+        b = 1 - a
+        across = np.abs(local[:, b]) < half[b] - band
+        for k, sign in enumerate((-1.0, 1.0)):
+            on = middle & across & (np.abs(sign * local[:, a] - half[a]) < band)
+            if on.sum() >= min_points:
+                edges[k, a] = np.median(local[on, a])
+            elif (top & across).sum() >= 3:
+                reach = np.sort(sign * local[top & across, a])[-3]
+                edges[k, a] = sign * min(half[a], 0.5 * (half[a] + reach))
+    mid = edges.mean(axis=0)
+    size = edges[1] - edges[0]
+    return np.array([cu + c * mid[0] - s * mid[1], cv + s * mid[0] + c * mid[1], yaw, size[0], size[1], h])
 
 
 def fit_scene_points(points: np.ndarray, *, ground_threshold: float = 0.002, min_height: float = 0.003,

@@ -10,7 +10,7 @@
    ``--ground turning`` puts the lab's ground (the A4 sheet and the table around it) on the
    turntable; ``fixed`` leaves it still, as `reflab capture` does.
 2. Writes a marks file for the mirror and the sheet: the corners of their front faces projected
-   into eight shots (-40..30 degrees) with 1 px Gaussian noise, their thickness given.
+   into the 13 shots from -60 to 60 degrees with 1 px Gaussian noise, their thickness given.
 3. Runs `reflab reconstruct WORKDIR --turntable-centre 0,0 --marks marks.json --force`, timed.
 4. Prints (and writes ``WORKDIR/measured.json``) what the issue's proof lists: shots registered,
    turntable angle errors, camera centres against the truth, every fitted surface's RMS distance to
@@ -39,7 +39,7 @@ from reconstruction.scene import Scene  # noqa: E402
 
 N_SHOTS = 36
 MARKED = {"mirror": 0.006, "sheet": 0.003}  # name -> thickness (local y), given in the marks file
-MARK_ANGLES = (-40, -30, -20, -10, 0, 10, 20, 30)
+MARK_ANGLES = tuple(range(-60, 61, 10))
 
 
 def render_sweep(root: Path, lab, ground: str, depth: int = 3) -> float:
