@@ -346,29 +346,36 @@ def build_texel_map(surface: int, name: str, mesh, texel_size: float, *, max_pla
 
 
 def pixel_footprint(pixel: np.ndarray, path: np.ndarray, point: np.ndarray, width: int) -> np.ndarray:
-    """Footprint (metres) of each tree node: distance to the node of the same path in the next pixel.
+    """Footprint (metres) of each tree node: the square root of the area one pixel covers there.
 
-    A node is identified by (pixel, path); the neighbour to the right (else below) that followed
-    the same sequence of ideal interactions lands on the same surface region, so the distance
-    between the two hit points is the pixel's footprint there, mirrors and refractions included.
-    NaN where neither neighbour has such a node.
+    A node is identified by (pixel, path); the neighbours to the right and below that followed
+    the same sequence of ideal interactions land on the same surface region, so the hit-point
+    offsets ``a`` (right) and ``b`` (below) span the pixel's parallelogram there, mirrors and
+    refractions included: the footprint is ``sqrt(|a × b|)``. An oblique view stretches a pixel
+    along one axis only; the area, not the shorter side, says how many pixels see a texel.
+    Where only one neighbour has such a node, that offset's length is used; NaN where neither.
     """
     pixel = np.asarray(pixel, np.int64)
     path = np.asarray(path, np.int64)
+    point = np.asarray(point, np.float64)
     npath = int(path.max()) + 1 if len(path) else 1
     key = pixel * npath + path
     order = np.argsort(key)
     skey = key[order]
-    out = np.full(len(key), np.nan)
-    for step in (width, 1):  # the right neighbour wins where both exist
+    offsets = []
+    for step in (1, width):
         want = key + step * npath
         pos = np.clip(np.searchsorted(skey, want), 0, max(len(skey) - 1, 0))
         hit = skey[pos] == want if len(skey) else np.zeros(0, bool)
         if step == 1:
             hit &= (pixel % width) != width - 1
-        j = order[pos[hit]]
-        out[hit] = np.linalg.norm(point[j] - point[hit], axis=1)
-    return out
+        off = np.full(point.shape, np.nan)
+        off[hit] = point[order[pos[hit]]] - point[hit]
+        offsets.append(off)
+    right, down = offsets
+    area = np.linalg.norm(np.cross(right, down), axis=1)
+    single = np.where(np.isnan(right[:, 0]), np.linalg.norm(down, axis=1), np.linalg.norm(right, axis=1))
+    return np.where(np.isnan(area), single, np.sqrt(area))
 
 
 def choose_texel_size(footprints: np.ndarray, scale: float = 1.0, quantile: float = 0.25) -> float | None:

@@ -64,11 +64,10 @@ class TextureOptions:
     amplification_limit : float
         Flag texels whose observations are attenuated by more than this (faint reflections).
     tol : float
-        CGLS stops when its normal-equation residual has dropped by this factor.
+        Conjugate gradient stops, per connected component, when its normal-equation residual is
+        this fraction of the residual at the homogeneous ``kd`` (so a warm start counts).
     max_iter : int
-        Iteration cap per CGLS call.
-    small_component : int
-        Components with fewer unknowns are solved together as one block-diagonal system.
+        Iteration cap per conjugate-gradient call.
     """
 
     texel_scale: float = 1.0
@@ -80,9 +79,8 @@ class TextureOptions:
     saturation: float | None = None
     min_coverage: float = 0.1
     amplification_limit: float = 10.0
-    tol: float = 1e-3
+    tol: float = 3e-4
     max_iter: int = 3000
-    small_component: int = 20000
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad setting."""
@@ -173,7 +171,7 @@ class _System:
     rhs: np.ndarray
     row_pixel: np.ndarray  # (R,) pixel of each row
     row_band: np.ndarray
-    col_global: np.ndarray  # (C,) band * n_texels + global texel index
+    col_global: np.ndarray  # (C,) band * n_texels + global texel index, increasing
     prior: np.ndarray  # (C,) homogeneous kd of each column
     coverage: np.ndarray  # (3 * n_texels,) over all texels
     weight: np.ndarray
@@ -184,8 +182,22 @@ class _System:
     n_unmodelled: int  # pixel-band rows dropped: their textured node's texels are unsupported
 
 
+def _compress(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted distinct values of ``keys`` (in ``[0, size)``) and each key's rank among them.
+
+    A mark-and-cumsum in O(size): much faster than ``np.unique`` for dense key ranges.
+    """
+    used = np.zeros(size, dtype=bool)
+    used[keys] = True
+    return np.flatnonzero(used), (np.cumsum(used) - 1)[keys]
+
+
 def build_system(trees, materials, intensities, image, maps, options: TextureOptions) -> _System:
-    """Assemble E, b − Q and the per-texel coverage / weight (vectorised over nodes)."""
+    """Assemble E, b − Q and the per-texel coverage / weight.
+
+    Vectorised over (node, bilinear corner, band) entries: no Python loop beyond one per
+    textured surface (its bilinear lookup).
+    """
     import scipy.sparse as sp
 
     from inverse.rendering import linear_basis, node_radiance, path_products
@@ -197,203 +209,205 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
 
     basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd is slot 0
     atten = path_products(trees, materials)  # (N, 3)
-    textured = np.zeros(len(trees), dtype=bool)
     offsets, total = {}, 0
     for s, m in maps.items():
-        offsets[s] = total
-        total += m.n_texels
-        textured |= trees.surface == s
-    kd_fixed = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials])[trees.surface]
-    q_nodes = node_radiance(trees, materials, intensities, kd_nodes=np.where(textured[:, None], 0.0, kd_fixed), basis=basis)
+        offsets[s], total = total, total + m.n_texels
+    textured = np.isin(trees.surface, list(maps))
+    kd_table = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials]).astype(np.float64)
+    q_nodes = node_radiance(trees, materials, intensities, kd_nodes=np.where(textured[:, None], 0.0, kd_table[trees.surface]),
+                            basis=basis)
     Q = np.stack([np.bincount(trees.pixel, weights=q_nodes[:, c], minlength=npix) for c in range(3)], axis=1)
 
-    nodes = np.nonzero(textured)[0]
-    idx = np.zeros((len(nodes), 4), dtype=np.int64)
-    w = np.zeros((len(nodes), 4))
+    # Textured nodes in pixel order, so that the entries below come out sorted by row.
+    nodes = np.flatnonzero(textured)
+    nodes = nodes[np.argsort(trees.pixel[nodes], kind="stable")]
+    n = len(nodes)
+    idx = np.zeros((n, 4), dtype=np.int64)
+    w = np.zeros((n, 4))
     for s, m in maps.items():
         sel = trees.surface[nodes] == s
         i, ww = m.bilinear(trees.triangle[nodes[sel]], trees.barycentric[nodes[sel]])
         idx[sel], w[sel] = i + offsets[s], ww
-    coef = atten[nodes] * basis[nodes, :, 0]  # (n, 3): E's value per unit bilinear weight
-    visible_frac = trees.fresnel[nodes, None] * atten[nodes]  # attenuation between camera and node
-
-    # Entries per band: row (band, pixel), column (band, texel).
-    band = np.arange(3)
+    coef = (atten[nodes] * basis[nodes, :, 0]).T  # (3, n): E's value per unit bilinear weight
+    seen = (trees.fresnel[nodes, None] * atten[nodes]).T  # attenuation between camera and node
     pix = trees.pixel[nodes]
     lit = coef > 0
-    ok = lit & ~saturated[pix]  # (n, 3)
-    sat_hit = lit & saturated[pix]
-    n_i, b_i, j_i = np.nonzero(np.broadcast_to(ok[:, :, None], (len(nodes), 3, 4)) & (w[:, None, :] > 0))
-    cols_all = b_i * total + idx[n_i, j_i]
-    wj = w[n_i, j_i]
+    ok = lit & ~saturated[pix].T  # (3, n)
+
+    # Entries (band, node, corner) as (3, n, 4) arrays; column key band * total + texel.
+    key = idx[None, :, :] + (np.arange(3) * total)[:, None, None]
+    wk = np.where(ok[:, :, None] & (w > 0)[None], w[None], 0.0)
     # Texels that carry less than min_coverage pixels of weight are not modelled: each node's
     # weights are renormalised over its supported texels, and a pixel whose node keeps less than
     # half its weight is dropped. This removes the near-null columns at the edges of what the
     # image sees, which would otherwise dominate the solver's iterations.
-    supported = np.bincount(cols_all, weights=wj, minlength=3 * total) >= options.min_coverage
-    keep = supported[cols_all]
-    node_band = n_i * 3 + b_i
-    kept = np.bincount(node_band, weights=wj * keep, minlength=3 * len(nodes))
-    bad_rows = np.unique(b_i[kept[node_band] < 0.5] * npix + pix[n_i[kept[node_band] < 0.5]])
-    row_key = b_i * npix + pix[n_i]
-    keep &= (kept[node_band] >= 0.5) & ~np.isin(row_key, bad_rows)
-    n_i, b_i, cols_all, row_key = n_i[keep], b_i[keep], cols_all[keep], row_key[keep]
-    wj = wj[keep] / kept[node_band[keep]]
-    vals = coef[n_i, b_i] * wj
-    coverage = np.bincount(cols_all, weights=wj, minlength=3 * total)
-    weight = np.bincount(cols_all, weights=wj * visible_frac[n_i, b_i], minlength=3 * total)
-    sn, sb = np.nonzero(sat_hit)
-    saturated_touch = np.zeros(3 * total, dtype=bool)
-    saturated_touch[(sb[:, None] * total + idx[sn]).ravel()] = True
+    supported = np.bincount(key.ravel(), weights=wk.ravel(), minlength=3 * total) >= options.min_coverage
+    wk *= supported[key]
+    kept = wk.sum(axis=2)  # (3, n)
+    row_of = pix[None, :] + (np.arange(3) * npix)[:, None]  # (3, n) row key band * npix + pixel
+    bad_row = np.zeros(3 * npix, dtype=bool)
+    bad_row[row_of[ok & (kept < 0.5)]] = True
+    good = ok & ~bad_row[row_of]
+    wk *= np.where(good, 1.0 / np.maximum(kept, 1e-300), 0.0)[:, :, None]
 
-    # Compress columns to the texels that some entry touches, rows to the pixels that have entries.
-    col_global = np.unique(cols_all)
-    cols = np.searchsorted(col_global, cols_all)
-    row_ids, rows = np.unique(row_key, return_inverse=True)
-    E = sp.csr_matrix((vals, (rows.ravel(), cols)), shape=(len(row_ids), len(col_global)))
-    E.sum_duplicates()
+    flat = np.flatnonzero(wk)  # band-major, then pixel: sorted by row key
+    wv = wk.ravel()[flat]
+    bn = flat // 4  # (band, node) flat index into (3, n) arrays
+    cols_all = key.ravel()[flat]
+    coverage = np.bincount(cols_all, weights=wv, minlength=3 * total)
+    weight = np.bincount(cols_all, weights=wv * seen.ravel()[bn], minlength=3 * total)
+    saturated_touch = np.zeros(3 * total, dtype=bool)
+    saturated_touch[key[lit & saturated[pix].T]] = True
+
+    # Compress columns to the texels that some entry touches, rows to the pixels that have entries;
+    # the entries are already in row order, so E is built in CSR form directly.
+    col_global, cols = _compress(cols_all, 3 * total)
+    row_ids, rows = _compress(row_of.ravel()[bn], 3 * npix)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(row_ids)))])
+    E = sp.csr_matrix((coef.ravel()[bn] * wv, cols, indptr), shape=(len(row_ids), len(col_global)))
+    E.sum_duplicates()  # a pixel seeing one texel twice (two paths) gets one entry
     row_band, row_pixel = row_ids // npix, row_ids % npix
     rhs = img[row_pixel, row_band] - Q[row_pixel, row_band]
 
-    kd0 = np.zeros(3 * total)
+    surf_of = np.zeros(total, dtype=np.int64)
     for s, m in maps.items():
-        for c in band:
-            kd0[c * total + offsets[s]: c * total + offsets[s] + m.n_texels] = materials[s]["kd"][c]
-    return _System(E, rhs, row_pixel, row_band, col_global, kd0[col_global], coverage, weight,
-                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), len(bad_rows))
+        surf_of[offsets[s]: offsets[s] + m.n_texels] = s
+    prior = kd_table[surf_of[col_global % max(total, 1)], col_global // max(total, 1)]
+    return _System(E, rhs, row_pixel, row_band, col_global, prior, coverage, weight,
+                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), int(np.count_nonzero(bad_row)))
 
 
 def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
     """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system."""
     texel = system.col_global % system.n_texels
+    starts = np.array(sorted(system.offsets.values()))
+    by_start = {system.offsets[s]: m for s, m in maps.items()}
+    width = np.array([by_start[o].width for o in starts])[np.searchsorted(starts, texel, side="right") - 1]
+    count = np.array([by_start[o].n_texels for o in starts])[np.searchsorted(starts, texel, side="right") - 1]
+    local = texel - starts[np.searchsorted(starts, texel, side="right") - 1]
     pairs_i, pairs_j = [], []
-    for s, m in maps.items():
-        off = system.offsets[s]
-        for step, edge_ok in ((1, lambda t: (t - off) % m.width != m.width - 1), (m.width, lambda t: t - off < m.n_texels - m.width)):
-            inside = (texel >= off) & (texel < off + m.n_texels)
-            cand = np.nonzero(inside & edge_ok(texel))[0]
-            want = system.col_global[cand] + step
-            pos = np.searchsorted(system.col_global, want)
-            pos = np.minimum(pos, len(system.col_global) - 1)
-            hit = system.col_global[pos] == want
-            pairs_i.append(cand[hit])
-            pairs_j.append(pos[hit])
-    if not pairs_i:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    for step, inside in ((1, local % width != width - 1), (width, local < count - width)):
+        cand = np.flatnonzero(inside)
+        want = system.col_global[cand] + (step if np.isscalar(step) else step[cand])
+        pos = np.minimum(np.searchsorted(system.col_global, want), len(system.col_global) - 1)
+        hit = system.col_global[pos] == want
+        pairs_i.append(cand[hit])
+        pairs_j.append(pos[hit])
     return np.concatenate(pairs_i), np.concatenate(pairs_j)
 
 
 # ---------------------------------------------------------------------- the solver
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    # einsum, not BLAS: multithreaded BLAS level-1 calls stall for milliseconds on a loaded 2-core box.
-    return float(np.einsum("i,i->", a, b))
+def _cg(apply, b, x, free, label, n_comp, stop, max_iter) -> tuple[np.ndarray, int]:
+    """Conjugate gradient on N x = b over the free unknowns, one independent solve per component.
 
-
-def _cgls(A, AT, rhs, x, damp2, free, tol, max_iter) -> tuple[np.ndarray, int]:
-    """CGLS: min |A x − rhs|² + Σ damp2 x² over the free unknowns, from x (fixed ones stay put).
-
-    Stops when the normal-equation residual has dropped by ``tol`` from its start.
+    ``apply(p)`` computes N p; ``label`` gives each unknown's connected component. Every
+    component gets its own step sizes and its own stopping test (squared residual ≤
+    ``stop[component]``), exactly as if it were solved alone, while one set of sparse products
+    per iteration serves them all. Fixed unknowns (``free`` = 0) keep their value.
+    Returns (x, iterations of the slowest component).
     """
-    r = rhs - A @ x
-    s = np.where(free, AT @ r - damp2 * x, 0.0)
-    p = s.copy()
-    gamma = _dot(s, s)
-    stop = gamma * tol * tol
+    seg = lambda v: np.bincount(label, weights=v, minlength=n_comp)  # noqa: E731 -- per-component sums
+    r = (b - apply(x)) * free
+    gamma = seg(r * r)
+    active = gamma > stop
+    p = r * active[label]
     it = 0
-    while it < max_iter and gamma > stop and gamma > 0:
-        q = A @ p
-        delta = _dot(q, q) + _dot(damp2 * p, p)
-        if delta <= 0:
-            break
-        alpha = gamma / delta
-        x = x + alpha * p
+    while it < max_iter and active.any():
+        q = apply(p)
+        q *= free
+        delta = seg(p * q)
+        alpha = np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0))[label]
+        x += alpha * p
         r -= alpha * q
-        s = np.where(free, AT @ r - damp2 * x, 0.0)
-        gamma, old = _dot(s, s), gamma
-        p = s + (gamma / old) * p
+        new = seg(r * r)
+        active &= (new > stop) & (delta > 0)
+        beta = np.divide(new, gamma, out=np.zeros_like(gamma), where=active)
+        p *= beta[label]
+        p += r * active[label]
+        gamma = new
         it += 1
     return x, it
 
 
-def _solve_block(A, rhs, y0, lo, hi, damp2, options: TextureOptions) -> tuple[np.ndarray, int, int]:
-    """Bounded scaled least squares on one block: min |A y − rhs|² + damp2 |y − y0|², lo ≤ y ≤ hi.
+def _components(E, lap) -> tuple[int, np.ndarray]:
+    """Connected components of the unknowns: texels sharing a row of E or a smoothness term.
 
-    Unbounded CGLS from y0, then up to four active-set rounds that fix the violators at their
-    bound and re-solve the free unknowns (warm started); a final projection guarantees the
-    bounds. Returns (y, iterations, active-set rounds).
+    The graph is bipartite (rows then columns), built straight from the CSR arrays.
     """
-    A = A.tocsr()
-    AT = A.T.tocsr()
-    free = np.ones(len(y0), dtype=bool)
-    rhs0 = rhs - A @ y0  # solve for the offset from the prior: its damping pulls toward y0
-    d = np.zeros(len(y0))
-    iters = rounds = 0
-    for rounds in range(5):
-        d, it = _cgls(A, AT, rhs0, d, damp2, free, options.tol, options.max_iter)
-        iters += it
-        y = y0 + d
-        viol = free & ((y < lo) | (y > hi))
-        if not viol.any():
-            break
-        d = np.where(viol, np.clip(y, lo, hi) - y0, d)
-        free &= ~viol
-    return np.clip(y0 + d, lo, hi), iters, rounds
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    R, C = E.shape
+    indptr = np.concatenate([E.indptr, E.indptr[-1] + lap.indptr[1:]])
+    indices = np.concatenate([E.indices + R, lap.indices + R])
+    graph = csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(R + C, R + C))
+    _, label = connected_components(graph, directed=False)
+    distinct, label = _compress(label[R:], R + C)  # every component has a column
+    return len(distinct), label
 
 
 def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, dict]:
-    """Solve the bounded, regularised system by connected components; returns (z per column, stats)."""
+    """Solve the bounded, regularised system by connected components; returns (z per column, stats).
+
+    Minimises ``|E z − rhs|² + Σ w_j (z_j − kd_j)² + Σ μ_ab (z_a − z_b)²`` within the bounds by
+    conjugate gradient on the normal equations ``(EᵀE + L) z = Eᵀ rhs + w kd`` (``L`` the
+    smoothness Laplacian plus the prior's diagonal), never formed: each iteration is ``Eᵀ(E p)
+    + L p``. Jacobi scaling (unit diagonal), a warm start from each texel's ratio of observed to
+    predicted radiance, per-component step sizes and stopping; then up to four active-set rounds
+    (violators fixed at their bound, the rest re-solved warm) and a final projection.
+    """
     import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
 
     E, ncol = system.E, system.E.shape[1]
     t0 = time.perf_counter()
     if ncol == 0:
-        return np.zeros(0), {"components": 0, "iterations": 0, "active_set_rounds": 0, "solve_s": 0.0}
-    # Texels sharing a row are coupled: link every entry to its row's first column.
-    first = np.repeat(E.indices[E.indptr[:-1]], np.diff(E.indptr))
-    pi, pj = (_smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2)
-    graph = sp.coo_matrix((np.ones(len(first) + len(pi)), (np.concatenate([first, pi]), np.concatenate([E.indices, pj]))),
-                          shape=(ncol, ncol))
-    n_comp, label = connected_components(graph, directed=False)
-    sizes = np.bincount(label)
-    group = np.where(sizes[label] >= options.small_component, label, -1)  # -1: the batch of small ones
-
-    colnorm = np.sqrt(np.asarray(E.multiply(E).sum(axis=0)).ravel())
-    colnorm = np.maximum(colnorm, 1e-300)
+        return np.zeros(0), {"components": 0, "largest_component": 0, "iterations": 0, "active_set_rounds": 0,
+                             "solve_s": 0.0}
+    colnorm2 = np.bincount(E.indices, weights=E.data * E.data, minlength=ncol)
     # The prior's weight is relative to the data a texel would have if seen directly: a texel seen
     # only through an attenuation a gets (1/a)² times more, so faint reflections and sheets lean
     # on the homogeneous kd instead of making the system ill-conditioned.
-    cov = system.coverage[system.col_global]
-    amp = np.divide(cov, system.weight[system.col_global], out=np.ones(ncol), where=system.weight[system.col_global] > 0)
-    damp2 = options.prior * np.maximum(amp, 1.0) ** 2
+    cov, wt = system.coverage[system.col_global], system.weight[system.col_global]
+    amp = np.divide(cov, wt, out=np.ones(ncol), where=wt > 0)
+    prior_w = options.prior * np.maximum(amp, 1.0) ** 2 * colnorm2
+    pi, pj = _smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2
+    # Smoothness rows sqrt(μ c_a c_b) (z_a − z_b): relative to the two texels' data (c² = column norm²).
+    mu = options.smoothness * np.sqrt(colnorm2[pi] * colnorm2[pj])
+    diag = colnorm2 + prior_w + np.bincount(pi, mu, minlength=ncol) + np.bincount(pj, mu, minlength=ncol)
+    scale = 1.0 / np.sqrt(np.maximum(diag, 1e-300))
+    # Jacobi: unknowns y = z / scale, so that the normal matrix has a unit diagonal.
+    Es = sp.csr_matrix((E.data * scale[E.indices], E.indices, E.indptr), shape=E.shape)
+    EsT = Es.T
+    ar = np.arange(ncol)
+    li, lj = np.concatenate([ar, pi, pj]), np.concatenate([ar, pj, pi])
+    lv = np.concatenate([prior_w + np.bincount(pi, mu, minlength=ncol) + np.bincount(pj, mu, minlength=ncol), -mu, -mu])
+    lap = sp.csr_matrix((lv * scale[li] * scale[lj], (li, lj)), shape=(ncol, ncol))
+    n_comp, label = _components(E, lap)
+    apply = lambda p: EsT @ (Es @ p) + lap @ p  # noqa: E731
+    Etrhs = EsT @ system.rhs
+    b = Etrhs + scale * prior_w * system.prior
     lo, hi = options.bounds
-    z = np.empty(ncol)
-    row_group = group[E.indices[E.indptr[:-1]]]
-    iters, rounds = 0, 0
-    for g in np.unique(group):
-        cols = np.nonzero(group == g)[0]
-        rows = np.nonzero(row_group == g)[0]
-        A = E[rows][:, cols] @ sp.diags(1.0 / colnorm[cols])
-        rhs = system.rhs[rows]
-        if options.smoothness > 0:
-            # Rows sqrt(mu) * sqrt(c_i c_j) * (z_i - z_j): relative to the two texels' data.
-            pos = np.full(ncol, -1)
-            pos[cols] = np.arange(len(cols))
-            sel = (pos[pi] >= 0) & (pos[pj] >= 0)
-            a, b = pos[pi[sel]], pos[pj[sel]]
-            k = np.sqrt(options.smoothness * colnorm[cols][a] * colnorm[cols][b])
-            m = len(a)
-            S = sp.csr_matrix((np.concatenate([k / colnorm[cols][a], -k / colnorm[cols][b]]),
-                               (np.tile(np.arange(m), 2), np.concatenate([a, b]))), shape=(m, len(cols)))
-            A, rhs = sp.vstack([A, S]).tocsr(), np.concatenate([rhs, np.zeros(m)])
-        y, it, rd = _solve_block(A, rhs, system.prior[cols] * colnorm[cols], lo * colnorm[cols], hi * colnorm[cols],
-                                 damp2[cols], options)
-        z[cols] = y / colnorm[cols]
-        iters, rounds = iters + it, max(rounds, rd)
-    stats = {"components": int(n_comp), "largest_component": int(sizes.max()),
-             "solves": int(len(np.unique(group))), "iterations": iters, "active_set_rounds": rounds,
-             "solve_s": time.perf_counter() - t0}
-    return z, stats
+    # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
+    r0 = b - apply(system.prior / scale)
+    stop = np.bincount(label, weights=r0 * r0, minlength=n_comp) * options.tol**2
+    # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
+    den = EsT @ np.asarray(E.sum(axis=1)).ravel()
+    ratio = np.divide(Etrhs, den, out=system.prior.copy(), where=den > 0)
+    y = np.clip(ratio, lo, hi) / scale
+    free = np.ones(ncol)
+    iters = rounds = 0
+    for rounds in range(5):
+        y, it = _cg(apply, b, y, free, label, n_comp, stop, options.max_iter)
+        iters += it
+        z = y * scale
+        viol = (free > 0) & ((z < lo) | (z > hi))
+        if not viol.any():
+            break
+        y = np.where(viol, np.clip(z, lo, hi) / scale, y)
+        free[viol] = 0.0
+    stats = {"components": int(n_comp), "largest_component": int(np.bincount(label).max()), "iterations": iters,
+             "active_set_rounds": rounds, "solve_s": time.perf_counter() - t0}
+    return np.clip(y * scale, lo, hi), stats
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None) -> TextureResult:

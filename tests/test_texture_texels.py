@@ -91,6 +91,19 @@ def test_footprint_of_a_plane_seen_from_above():
     assert choose_texel_size(np.full(3, np.nan)) is None
 
 
+def test_footprint_of_an_oblique_plane_is_the_square_root_of_the_pixel_area():
+    # 45° view of the ground from 0.707 m: a pixel covers D/f across and D/(f cos 45°) along the
+    # slope, so sqrt(area) = D / (f sqrt(cos 45°)); the shorter side alone would be D/f.
+    cam = Camera.look_at(81, 61, 40.0, eye=(0, -0.5, 0.5), target=(0, 0, 0), up=(0, 0, 1))
+    o, d = cam.pixel_rays()
+    pts = o + (-o[:, 2] / d[:, 2])[:, None] * d
+    fp = pixel_footprint(np.arange(len(pts)), np.zeros(len(pts), np.int64), pts, cam.width)
+    D = np.sqrt(0.5)
+    assert fp[30 * 81 + 40] == pytest.approx(D / (cam.K[0, 0] * np.sqrt(np.cos(np.radians(45)))), rel=0.01)
+    # Nodes of different paths never pair up (odd width: right and lower neighbours alternate).
+    assert np.all(np.isnan(pixel_footprint(np.arange(len(pts)), np.arange(len(pts)) % 2, pts, cam.width)))
+
+
 def test_index_entry_round_trip(tmp_path):
     mesh = box_mesh((0.12, 0.12, 0.008), (0.11, -0.06, 0.004), _rot_z(20.0))
     tm = build_texel_map(4, "tile", mesh, 0.0015)
