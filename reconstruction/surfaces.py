@@ -177,7 +177,7 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
                                              "rms_mm": float(1e3 * np.sqrt(np.mean(res**2)))}
 
 
-def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.003, min_points: int = 8) -> np.ndarray:
+def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.004, min_points: int = 6) -> np.ndarray:
     """Each footprint edge placed by the points of its own side face, else between two biased bounds.
 
     The least-squares footprint rests on indirect evidence where a side carries few points:
