@@ -297,53 +297,60 @@ def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------------- the solver
-def _cg(apply, b, x, free, label, n_comp, stop, max_iter) -> tuple[np.ndarray, int]:
+def _cg(apply, b, x, free, sizes, stop, max_iter) -> tuple[np.ndarray, int]:
     """Conjugate gradient on N x = b over the free unknowns, one independent solve per component.
 
-    ``apply(p)`` computes N p; ``label`` gives each unknown's connected component. Every
-    component gets its own step sizes and its own stopping test (squared residual ≤
-    ``stop[component]``), exactly as if it were solved alone, while one set of sparse products
-    per iteration serves them all. Fixed unknowns (``free`` = 0) keep their value.
-    Returns (x, iterations of the slowest component).
+    ``apply(p)`` computes N p; the unknowns are ordered by connected component, ``sizes`` giving
+    each component's count. Every component gets its own step sizes and its own stopping test
+    (squared residual ≤ ``stop[component]``), exactly as if it were solved alone, while one set
+    of sparse products per iteration serves them all. ``free`` (0/1 per unknown, or None for
+    all free): fixed unknowns keep their value. Returns (x, iterations of the slowest component).
     """
-    seg = lambda v: np.bincount(label, weights=v, minlength=n_comp)  # noqa: E731 -- per-component sums
-    r = (b - apply(x)) * free
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    seg = lambda v: np.add.reduceat(v, starts)  # noqa: E731 -- per-component sums
+    each = lambda v: np.repeat(v, sizes)  # noqa: E731 -- per-component value on its unknowns
+    r = b - apply(x)
+    if free is not None:
+        r *= free
     gamma = seg(r * r)
     active = gamma > stop
-    p = r * active[label]
+    p = r * each(active)
     it = 0
     while it < max_iter and active.any():
         q = apply(p)
-        q *= free
+        if free is not None:
+            q *= free
         delta = seg(p * q)
-        alpha = np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0))[label]
+        alpha = each(np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0)))
         x += alpha * p
-        r -= alpha * q
+        q *= alpha
+        r -= q
         new = seg(r * r)
         active &= (new > stop) & (delta > 0)
-        beta = np.divide(new, gamma, out=np.zeros_like(gamma), where=active)
-        p *= beta[label]
-        p += r * active[label]
+        p *= each(np.divide(new, gamma, out=np.zeros_like(gamma), where=active))
+        p += r * each(active) if not active.all() else r
         gamma = new
         it += 1
     return x, it
 
 
-def _components(E, lap) -> tuple[int, np.ndarray]:
-    """Connected components of the unknowns: texels sharing a row of E or a smoothness term.
+def _components(E, pi, pj) -> tuple[np.ndarray, np.ndarray]:
+    """Connected components of the unknowns: texels sharing a row of E or a smoothness pair.
 
-    The graph is bipartite (rows then columns), built straight from the CSR arrays.
+    Returns (label per unknown, numbered 0…, unknowns per component). The graph is bipartite
+    (rows, then columns), built straight from E's CSR arrays.
     """
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
     R, C = E.shape
-    indptr = np.concatenate([E.indptr, E.indptr[-1] + lap.indptr[1:]])
-    indices = np.concatenate([E.indices + R, lap.indices + R])
+    pairs = csr_matrix((np.ones(len(pi), np.int8), (pi, pj)), shape=(C, C))
+    indptr = np.concatenate([E.indptr, E.indptr[-1] + pairs.indptr[1:]])
+    indices = np.concatenate([E.indices + R, pairs.indices + R])
     graph = csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(R + C, R + C))
     _, label = connected_components(graph, directed=False)
-    distinct, label = _compress(label[R:], R + C)  # every component has a column
-    return len(distinct), label
+    _, label = _compress(label[R:], R + C)  # every component has a column
+    return label, np.bincount(label)
 
 
 def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, dict]:
@@ -363,51 +370,60 @@ def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, d
     if ncol == 0:
         return np.zeros(0), {"components": 0, "largest_component": 0, "iterations": 0, "active_set_rounds": 0,
                              "solve_s": 0.0}
+    pi, pj = _smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2
+    label, sizes = _components(E, pi, pj)
+    # Unknowns renumbered component by component: per-component sums become contiguous segments.
+    order = np.argsort(label, kind="stable")
+    rank = np.empty(ncol, dtype=np.int64)
+    rank[order] = np.arange(ncol)
+    E = sp.csr_matrix((E.data, rank[E.indices], E.indptr), shape=E.shape)
+    pi, pj = rank[pi], rank[pj]
+    prior = system.prior[order]
+
     colnorm2 = np.bincount(E.indices, weights=E.data * E.data, minlength=ncol)
     # The prior's weight is relative to the data a texel would have if seen directly: a texel seen
     # only through an attenuation a gets (1/a)² times more, so faint reflections and sheets lean
     # on the homogeneous kd instead of making the system ill-conditioned.
-    cov, wt = system.coverage[system.col_global], system.weight[system.col_global]
+    cov, wt = system.coverage[system.col_global[order]], system.weight[system.col_global[order]]
     amp = np.divide(cov, wt, out=np.ones(ncol), where=wt > 0)
     prior_w = options.prior * np.maximum(amp, 1.0) ** 2 * colnorm2
-    pi, pj = _smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2
     # Smoothness rows sqrt(μ c_a c_b) (z_a − z_b): relative to the two texels' data (c² = column norm²).
     mu = options.smoothness * np.sqrt(colnorm2[pi] * colnorm2[pj])
-    diag = colnorm2 + prior_w + np.bincount(pi, mu, minlength=ncol) + np.bincount(pj, mu, minlength=ncol)
-    scale = 1.0 / np.sqrt(np.maximum(diag, 1e-300))
+    lap_diag = prior_w + np.bincount(pi, mu, minlength=ncol) + np.bincount(pj, mu, minlength=ncol)
+    scale = 1.0 / np.sqrt(np.maximum(colnorm2 + lap_diag, 1e-300))
     # Jacobi: unknowns y = z / scale, so that the normal matrix has a unit diagonal.
     Es = sp.csr_matrix((E.data * scale[E.indices], E.indices, E.indptr), shape=E.shape)
     EsT = Es.T
     ar = np.arange(ncol)
     li, lj = np.concatenate([ar, pi, pj]), np.concatenate([ar, pj, pi])
-    lv = np.concatenate([prior_w + np.bincount(pi, mu, minlength=ncol) + np.bincount(pj, mu, minlength=ncol), -mu, -mu])
-    lap = sp.csr_matrix((lv * scale[li] * scale[lj], (li, lj)), shape=(ncol, ncol))
-    n_comp, label = _components(E, lap)
+    lap = sp.csr_matrix((np.concatenate([lap_diag, -mu, -mu]) * scale[li] * scale[lj], (li, lj)), shape=(ncol, ncol))
     apply = lambda p: EsT @ (Es @ p) + lap @ p  # noqa: E731
     Etrhs = EsT @ system.rhs
-    b = Etrhs + scale * prior_w * system.prior
+    b = Etrhs + scale * prior_w * prior
     lo, hi = options.bounds
     # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
-    r0 = b - apply(system.prior / scale)
-    stop = np.bincount(label, weights=r0 * r0, minlength=n_comp) * options.tol**2
+    r0 = b - apply(prior / scale)
+    stop = np.add.reduceat(r0 * r0, np.concatenate([[0], np.cumsum(sizes)[:-1]])) * options.tol**2
     # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
     den = EsT @ np.asarray(E.sum(axis=1)).ravel()
-    ratio = np.divide(Etrhs, den, out=system.prior.copy(), where=den > 0)
+    ratio = np.divide(Etrhs, den, out=prior.copy(), where=den > 0)
     y = np.clip(ratio, lo, hi) / scale
-    free = np.ones(ncol)
+    free = None
     iters = rounds = 0
     for rounds in range(5):
-        y, it = _cg(apply, b, y, free, label, n_comp, stop, options.max_iter)
+        y, it = _cg(apply, b, y, free, sizes, stop, options.max_iter)
         iters += it
         z = y * scale
-        viol = (free > 0) & ((z < lo) | (z > hi))
+        viol = ((z < lo) | (z > hi)) & (True if free is None else free > 0)
         if not viol.any():
             break
         y = np.where(viol, np.clip(z, lo, hi) / scale, y)
-        free[viol] = 0.0
-    stats = {"components": int(n_comp), "largest_component": int(np.bincount(label).max()), "iterations": iters,
+        free = np.where(viol, 0.0, 1.0) if free is None else np.where(viol, 0.0, free)
+    out = np.empty(ncol)
+    out[order] = np.clip(y * scale, lo, hi)
+    stats = {"components": int(len(sizes)), "largest_component": int(sizes.max()), "iterations": iters,
              "active_set_rounds": rounds, "solve_s": time.perf_counter() - t0}
-    return np.clip(y * scale, lo, hi), stats
+    return out, stats
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None) -> TextureResult:
