@@ -804,13 +804,18 @@ def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A
     np.logical_or.at(seen, fac.col_x, live)
     bad_x = free.x & ~(sig.x <= RESOLVE * xs) & ((p.x > BOUND_TOL * xs) | ~seen)
     bad_s = free.s & ~(sig.s <= RESOLVE) & (p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)
-    srch = pb.search
-    sig_u = np.where(srch.log, sig.theta / np.maximum(p.theta * np.log(2.0), 1e-300), sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
-    bad_t = free.theta & ~(sig_u <= RESOLVE)
+    bad_t = free.theta & ~(_theta_resolution(pb, p, sig) <= RESOLVE)
     return Free(bad_x, bad_s, bad_t)
 
 
-def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int = 3,
+def _theta_resolution(pb: Problem, p: Params, sig: Params) -> np.ndarray:
+    """σ of each θ relative to its scale: in log2 units for :data:`LOG2` names, else of the range."""
+    srch = pb.search
+    return np.where(srch.log, sig.theta / np.maximum(p.theta * np.log(2.0), 1e-300),
+                    sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
+
+
+def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
@@ -825,8 +830,9 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         Initial values, one per surface (scene.json's, else METHOD.md §3's). Their ``ior`` says
         which surfaces are transparent.
     method : {"ftbo", "nftbo"}
-    max_rounds : int
-        Fit → find unresolved parameters → fix them → refit, at most this many times.
+    max_rounds : int, optional
+        Fit → find unresolved parameters → fix them → refit, at most this many times (default:
+        3 + the number of nonlinear parameters, as θ are held one per round).
     maxiter : int, optional
         Outer iteration cap (Levenberg–Marquardt for F-TBO, CG for NF-TBO).
     max_seconds : float, optional
@@ -858,6 +864,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
+    max_rounds = 3 + fac.layout.n_theta if max_rounds is None else max_rounds
     for rounds in range(1, max_rounds + 1):
         if method == "ftbo":
             # The global scan picks the basins once; later rounds only hold parameters.
@@ -873,6 +880,11 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             break
         if bad.theta.any():
             # θ first: an unresolved shininess inflates its ks's σ; with θ held, ks is judged alone.
+            # Only the worst θ per round: a misfit elsewhere (a hidden highlight still settling)
+            # inflates every σ, and a two-pixel highlight resolves once the rest is refitted.
+            worst = np.nanargmax(np.where(bad.theta, _theta_resolution(pb, p, sig), -np.inf))
+            bad.theta[:] = False
+            bad.theta[worst] = True
             bad.x[:], bad.s[:] = False, False
         # Hold the unresolved ones at their initial value and refit the rest from there.
         for name in ("x", "s", "theta"):

@@ -95,18 +95,28 @@ def test_stiff_truth_sharp_highlight_and_bounds(lab):
     stiff[2].params["t"] = np.array([0.0, 0.5, 1.0])  # sheet: opaque red, clear blue
     img = render(trees, stiff, lab_.lights.intensities)
     for method in ("ftbo", "nftbo"):
-        res = fit(fac, img, _initial(truth), method, maxiter=None if method == "ftbo" else 300)
+        res = fit(fac, img, _initial(truth), method, maxiter=None if method == "ftbo" else 150)
         for arr in (res.params.x, res.params.s, res.params.theta, res.rms):
             assert np.all(np.isfinite(arr))
-        # NF-TBO's conjugate gradient stalls in this stiff valley (docs/fit.md): finite, not exact.
-        assert np.all(res.rms < (1e-4 if method == "ftbo" else 2e-2) * img.max()), (method, res.rms)
+        # NF-TBO (no global scan) walks the tile's and the box's shininess down into the flat-lobe
+        # basin (log2 ns ≈ −4 and 1.5, ks absorbing kd; docs/fit.md): finite, not exact (measured
+        # 1.2% of the peak after 150 iterations per round).
+        assert np.all(res.rms < (1e-4 if method == "ftbo" else 1.5e-2) * img.max()), (method, res.rms)
         if method == "ftbo":
-            # The mirror's highlight covers two pixels at 80x60; its ks, ns are checked by the
-            # noise-free test, not here (known weakness: this start can hold its ns undetermined).
-            mirror = (fac.col_surface == 3)
-            for name, got, want, _ in _errors(fac, res, stiff):
-                assert abs(got - want) <= 1e-4 * abs(want) + 1e-6 or abs(want - 0.3) < 1e-12, (name, got, want)
-            assert mirror.any()
+            # The mirror's faint highlight is seen only in the box's reflection, which r = 0 removes:
+            # what is left of it is one pixel at 2.4e-6 of the peak, so its ks may be fitted 0 under
+            # a held ns. Every other determined parameter is exact.
+            no_mirror_spec = [m.copy() for m in stiff]
+            no_mirror_spec[3].params["ks"] = np.zeros(3)
+            assert np.abs(render(trees, no_mirror_spec, lab_.lights.intensities) - img).max() < 3e-6 * img.max()
+            ks_mirror = fac.layout.x_offset[3] + 1
+            judged = res.free.x.copy()
+            judged[ks_mirror] = False
+            t = params_of(fac, stiff)
+            np.testing.assert_allclose(res.params.x[judged], t.x[judged], rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(res.params.s[res.free.s], t.s[res.free.s], rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(res.params.theta[res.free.theta], t.theta[res.free.theta], rtol=1e-4)
+            assert res.free.theta[[0, 3]].all()  # box and tile (ns = 2^12) shininess fitted
 
 
 def test_poor_start_reaches_the_truth(lab):
