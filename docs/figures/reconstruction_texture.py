@@ -15,7 +15,10 @@ Every texel centre on a textured surface is compared with the lab's true albedo 
 point of the true surfaces. Texels within 2 texels of an edge of their surface (a boundary or a
 crease of its mesh: a box's edges) are reported apart: the dissertation dropped them. "Seen"
 texels are those whose bilinear footprint some tree node touches; "unknown" ones are seen but
-left out of the solution (coverage below the stage's threshold: the mask).
+left out of the solution (coverage below the stage's threshold: the mask). Interior texels are
+also split by whether the model's geometry gives the texel the same lamp and camera visibility
+as the truth gives the nearest true point ("other shadows": a shadow or outline moved by the
+geometric error crosses it).
 """
 from __future__ import annotations
 
@@ -69,19 +72,43 @@ def distance_to_segments(points: np.ndarray, seg: np.ndarray) -> np.ndarray:
     return np.linalg.norm(points[:, None] - closest, axis=2).min(axis=1)
 
 
-def true_albedo(lab, points: np.ndarray) -> np.ndarray:
-    """The lab's albedo at the nearest point of its true surfaces."""
+def _raycaster(scene: Scene):
     import open3d as o3d
 
     rc = o3d.t.geometry.RaycastingScene()
     ids = {}
-    for i, s in enumerate(lab.scene):
+    for i, s in enumerate(scene):
         gid = rc.add_triangles(o3d.core.Tensor(s.mesh.vertices.astype(np.float32)),
                                o3d.core.Tensor(s.mesh.triangles.astype(np.uint32)))
         ids[int(gid)] = i
+    return rc, ids
+
+
+def true_albedo(lab, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lab's albedo at the nearest point of its true surfaces, and those points."""
+    import open3d as o3d
+
+    rc, ids = _raycaster(lab.scene)
     ans = rc.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
     sid = np.array([ids[int(g)] for g in ans["geometry_ids"].numpy()])
-    return lab.albedo_at(sid, ans["points"].numpy().astype(np.float64))
+    nearest = ans["points"].numpy().astype(np.float64)
+    return lab.albedo_at(sid, nearest), nearest
+
+
+def visibility(scene: Scene, points: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(N, T) bool: the segment from each point to each target (lamps, the camera) is unoccluded."""
+    import open3d as o3d
+
+    rc, _ = _raycaster(scene)
+    out = np.zeros((len(points), len(targets)), dtype=bool)
+    for k, target in enumerate(targets):
+        d = target - points
+        dist = np.linalg.norm(d, axis=1)
+        u = d / dist[:, None]
+        # Start 0.1 mm off the surface: no self-hit.
+        rays = np.concatenate([points + 1e-4 * u, u], axis=1).astype(np.float32)
+        out[:, k] = rc.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() >= dist - 2e-4
+    return out
 
 
 def with_true_materials(scene: Scene, lab) -> tuple[Scene, dict]:
@@ -116,16 +143,23 @@ def evaluate(scene: Scene, lab, image: np.ndarray) -> dict:
         seen = touched[idx]
         known = res.mask[s].ravel()[idx]
         edge = distance_to_segments(pts, feature_edges(mesh)) < EDGE_TEXELS * m.texel_size
-        err = res.kd[s].reshape(-1, 3)[idx] - true_albedo(lab, pts)
-        rows.append(dict(surface=scene[s].name, texel_mm=1e3 * m.texel_size, seen=seen, known=known, edge=edge, err=err))
+        truth, nearest = true_albedo(lab, pts)
+        err = res.kd[s].reshape(-1, 3)[idx] - truth
+        # Shadows and occlusions of the model against the truth's, seen from the texel.
+        targets = np.concatenate([lab.lights.positions, lab.camera.center[None]])
+        agree = np.all(visibility(scene, pts, targets) == visibility(lab.scene, nearest, targets), axis=1)
+        rows.append(dict(surface=scene[s].name, texel_mm=1e3 * m.texel_size, seen=seen, known=known, edge=edge,
+                         err=err, agree=agree))
 
     def summary(sel_rows):
         seen = np.concatenate([r["seen"] for r in sel_rows])
         known = np.concatenate([r["known"] for r in sel_rows])
         edge = np.concatenate([r["edge"] for r in sel_rows])
         err = np.concatenate([r["err"] for r in sel_rows])
+        agree = np.concatenate([r["agree"] for r in sel_rows])
         out = {}
-        for part, sel in (("interior", ~edge), ("edge", edge)):
+        for part, sel in (("interior", ~edge), ("edge", edge), ("interior, same shadows", ~edge & agree),
+                          ("interior, other shadows", ~edge & ~agree)):
             k = sel & known
             out[part] = {"seen": int((sel & seen).sum()), "known": int(k.sum()),
                          "unknown_fraction_of_seen": float(1 - k.sum() / max((sel & seen).sum(), 1)),
