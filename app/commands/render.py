@@ -44,7 +44,9 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     image : (H, W, 3) float64 ndarray
     info : dict
         ``materials`` (source file), ``texture_nodes`` (nodes with recovered albedo, or None),
-        ``unknown_albedo`` (nodes whose albedo was unknown), ``trees_s``, ``render_s``, ``trees``.
+        ``unknown_albedo`` (nodes whose albedo was unknown), ``unknown_pixels`` ((H, W) bool: a
+        node of the pixel's tree had unknown albedo, so the homogeneous kd stood in), ``trees_s``,
+        ``render_s``, ``trees``.
     """
     import numpy as np
 
@@ -66,11 +68,13 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     trees = build_trees(scene, cam, lig, depth=depth)
     t1 = time.perf_counter()
     kd_nodes = albedo_nodes(ws, scene, trees) if ws.textures.is_dir() else None
-    info = {"materials": source, "texture_nodes": None, "unknown_albedo": 0}
+    info = {"materials": source, "texture_nodes": None, "unknown_albedo": 0,
+            "unknown_pixels": np.zeros((cam.height, cam.width), dtype=bool)}
     if kd_nodes is not None:
         unknown = ~np.all(np.isfinite(kd_nodes), axis=1)
         info["texture_nodes"] = int(np.count_nonzero(~unknown))
         info["unknown_albedo"] = int(np.count_nonzero(unknown))
+        info["unknown_pixels"] = (np.bincount(trees.pixel[unknown], minlength=cam.width * cam.height) > 0).reshape(cam.height, cam.width)
     if aov == "albedo":
         image = render_albedo(trees, materials, kd_nodes)
     else:
