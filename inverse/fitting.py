@@ -7,9 +7,10 @@ linear parameters are per band, θ is shared by the bands of a surface.
 - **F-TBO**: for fixed θ, the Gram matrices ``G_c = A_cᵀA_c`` and ``h_c = A_cᵀb_c`` reduce the
   problem to the (few) monomial columns. There, ``x`` is the exact bounded least-squares solution
   for fixed r, t (NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its
-  polynomial, alternated to convergence. θ (shininess searched in log2) is optimised on top by
-  L-BFGS-B with the envelope-theorem gradient (the partial derivative at the inner optimum).
-- **NF-TBO**: every parameter at once by nonlinear conjugate gradient (SciPy's Polak–Ribière CG)
+  polynomial, alternated to convergence. θ (shininess searched in log2) is optimised on top: a
+  coarse global scan per θ (each candidate with the exact inner solve), then Levenberg–Marquardt
+  with the envelope-theorem gradient and the variable-projection curvature.
+- **NF-TBO**: every parameter at once by preconditioned Polak–Ribière nonlinear conjugate gradient
   on a bounded reparametrisation (``x = w²``, ``r = sin² φ``, ``log2 ns = lo + (hi − lo) sin² ψ``),
   with a diagonal (Gauss–Newton) preconditioner; every evaluation is a full pass over the nodes.
 
@@ -18,7 +19,8 @@ reflection or transmission through a surface), or a one-sigma uncertainty larger
 :data:`RESOLVE` of their scale (a hidden highlight, ks ≈ 0 leaving ns free) — are kept at their
 initial value, out of the fit, and named in ``undetermined``. One-sigma uncertainties come from
 the Jacobian at the optimum (``σ² (JᵀJ)⁻¹``, σ per band from the residual, never below
-:data:`NOISE_FLOOR` of the image peak).
+:data:`NOISE_FLOOR` of the image peak). :func:`diagnose` says in words whether the fitted model
+explains the image (``status``, ``warnings``).
 """
 from __future__ import annotations
 
