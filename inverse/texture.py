@@ -467,31 +467,35 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     z, stats = solve(system, maps, options)
 
     resid = system.E @ z - system.rhs if len(z) else np.zeros(0)
-    rms = [float(np.sqrt(np.mean(resid[system.row_band == c] ** 2))) if np.any(system.row_band == c) else 0.0 for c in range(3)]
+    count = np.bincount(system.row_band, minlength=3)
+    rms = np.sqrt(np.bincount(system.row_band, weights=resid * resid, minlength=3) / np.maximum(count, 1)).tolist()
+    # Per-texel arrays as (band, texel) views: each surface is a contiguous slice of texels.
     total = system.n_texels
     full = np.full(3 * total, np.nan)
     full[system.col_global] = z
     lo, hi = options.bounds
     clipped = np.zeros(3 * total, dtype=bool)
     clipped[system.col_global] = (z <= lo) | (z >= hi)
-    known3 = system.coverage >= options.min_coverage
-    amp3 = np.divide(system.coverage, system.weight, out=np.full(3 * total, np.inf), where=system.weight > 0)
+    known3 = (system.coverage >= options.min_coverage).reshape(3, total)
+    weight3, coverage3 = system.weight.reshape(3, total), system.coverage.reshape(3, total)
+    full, clipped, saturated3 = full.reshape(3, total), clipped.reshape(3, total), system.saturated_touch.reshape(3, total)
 
     result = TextureResult(maps, {}, {}, {}, {}, {}, {})
     for s, m in maps.items():
-        sl = np.stack([np.arange(system.offsets[s], system.offsets[s] + m.n_texels) + c * total for c in range(3)], axis=1)
-        known = known3[sl].all(axis=1)
-        kd = np.where(known[:, None], full[sl], materials[s]["kd"][None, :])
-        kd = np.nan_to_num(kd, nan=0.0)
-        amp = np.where(known3[sl], amp3[sl], 0.0)
-        flags = (np.where((amp > options.amplification_limit).any(1) & known, AMPLIFIED, 0)
-                 | np.where(system.saturated_touch[sl].any(1), SATURATED, 0)
-                 | np.where(clipped[sl].any(1) & known, CLIPPED, 0)).astype(np.uint8)
+        sl = slice(system.offsets[s], system.offsets[s] + m.n_texels)
+        kn3, w3 = known3[:, sl], weight3[:, sl]
+        known = kn3.all(axis=0)
+        kd = np.where(known, np.nan_to_num(full[:, sl], nan=0.0), np.asarray(materials[s]["kd"], float)[:, None])
+        amp = np.divide(coverage3[:, sl], w3, out=np.zeros(w3.shape), where=kn3 & (w3 > 0))
+        amp[kn3 & (w3 <= 0)] = np.inf
+        flags = (np.where((amp > options.amplification_limit).any(0) & known, AMPLIFIED, 0)
+                 | np.where(saturated3[:, sl].any(0), SATURATED, 0)
+                 | np.where(clipped[:, sl].any(0) & known, CLIPPED, 0)).astype(np.uint8)
         shape = (m.height, m.width)
-        result.kd[s] = kd.reshape(*shape, 3)
+        result.kd[s] = kd.T.reshape(*shape, 3)
         result.mask[s] = known.reshape(shape)
-        result.weight[s] = system.weight[sl].reshape(*shape, 3)
-        result.amplification[s] = amp.reshape(*shape, 3)
+        result.weight[s] = w3.T.reshape(*shape, 3)
+        result.amplification[s] = amp.T.reshape(*shape, 3)
         result.flags[s] = flags.reshape(shape)
     stats.update(
         rows=int(system.E.shape[0]), unknowns=int(system.E.shape[1]), nonzeros=int(system.E.nnz),
