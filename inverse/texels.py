@@ -358,19 +358,23 @@ def pixel_footprint(pixel: np.ndarray, path: np.ndarray, point: np.ndarray, widt
     pixel = np.asarray(pixel, np.int64)
     path = np.asarray(path, np.int64)
     point = np.asarray(point, np.float64)
-    npath = int(path.max()) + 1 if len(path) else 1
-    key = pixel * npath + path
-    order = np.argsort(key)
-    skey = key[order]
+    if len(pixel) == 0:
+        return np.zeros(0)
+    # Dense table (pixel, path rank) -> node: one node per pixel and path, O(N) lookups.
+    used = np.zeros(int(path.max()) + 1, dtype=bool)
+    used[path] = True
+    npath = int(used.sum())
+    key = pixel * npath + (np.cumsum(used) - 1)[path]
+    table = np.full((int(pixel.max()) + width + 2) * npath, -1, dtype=np.int64)
+    table[key] = np.arange(len(key))
     offsets = []
     for step in (1, width):
-        want = key + step * npath
-        pos = np.clip(np.searchsorted(skey, want), 0, max(len(skey) - 1, 0))
-        hit = skey[pos] == want if len(skey) else np.zeros(0, bool)
+        j = table[key + step * npath]
+        hit = j >= 0
         if step == 1:
             hit &= (pixel % width) != width - 1
         off = np.full(point.shape, np.nan)
-        off[hit] = point[order[pos[hit]]] - point[hit]
+        off[hit] = point[j[hit]] - point[hit]
         offsets.append(off)
     right, down = offsets
     area = np.linalg.norm(np.cross(right, down), axis=1)

@@ -279,20 +279,22 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
 
 def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
     """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system."""
-    texel = system.col_global % system.n_texels
+    total = system.n_texels
+    texel = system.col_global % total
     starts = np.array(sorted(system.offsets.values()))
     by_start = {system.offsets[s]: m for s, m in maps.items()}
-    width = np.array([by_start[o].width for o in starts])[np.searchsorted(starts, texel, side="right") - 1]
-    count = np.array([by_start[o].n_texels for o in starts])[np.searchsorted(starts, texel, side="right") - 1]
-    local = texel - starts[np.searchsorted(starts, texel, side="right") - 1]
+    which = np.searchsorted(starts, texel, side="right") - 1
+    width = np.array([by_start[o].width for o in starts])[which]
+    count = np.array([by_start[o].n_texels for o in starts])[which]
+    local = texel - starts[which]
+    position = np.full(3 * total + 1, -1, dtype=np.int64)  # column of each (band, texel); -1: none
+    position[system.col_global] = np.arange(len(system.col_global))
     pairs_i, pairs_j = [], []
     for step, inside in ((1, local % width != width - 1), (width, local < count - width)):
         cand = np.flatnonzero(inside)
-        want = system.col_global[cand] + (step if np.isscalar(step) else step[cand])
-        pos = np.minimum(np.searchsorted(system.col_global, want), len(system.col_global) - 1)
-        hit = system.col_global[pos] == want
-        pairs_i.append(cand[hit])
-        pairs_j.append(pos[hit])
+        j = position[system.col_global[cand] + (step if np.isscalar(step) else step[cand])]
+        pairs_i.append(cand[j >= 0])
+        pairs_j.append(j[j >= 0])
     return np.concatenate(pairs_i), np.concatenate(pairs_j)
 
 
