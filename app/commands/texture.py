@@ -70,7 +70,7 @@ def run(args) -> int:
     rms = ", ".join(f"{v:.3g}" for v in st["residual_rms"])
     print(f"reflab texture: materials from {source}; {st['rows']} equations, {st['unknowns']} unknowns, "
           f"{st['components']} components")
-    print(f"reflab texture: {st['iterations']} CGLS iterations, solve {st['solve_s']:.2f} s, total {st['total_s']:.2f} s "
+    print(f"reflab texture: {st['iterations']} CG iterations, solve {st['solve_s']:.2f} s, total {st['total_s']:.2f} s "
           f"(+ trees {trees.stats.get('build_s', float('nan')):.2f} s); residual RMS per band [{rms}]")
     for s, m in result.maps.items():
         print(f"  {m.name}: {m.kind} {m.width}x{m.height} texels of {m.texel_size * 1000:.2f} mm, "
