@@ -357,6 +357,34 @@ def _components(E, pi, pj) -> tuple[np.ndarray, np.ndarray]:
     return label, np.bincount(label)
 
 
+def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_components`, computed on one band when the three bands have the same structure.
+
+    Rows and columns are band-major; when nothing saturates and every node is lit in every
+    band, bands 1 and 2 repeat band 0's pixels, texels and sparsity, and so its components.
+    """
+    E = system.E
+    (R, C), nnz = E.shape, E.nnz
+    if R % 3 or C % 3 or nnz % 3:
+        return _components(E, pi, pj)
+    R1, C1, n1 = R // 3, C // 3, nnz // 3
+    texel = system.col_global % max(system.n_texels, 1)
+    alike = (np.array_equal(system.row_band, np.repeat(np.arange(3), R1))
+             and np.array_equal(system.col_global // max(system.n_texels, 1), np.repeat(np.arange(3), C1))
+             and np.all(system.row_pixel.reshape(3, R1) == system.row_pixel[:R1])
+             and np.all(texel.reshape(3, C1) == texel[:C1])
+             and np.all(np.diff(E.indptr).reshape(3, R1) == np.diff(E.indptr[: R1 + 1]))
+             and np.all(E.indices.reshape(3, n1) - (np.arange(3) * C1)[:, None] == E.indices[:n1]))
+    if not alike:
+        return _components(E, pi, pj)
+    from scipy.sparse import csr_matrix
+
+    first = pi < C1  # smoothness pairs never cross bands
+    label, sizes = _components(csr_matrix((E.data[:n1], E.indices[:n1], E.indptr[: R1 + 1]), shape=(R1, C1)),
+                               pi[first], pj[first])
+    return np.concatenate([label, label + len(sizes), label + 2 * len(sizes)]), np.tile(sizes, 3)
+
+
 def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, dict]:
     """Solve the bounded, regularised system by connected components; returns (z per column, stats).
 
@@ -375,7 +403,7 @@ def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, d
         return np.zeros(0), {"components": 0, "largest_component": 0, "iterations": 0, "active_set_rounds": 0,
                              "solve_s": 0.0}
     pi, pj = _smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2
-    label, sizes = _components(E, pi, pj)
+    label, sizes = _band_components(system, pi, pj)
     # Unknowns renumbered component by component: per-component sums become contiguous segments.
     order = np.argsort(label, kind="stable")
     rank = np.empty(ncol, dtype=np.int64)
