@@ -25,6 +25,10 @@ from calibration.camera import Camera
 from hardware.workspace import WorkspaceError, as_array, as_float, object_items, read_json
 from reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
 
+#: Points within this distance of a box's side face count as that face's (metres).
+SIDE_BAND = 0.004
+#: Boxes at least this tall have sides that carry points of their own (five bands: a tile's do not).
+TALL = 5 * SIDE_BAND
 #: Box corner labels in the order of :func:`box_mesh`'s vertices.
 CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
 #: Quads counter-clockwise seen from outside: -x, +x, -y, +y, -z, +z.
@@ -130,7 +134,9 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
     the top face's points seen from above; points farther than ``outlier`` from the first fit are
     dropped before the second. Points on a thin box's top face say little about its footprint,
     so ``ground`` points (seen on the ground, hence not under the box) push the footprint's
-    edges out of them: each adds how deep inside the footprint it lies.
+    edges out of them: each adds how deep inside the footprint it lies. A tall box's footprint
+    is then refitted to its side faces' points where they carry some (:func:`_side_pose`), and
+    each edge placed by its own side's points (:func:`_side_edges`).
     """
     import cv2
     from scipy.optimize import least_squares
@@ -165,7 +171,8 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
     if keep.sum() >= 0.5 * len(uvh) and not keep.all():
         uvh = uvh[keep]
         sol = least_squares(residual, sol.x, loss="soft_l1", f_scale=5e-4, x_scale=scale)
-    cu, cv, yaw, w, l, h = _side_edges(uvh, sol.x)
+    x, by_sides = _side_pose(uvh, sol.x)
+    cu, cv, yaw, w, l, h = _side_edges(uvh, x, toward_top=not by_sides)
     w, l, h = abs(w), abs(l), abs(h)
     c, s = np.cos(yaw), np.sin(yaw)
     ax, ay = c * e1 + s * e2, -s * e1 + c * e2
@@ -177,7 +184,48 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
                                              "rms_mm": float(1e3 * np.sqrt(np.mean(res**2)))}
 
 
-def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.004, min_points: int = 6) -> np.ndarray:
+def _side_pose(uvh: np.ndarray, x: np.ndarray, band: float = SIDE_BAND,
+               min_points: int = 4) -> tuple[np.ndarray, bool]:
+    """Footprint centre, yaw and size refitted to the side faces' points, when two adjacent sides carry some.
+
+    The top face's points say nothing about the yaw unless near its edges, where they thin
+    out, and the ground points that push the footprint out include some on the sides' feet:
+    both bias the yaw (2 degrees on the simulated lab's 100 mm box). Points half-way up the
+    sides lie on the footprint's outline; with ``min_points`` of them on each of two adjacent
+    sides they fix it, while the top face's points only have to stay inside. Sides lower than
+    :data:`TALL` (a tile) are left to the first fit: their few points there are mostly
+    mismatches along the top face's edges.
+    """
+    from scipy.optimize import least_squares
+
+    height = abs(x[5])
+    if height < TALL:
+        return x, False
+    mid = (uvh[:, 2] > 0.15 * height) & (uvh[:, 2] < 0.85 * height)
+    top = np.abs(uvh[:, 2] - height) < band
+
+    def local(p, sel):
+        c, s = np.cos(p[2]), np.sin(p[2])
+        d = uvh[sel, :2] - p[:2]
+        return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+
+    loc, half = np.abs(local(x, mid)), np.abs(x[3:5]) / 2
+    on = (np.abs(loc - half) < band) & (loc[:, ::-1] < half[::-1] - band)  # on a face, away from its corners
+    if min(on[:, 0].sum(), on[:, 1].sum()) < min_points:
+        return x, False
+
+    def residual(p):
+        half = np.abs(p[3:5]) / 2
+        q = np.abs(local(p, mid)) - half
+        outside = np.linalg.norm(np.maximum(np.abs(local(p, top)) - half, 0.0), axis=1)
+        return np.concatenate([np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0), outside])
+
+    sol = least_squares(residual, x[:5], loss="soft_l1", f_scale=5e-4, x_scale=np.r_[0.01, 0.01, 0.1, 0.01, 0.01])
+    return np.r_[sol.x, x[5]], True
+
+
+def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = SIDE_BAND, min_points: int = 6,
+                toward_top: bool = True) -> np.ndarray:
     """Each footprint edge placed by the points of its own side face, else between two biased bounds.
 
     The least-squares footprint rests on indirect evidence where a side carries few points:
@@ -185,8 +233,9 @@ def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.004, min_points:
     top face's points thin out within a few pixels of its edges (features straddling an occluding
     edge do not match), so their reach falls short of it. A side face seen with ``min_points``
     points or more (within ``band`` of it, away from its top, bottom and vertical edges) places
-    its edge as their median; otherwise an edge that the fit put beyond the top face's reach (its
-    third outermost point) moves halfway back toward it.
+    its edge as their median; otherwise, unless the side faces already placed the footprint
+    (``toward_top`` False, :func:`_side_pose`), an edge that the fit put beyond the top face's
+    reach (its third outermost point) moves halfway back toward it.
     """
     cu, cv, yaw, w, l, h = x
     c, s = np.cos(yaw), np.sin(yaw)
@@ -204,7 +253,7 @@ def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.004, min_points:
             on = middle & across & (np.abs(sign * local[:, a] - half[a]) < band)
             if on.sum() >= min_points:
                 edges[k, a] = np.median(local[on, a])
-            elif (top & across).sum() >= 3:
+            elif toward_top and (top & across).sum() >= 3:
                 reach = np.sort(sign * local[top & across, a])[-3]
                 edges[k, a] = sign * min(half[a], 0.5 * (half[a] + reach))
     mid = edges.mean(axis=0)
@@ -213,7 +262,7 @@ def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = 0.004, min_points:
 
 
 def fit_scene_points(points: np.ndarray, *, ground_threshold: float = 0.002, min_height: float = 0.003,
-                     cluster_eps: float = 0.012, min_points: int = 30) -> list[Modelled]:
+                     cluster_eps: float = 0.012, min_points: int = 30, adopt: float = 0.004) -> list[Modelled]:
     """The ground plane and the boxes standing on it, from sparse points in the world frame."""
     import open3d as o3d
 
@@ -232,6 +281,11 @@ def fit_scene_points(points: np.ndarray, *, ground_threshold: float = 0.002, min
             if len(cluster) < min_points:
                 continue
             mesh, info = fit_resting_box(cluster, n, d, points[inliers])
+            # DBSCAN leaves a tall box's sparsely seen side faces as noise: take back those near it.
+            near = (labels < 0) & (distance_to_mesh(mesh, above) < adopt)
+            if near.any() and info["size_m"][2] >= TALL:
+                mesh, info = fit_resting_box(np.concatenate([cluster, above[near]]), n, d, points[inliers])
+                info["adopted"] = int(near.sum())
             out.append(Modelled(f"box{len(out) - 1}", mesh, "phong", None, True, "box on the ground (fitted)", info))
     return out
 
