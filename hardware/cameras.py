@@ -166,10 +166,12 @@ class SimulatedCamera:
         Room light added to every pixel, lamps on or off (what a lamps-off frame removes).
     reference_exposure : float
         The exposure at which a pixel holds the radiance itself; pixels scale with exposure.
+    lab : dict, optional
+        How the lab was built (e.g. its print grain, what stays still), recorded by :meth:`describe`.
     """
 
-    def __init__(self, render, state, *, ambient: float = 0.0, reference_exposure: float = 1.0):
-        self.render, self.state = render, state
+    def __init__(self, render, state, *, ambient: float = 0.0, reference_exposure: float = 1.0, lab: dict | None = None):
+        self.render, self.state, self.lab = render, state, lab
         self.ambient, self.reference_exposure = float(ambient), float(reference_exposure)
         self.last_state = None
 
@@ -181,7 +183,8 @@ class SimulatedCamera:
         return img.astype(np.float32)
 
     def describe(self) -> dict:
-        return {"type": "simulated", "ambient": self.ambient, "reference_exposure": self.reference_exposure}
+        out = {"type": "simulated", "ambient": self.ambient, "reference_exposure": self.reference_exposure}
+        return out if self.lab is None else dict(out, lab=self.lab)
 
     def close(self) -> None:
         pass

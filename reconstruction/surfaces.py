@@ -120,6 +120,28 @@ def ground_mesh(points: np.ndarray, normal: np.ndarray, offset: float, margin: f
     return Mesh(corners, [[0, 1, 2], [0, 2, 3]])
 
 
+def view_ground_mesh(camera: Camera, margin: float = 0.05, far: float = 10.0) -> Mesh:
+    """The world frame's ground plane z = 0 as a rectangle covering what ``camera`` sees of it, plus ``margin``.
+
+    The image border's rays meet z = 0 where the view's footprint ends; rays that miss it (the
+    horizon is in view) stop at ``far`` times the camera's height above the ground.
+    """
+    w, h = camera.width - 1.0, camera.height - 1.0
+    s = np.linspace(0.0, 1.0, 17)
+    border = np.concatenate([np.stack([s * w, 0 * s], 1), np.stack([s * w, 0 * s + h], 1),
+                             np.stack([0 * s, s * h], 1), np.stack([0 * s + w, s * h], 1)])
+    origin, d = camera.rays(border)
+    height = origin[0, 2]
+    if not height > 0:
+        raise WorkspaceError("camera.json", expected="a camera above the ground plane z = 0", got=f"height {height:g} m")
+    # Rays toward the ground stop there; the others (at or above the horizon) at `far` heights away.
+    t = np.where(d[:, 2] < 0, height / np.maximum(-d[:, 2], 1e-12), np.inf)
+    t = np.minimum(t, far * height)
+    xy = origin[:, :2] + t[:, None] * d[:, :2]
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    return Mesh([[lo[0], lo[1], 0.0], [hi[0], lo[1], 0.0], [hi[0], hi[1], 0.0], [lo[0], hi[1], 0.0]], [[0, 1, 2], [0, 2, 3]])
+
+
 def _box_sdf(local: np.ndarray, half: np.ndarray) -> np.ndarray:
     q = np.abs(local) - half
     return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
@@ -261,16 +283,31 @@ def _side_edges(uvh: np.ndarray, x: np.ndarray, band: float = SIDE_BAND, min_poi
     return np.array([cu + c * mid[0] - s * mid[1], cv + s * mid[0] + c * mid[1], yaw, size[0], size[1], h])
 
 
-def fit_scene_points(points: np.ndarray, *, ground_threshold: float = 0.002, min_height: float = 0.003,
-                     cluster_eps: float = 0.012, min_points: int = 30, adopt: float = 0.004) -> list[Modelled]:
-    """The ground plane and the boxes standing on it, from sparse points in the world frame."""
+def fit_scene_points(points: np.ndarray, *, camera: Camera | None = None, ground_threshold: float = 0.002,
+                     min_height: float = 0.003, cluster_eps: float = 0.012, min_points: int = 30,
+                     adopt: float = 0.004, min_ground: int = 100) -> list[Modelled]:
+    """The ground plane and the boxes standing on it, from sparse points in the world frame.
+
+    Registration puts the ground at z = 0 of the world frame. A ground that turned with the
+    objects carries sparse points and is fitted to them (RANSAC). A ground that stayed still
+    (the turntable's top masked out with the table, as in the simulated lab's own sweep) carries
+    fewer than ``min_ground`` points within ``ground_threshold`` of z = 0: given the ``camera``,
+    it is then the plane z = 0 spanning the input view (:func:`view_ground_mesh`).
+    """
     import open3d as o3d
 
     points = np.asarray(points, dtype=np.float64)
-    n, d, inliers = fit_ground(points, ground_threshold)
-    out = [Modelled("ground", ground_mesh(points[inliers], n, d), "phong", None, True, "ground plane (RANSAC)",
-                    {"points": int(inliers.sum()), "normal": n.tolist(), "offset_m": d,
-                     "rms_mm": float(1e3 * np.sqrt(np.mean((points[inliers] @ n + d) ** 2)))})]
+    on_frame_ground = np.abs(points[:, 2]) < ground_threshold
+    if camera is not None and on_frame_ground.sum() < min_ground:
+        n, d, inliers = np.array([0.0, 0.0, 1.0]), 0.0, on_frame_ground
+        out = [Modelled("ground", view_ground_mesh(camera), "phong", None, True,
+                        "plane z = 0 of the world frame over the input view (the ground did not turn: "
+                        f"{int(inliers.sum())} sparse points on it)", {"points": int(inliers.sum())})]
+    else:
+        n, d, inliers = fit_ground(points, ground_threshold)
+        out = [Modelled("ground", ground_mesh(points[inliers], n, d), "phong", None, True, "ground plane (RANSAC)",
+                        {"points": int(inliers.sum()), "normal": n.tolist(), "offset_m": d,
+                         "rms_mm": float(1e3 * np.sqrt(np.mean((points[inliers] @ n + d) ** 2)))})]
     above = points[(points @ n + d) > min_height]
     if len(above) >= min_points:
         labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(above)).cluster_dbscan(

@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument("--depth", type=int, default=3, help="ray depth of the simulated camera (default 3)")
     sim.add_argument("--centre", type=float_list, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
     sim.add_argument("--room-light", type=float, default=0.0, help="ambient radiance added to every pixel")
+    sim.add_argument("--grain", type=float, default=0.2,
+                     help="fine print grain of the lab's textures (default 0.2, as printed paper has; 0 = the plain "
+                          "procedural lab, too poorly textured for structure from motion)")
 
 
 def _plan(args, n_lamps: int):
@@ -65,7 +68,9 @@ def _camera(args, config, ctl, sim):
         return open_camera(args.camera)
     from hardware.simlab import build_lab
 
-    lab = build_lab(*args.size)
+    if not 0.0 <= args.grain < 1.0:
+        raise SystemExit(f"reflab capture: error: --grain must be in [0, 1), got {args.grain}")
+    lab = build_lab(*args.size, grain=args.grain)
     if len(config.lamps) != len(lab.lights):
         raise SystemExit(f"reflab capture: error: the simulated lab has {len(lab.lights)} lamps but the configuration "
                          f"maps {len(config.lamps)} ({config.lamps})")
@@ -75,7 +80,8 @@ def _camera(args, config, ctl, sim):
         state = lambda: (sim.turntable(config.axis), config.lamp_states(sim.lamp_outputs()))  # noqa: E731
     else:
         state = lambda: (ctl.angle, ctl.lamps)  # noqa: E731
-    return SimulatedCamera(lab_renderer(lab, depth=args.depth, centre=args.centre), state, ambient=args.room_light)
+    return SimulatedCamera(lab_renderer(lab, depth=args.depth, centre=args.centre), state, ambient=args.room_light,
+                           lab={"grain": args.grain, "fixed": ["ground"], "centre": list(args.centre)})
 
 
 def run(args) -> int:

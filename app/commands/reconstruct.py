@@ -85,7 +85,7 @@ def run(args) -> int:
 
         views, points = load_views(ws, camera)
         if fresh and not args.no_fit and not meshes:
-            fitted = surf.fit_scene_points(points)
+            fitted = surf.fit_scene_points(points, camera=camera)
             modelled = fitted + modelled
         if args.marks:
             for spec in surf.load_marks(args.marks):
