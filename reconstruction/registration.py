@@ -362,7 +362,7 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
 
     from hardware.images import read_image
     from hardware.workspace import atomic_path, write_json
-    from reconstruction.sfm import load_sweep, run_sfm
+    from reconstruction.sfm import load_sweep, run_sfm, turntable_poses
 
     t0 = time.perf_counter()
     folder = ws.captures / "turntable"
@@ -371,12 +371,24 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
         raise WorkspaceError(folder, expected="a way to fix the reconstruction's scale: --target COLSxROWS (the "
                                               "circle target on the turntable) or --turntable-centre X,Y",
                              got="neither")
+    centre = None
+    if target is None:
+        try:
+            centre = [float(v) for v in turntable_centre.split(",")]
+        except ValueError:
+            centre = []
+        if len(centre) != 2 or not np.all(np.isfinite(centre)):
+            raise ValueError(f"--turntable-centre: expected X,Y in metres, got {turntable_centre!r}")
     images = [read_image(p) for p in paths]
     names = [str(p.relative_to(ws.root)) for p in paths]
-    sfm = run_sfm(images, names, camera, overlap=overlap, closed=angles is None or np.ptp(angles) + np.min(
-        np.abs(np.diff(np.r_[angles, angles[0] + 360.0]))) >= 359.0)
     ref_angle = _reference_angle(ws)
     reference = 0 if angles is None else int(np.argmin(np.abs((angles - ref_angle + 180.0) % 360.0 - 180.0)))
+    # With the axis known, the commanded angles give every shot's pose to within the rig's error:
+    # matches that contradict it (a turning mirror showing the still room) go before mapping.
+    commanded = None if centre is None or angles is None else [
+        turntable_poses(camera, angles - angles[reference], centre, sign) for sign in (1.0, -1.0)]
+    sfm = run_sfm(images, names, camera, overlap=overlap, closed=angles is None or np.ptp(angles) + np.min(
+        np.abs(np.diff(np.r_[angles, angles[0] + 360.0]))) >= 359.0, commanded=commanded)
     if not sfm.registered[reference]:
         raise WorkspaceError(paths[reference], expected="the shot taken from the input view registered by structure "
                                                         "from motion", got="not registered")
@@ -385,12 +397,6 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
 
         sim, reg = register_target(images, sfm.R, sfm.t, camera, parse_grid(target), spacing, reference, str(folder))
     else:
-        try:
-            centre = [float(v) for v in turntable_centre.split(",")]
-        except ValueError:
-            centre = []
-        if len(centre) != 2 or not np.all(np.isfinite(centre)):
-            raise ValueError(f"--turntable-centre: expected X,Y in metres, got {turntable_centre!r}")
         sim, reg = register_axis(sfm.R, sfm.t, camera, reference, centre)
     reg["scale"] = sim.scale
     Rw, tw = sim.poses(sfm.R, sfm.t)

@@ -101,6 +101,35 @@ def static_mask(images: list) -> np.ndarray:
     return spread < STATIC_THRESHOLD
 
 
+def moving_masks(images: list, closed: bool, grow: int = 2) -> np.ndarray:
+    """(N, H, W) bool: pixels of each shot that changed since the previous shot and before the next.
+
+    A still ground under turning objects is not static over the whole sweep: shadows,
+    reflections and light bounced off the objects sweep across it, so :func:`static_mask` keeps
+    most of it, and features there match at the same place in consecutive shots (a still
+    scene, which defeats the turntable's geometry). Content that turns differs from both
+    neighbours; a still pixel that a shadow crosses once differs from at most one of them.
+    The mask is grown by ``grow`` pixels so that features on a turning edge keep their support.
+
+    Parameters
+    ----------
+    images : list of (H, W) ndarray
+        Display-encoded grey images in [0, 1], in sweep order.
+    closed : bool
+        The sweep is a full turn: the first shot's previous one is the last.
+    """
+    import cv2
+
+    stack = np.stack(images).astype(np.float32)
+    diff = np.abs(np.diff(stack, axis=0)) > STATIC_THRESHOLD  # diff[i]: shot i vs shot i + 1
+    wrap = np.abs(stack[0] - stack[-1]) > STATIC_THRESHOLD
+    before = np.concatenate([(wrap if closed else diff[0])[None], diff])  # shot i vs i - 1
+    after = np.concatenate([diff, (wrap if closed else diff[-1])[None]])
+    moving = (before & after).astype(np.uint8)
+    kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+    return np.stack([cv2.dilate(m, kernel) > 0 for m in moving])
+
+
 def _display(images: list) -> list:
     """8-bit-ready sRGB grey images sharing one exposure (SIFT wants perceptual contrast)."""
     exposure = 1.0 / max(float(np.percentile(np.stack([im.mean(axis=2) for im in images]), 99.5)), 1e-12)
@@ -126,9 +155,92 @@ def loop_pairs(n: int, overlap: int, closed: bool) -> list[tuple[int, int]]:
     return sorted(pairs)
 
 
+def turntable_poses(camera: Camera, angles, centre_xy, direction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera poses (N, 3, 3), (N, 3) of a still camera seeing objects turned by ``angles``.
+
+    The objects turned by ``direction * angle`` degrees (counter-clockwise seen from +z) about the
+    vertical axis through ``centre_xy`` are seen as if the camera had turned the other way:
+    ``x = R (Rz(a) (X - c) + c) + t``.
+    """
+    a = np.radians(direction * np.asarray(angles, dtype=np.float64))
+    Rz = np.zeros((len(a), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a), 1.0
+    c = np.array([centre_xy[0], centre_xy[1], 0.0])
+    R = camera.R @ Rz
+    t = camera.t + (camera.R @ (c[None] - Rz @ c).T).T
+    return R, t
+
+
+def filter_matches(database, files: list, camera: Camera, commanded: list, tol_px: float = 4.0) -> dict:
+    """Drop verified matches that the commanded turntable motion rules out (epipolar distance > ``tol_px``).
+
+    COLMAP verifies each pair against the motion most of its matches agree on. A turning
+    mirror shows the still room moving rigidly too, with another motion; where it fills more of
+    the view than the turning objects' texture, a shot is registered tens of degrees off. The
+    commanded angles and the turntable axis give each pair's motion to a few pixels: matches
+    off its epipolar lines go, and COLMAP still recovers every pose from those that stay.
+
+    Parameters
+    ----------
+    database : path-like
+        COLMAP database after matching.
+    files : list of str
+        Image names in the database, in the order of ``R`` and ``t``.
+    camera : Camera
+    commanded : list of ((N, 3, 3), (N, 3)) ndarray pairs
+        Candidate commanded world-to-camera poses (:func:`turntable_poses`), e.g. for both
+        turning directions; the one that keeps the most matches is used.
+    tol_px : float
+        Largest Sampson distance from the commanded motion's epipolar geometry, in pixels.
+
+    Returns
+    -------
+    dict
+        ``pairs``, ``kept`` and ``dropped`` inlier matches, ``candidate`` (index used).
+    """
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        index = {img.name: files.index(img.name) for img in db.read_all_images()}
+        ids = {img.name: img.image_id for img in db.read_all_images()}
+        by_id = {ids[n]: index[n] for n in ids}
+        xy = {}
+        for name, i in index.items():
+            kp = db.read_keypoints(ids[name])[:, :2].astype(np.float64) - 0.5  # COLMAP's pixel centres: +0.5
+            xy[ids[name]] = camera.undistort(kp)
+        tol = tol_px / camera.K[0, 0]
+        pair_ids, geometries = db.read_two_view_geometries()
+        pairs = [(pycolmap.pair_id_to_image_pair(p), g, np.asarray(g.inlier_matches)) for p, g in zip(pair_ids, geometries)]
+        pairs = [(ids_, g, m) for ids_, g, m in pairs if len(m)]
+
+        def consistent(R, t, id1, id2, m):
+            i, j = by_id[id1], by_id[id2]
+            Rij = R[j] @ R[i].T
+            E = np.cross(np.eye(3), t[j] - Rij @ t[i]) @ Rij  # [t]x R
+            x1 = np.c_[xy[id1][m[:, 0]], np.ones(len(m))]
+            x2 = np.c_[xy[id2][m[:, 1]], np.ones(len(m))]
+            Ex1, Etx2 = x1 @ E.T, x2 @ E
+            sampson = np.abs(np.einsum("ij,ij->i", x2, Ex1)) / np.sqrt(
+                Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-300)
+            return sampson < tol
+
+        keep = [[consistent(R, t, i1, i2, m) for (i1, i2), _, m in pairs] for R, t in commanded]
+        best = int(np.argmax([sum(int(k.sum()) for k in ks) for ks in keep]))
+        for ((id1, id2), g, m), ok in zip(pairs, keep[best]):
+            if not ok.all():
+                g.inlier_matches = m[ok]
+                db.update_two_view_geometry(id1, id2, g)
+    finally:
+        db.close()
+    kept = sum(int(k.sum()) for k in keep[best])
+    total = sum(len(k) for k in keep[best])
+    return {"pairs": len(pairs), "kept": kept, "dropped": total - kept, "tolerance_px": tol_px, "candidate": best}
+
+
 def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask: bool = True,
             overlap: int = 5, closed: bool = True, min_registered: float = 0.9, max_features: int = 4000,
-            workdir=None, seed: int = 0) -> SfMResult:
+            workdir=None, seed: int = 0, commanded=None) -> SfMResult:
     """Recover the pose of every shot of a turntable sweep.
 
     Parameters
@@ -142,7 +254,8 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
     masks : (H, W) bool ndarray or list of them, optional
         True where the pixel may be used (what turns). Combined with the automatic mask.
     auto_mask : bool
-        Mask out pixels that do not change over the sweep (:func:`static_mask`).
+        Mask out pixels that do not change over the sweep (:func:`static_mask`) or do not change
+        between a shot and both its neighbours (:func:`moving_masks`).
     overlap : int
         Each shot is matched with the next ``overlap`` shots.
     closed : bool
@@ -155,6 +268,10 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
         Where COLMAP's database and images go (a temporary folder by default).
     seed : int
         COLMAP's random seed (repeatable runs).
+    commanded : list of ((N, 3, 3), (N, 3)) ndarray pairs, optional
+        Candidate poses the turntable's commands put the shots at (:func:`turntable_poses`, both
+        turning directions): matches off their epipolar geometry are dropped before mapping
+        (:func:`filter_matches`).
 
     Returns
     -------
@@ -172,12 +289,13 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="reflab-sfm-") as tmp:
             return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
-                        Path(tmp), seed)
+                        Path(tmp), seed, commanded)
     return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
-                Path(workdir), seed)
+                Path(workdir), seed, commanded)
 
 
-def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features, work: Path, seed):
+def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features, work: Path, seed,
+         commanded):
     import cv2
     import pycolmap
 
@@ -189,7 +307,7 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     if masks is not None:
         use &= np.asarray(masks, dtype=bool)
     if auto_mask:
-        use &= ~static_mask(grey)[None]
+        use &= ~static_mask(grey)[None] & moving_masks(grey, closed)
     if not use.any(axis=(1, 2)).all():
         bad = [names[i] for i in np.flatnonzero(~use.any(axis=(1, 2)))]
         raise WorkspaceError(bad[0], expected="some pixels that turn with the turntable (the mask hides them all)",
@@ -226,6 +344,11 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
                                pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_file),
                                device=pycolmap.Device.cpu)
     times["matching_s"] = time.perf_counter() - t
+    filtered = None
+    if commanded is not None:
+        t = time.perf_counter()
+        filtered = filter_matches(db, files, camera, commanded)
+        times["filter_s"] = time.perf_counter() - t
 
     options = pycolmap.IncrementalPipelineOptions()
     options.ba_refine_focal_length = False
@@ -240,7 +363,10 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=options)
     times["mapping_s"] = time.perf_counter() - t
     times["total_s"] = time.perf_counter() - t0
-    return _result(models, names, files, camera, min_registered, times)
+    result = _result(models, names, files, camera, min_registered, times)
+    if filtered is not None:
+        result.report["commanded_motion_filter"] = filtered
+    return result
 
 
 def _result(models, names, files, camera, min_registered, times) -> SfMResult:

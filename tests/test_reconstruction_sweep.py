@@ -18,7 +18,7 @@ from hardware.workspace import WorkspaceError, read_json
 from reconstruction import registration as reg
 from reconstruction import surfaces as surf
 from reconstruction.scene import Scene
-from reconstruction.sfm import run_sfm
+from reconstruction.sfm import moving_masks, run_sfm, static_mask, turntable_poses
 
 AXIS = np.array([0.045, -0.03, 0.0])
 GRID, SPACING, RADIUS = (7, 5), 0.015, 0.004
@@ -232,3 +232,35 @@ def test_existing_scene_skips_and_open_transparent_mesh_refused(tmp_path, capsys
     assert scene.names == ["slab"] and scene[0].material.ior == 1.5
     assert main(["reconstruct", str(tmp_path)]) == 0
     assert "nothing to reconstruct" in capsys.readouterr().out
+
+
+def test_moving_masks_drop_a_still_ground_crossed_by_shadows():
+    """A still textured ground that a shadow sweeps across, around a turning disk: only the disk is kept."""
+    rng = np.random.default_rng(1)
+    n, size = 12, 64
+    v, u = np.mgrid[0:size, 0:size]
+    disk = np.hypot(u - 32, v - 32) < 14
+    ground = 0.2 + 0.6 * rng.random((size, size))
+    shots = []
+    for i in range(n):
+        img = ground * np.where(np.abs(u - 6 * i) < 8, 0.3, 1.0)  # the shadow moves 6 px a shot
+        shots.append(np.where(disk, 0.2 + 0.6 * rng.random((size, size)), img))  # the disk's texture turns
+    masks = moving_masks(shots, closed=True)  # grown by 2 px: disk pixels equal by chance come back
+    away = np.hypot(u - 32, v - 32) > 14 + 3
+    assert static_mask(shots)[~disk].mean() < 0.1  # over the sweep nearly every ground pixel changes
+    assert masks[:, disk].mean() > 0.99 and masks[:, away].mean() < 0.02
+
+
+def test_turntable_poses_see_what_the_turned_objects_show():
+    """The commanded poses project an unturned point where the camera sees it after the turn."""
+    from hardware.cameras import rotate_about_z
+
+    cam = camera(160, 120)
+    X = np.array([[0.05, 0.02, 0.03], [-0.04, 0.06, 0.0]])
+    angles = np.array([0.0, 30.0, -70.0, 200.0])
+    R, t = turntable_poses(cam, angles, AXIS[:2])
+    for k, a in enumerate(angles):
+        seen = cam.R @ rotate_about_z(X, a, AXIS[:2]).T + cam.t[:, None]
+        np.testing.assert_allclose(R[k] @ X.T + t[k][:, None], seen, atol=1e-12)
+    R2, _ = turntable_poses(cam, angles, AXIS[:2], direction=-1.0)
+    np.testing.assert_allclose(R2[1], cam.R @ rot_z(-30.0), atol=1e-12)
