@@ -37,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trigger", help="folder camera: command that takes a shot (e.g. 'gphoto2 --trigger-capture')")
     parser.add_argument("--camera-timeout", type=float, default=60.0, help="folder camera: seconds to wait for a file")
     sim = parser.add_argument_group("simulated camera (--camera sim)")
-    sim.add_argument("--size", type=image_size, default=(320, 240), help="image size WxH (default 320x240)")
+    sim.add_argument("--size", type=image_size, default=(320, 240),
+                     help="image size WxH (default 320x240; a sweep for `reflab reconstruct` needs 480x360 or more, "
+                          "and every capture of a workspace the same size)")
     sim.add_argument("--depth", type=int, default=3, help="ray depth of the simulated camera (default 3)")
     sim.add_argument("--centre", type=float_list, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
     sim.add_argument("--room-light", type=float, default=0.0, help="ambient radiance added to every pixel")
