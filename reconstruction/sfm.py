@@ -171,7 +171,7 @@ def turntable_poses(camera: Camera, angles, centre_xy, direction: float = 1.0) -
     return R, t
 
 
-def filter_matches(database, files: list, camera: Camera, commanded: list, tol_px: float = 4.0) -> dict:
+def filter_matches(database, files: list, camera: Camera, commanded: list, tol_px: float = 3.0) -> dict:
     """Drop verified matches that the commanded turntable motion rules out (epipolar distance > ``tol_px``).
 
     COLMAP verifies each pair against the motion most of its matches agree on. A turning
