@@ -333,7 +333,7 @@ def _reference_angle(ws) -> float:
 
 
 def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing: float = 0.015,
-                      turntable_centre: str | None = None, overlap: int = 5) -> dict:
+                      turntable_centre: str | None = None, overlap: int = 5, rigid_turntable: bool = True) -> dict:
     """Structure from motion over ``captures/turntable``, registered into the world frame.
 
     Writes ``sfm.json`` (per-shot world poses and every report) and ``sparse.ply`` (the sparse
@@ -352,6 +352,10 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
         ``"X,Y"``: where the turntable axis meets the ground, used when there is no target.
     overlap : int
         Matching window along the sweep.
+    rigid_turntable : bool
+        Refine the poses as one turntable axis and one angle per shot
+        (:func:`reconstruction.turntable.refine`); False keeps COLMAP's free poses (a turntable
+        that wobbles).
 
     Returns
     -------
@@ -392,6 +396,19 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
     if not sfm.registered[reference]:
         raise WorkspaceError(paths[reference], expected="the shot taken from the input view registered by structure "
                                                         "from motion", got="not registered")
+    rigid = None
+    if rigid_turntable and sfm.observations is not None and len(sfm.points):
+        from reconstruction.turntable import explains, refine
+
+        rigid = refine(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
+        rr = rigid["report"]
+        # A turntable that wobbles or slips on its axis does not fit one axis: keep the free poses.
+        rr["used"] = explains(rr)
+        if rr["used"]:
+            sfm.R, sfm.t, sfm.points, sfm.point_error = rigid["R"], rigid["t"], rigid["points"], rigid["point_error"]
+        else:
+            rr["warning"] = (f"one turntable axis explains the shots at {rr['rms_px']:.2f} px RMS against "
+                             f"{rr['rms_px_free']:.2f} px with free poses: kept the free poses (does the turntable wobble?)")
     if target is not None:
         from calibration.circles import parse_grid
 
@@ -405,6 +422,8 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
     points = sim.points(sfm.points[good])
     report = {"sfm": sfm.report, "registration": reg, "reference_shot": names[reference],
               "reference": reference_check(Rw, tw, camera, reference)}
+    if rigid is not None:
+        report["rigid_turntable"] = rigid["report"]
     if angles is not None:
         report["turntable"] = turntable_check(Rw, angles, reference)
         report["turntable"]["angles_deg"] = angles.tolist()

@@ -44,6 +44,8 @@ class SfMResult:
         Mean reprojection error of each point (pixels).
     tracks : list of ndarray
         For each point, the indices (into ``names``) of the images that see it.
+    observations : reconstruction.turntable.Observations or None
+        Every measurement of the points (point, image, undistorted normalised coordinates).
     report : dict
         ``registered``, ``images``, ``unregistered`` (names), ``reprojection_px`` (mean),
         ``points``, ``mean_track_length``, ``time_s`` per stage and in all.
@@ -55,6 +57,7 @@ class SfMResult:
     points: np.ndarray
     point_error: np.ndarray
     tracks: list
+    observations: object = None
     report: dict = field(default_factory=dict)
 
     @property
@@ -375,7 +378,7 @@ def _result(models, names, files, camera, min_registered, times) -> SfMResult:
     R = np.full((n, 3, 3), np.nan)
     t = np.full((n, 3), np.nan)
     index = {f: i for i, f in enumerate(files)}
-    points, errors, tracks = np.zeros((0, 3)), np.zeros(0), []
+    points, errors, tracks, observations = np.zeros((0, 3)), np.zeros(0), [], None
     reproj = float("nan")
     if rec is not None:
         image_index = {}
@@ -392,6 +395,7 @@ def _result(models, names, files, camera, min_registered, times) -> SfMResult:
         errors = np.array([p.error for p in pts], dtype=np.float64)
         tracks = [np.unique([image_index[e.image_id] for e in p.track.elements if e.image_id in image_index])
                   for p in pts]
+        observations = _observations(rec, image_index, list(rec.points3D.keys()), camera)
         reproj = float(rec.compute_mean_reprojection_error()) if pts else float("nan")
     registered = np.all(np.isfinite(t), axis=1)
     report = {
@@ -414,7 +418,22 @@ def _result(models, names, files, camera, min_registered, times) -> SfMResult:
                      "consecutive shots overlap: smaller turntable steps)",
             got=f"{int(registered.sum())} registered; not registered: {', '.join(missing[:8])}"
                 + (" ..." if len(missing) > 8 else ""))
-    return SfMResult(list(names), R, t, points, errors, tracks, report)
+    return SfMResult(list(names), R, t, points, errors, tracks, observations, report)
+
+
+def _observations(rec, image_index: dict, point_ids: list, camera: Camera):
+    """Every registered image's measurements of the reconstruction's points, as arrays."""
+    from reconstruction.turntable import Observations
+
+    row = {pid: k for k, pid in enumerate(point_ids)}
+    point, image, uv = [], [], []
+    for image_id, i in image_index.items():
+        for p2 in rec.images[image_id].get_observation_points2D():
+            point.append(row[p2.point3D_id])
+            image.append(i)
+            uv.append(p2.xy)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - 0.5  # COLMAP's first pixel centre is at 0.5
+    return Observations(np.asarray(point, dtype=int), np.asarray(image, dtype=int), camera.undistort(uv))
 
 
 def load_sweep(folder) -> tuple[list, np.ndarray | None]:

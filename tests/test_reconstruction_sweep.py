@@ -152,6 +152,7 @@ def test_sweep_registered_turntable_and_centres(sweep):
     root, cam, angles, _ = sweep
     rep = read_json(root / "sfm.json")
     assert rep["sfm"]["registered"] == N_SHOTS and rep["sfm"]["reprojection_px"] < 0.5
+    assert rep["rigid_turntable"]["used"]  # one turntable axis explains the shots
     assert rep["turntable"]["max_angle_error_deg"] < 0.2
     assert rep["turntable"]["axis_tilt_deg"] < 0.2 and rep["turntable"]["direction"] == 1
     C = np.array([-np.array(rep["poses"][n]["R"]).T @ rep["poses"][n]["t"] for n in rep["images"]])

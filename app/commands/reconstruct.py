@@ -24,6 +24,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--turntable-centre", metavar="X,Y",
                         help="where the turntable axis meets the ground (metres), to fix the scale without a target")
     parser.add_argument("--overlap", type=int, default=5, help="each shot is matched with the next N shots (5)")
+    parser.add_argument("--free-poses", action="store_true",
+                        help="keep structure from motion's free poses instead of one turntable axis and one angle "
+                             "per shot (for a turntable that wobbles)")
     parser.add_argument("--no-fit", action="store_true", help="do not fit planes and boxes to the sparse points")
     parser.add_argument("--force", action="store_true", help="redo structure from motion and every surface")
 
@@ -69,11 +72,17 @@ def run(args) -> int:
             from reconstruction.registration import reconstruct_sweep
 
             result = reconstruct_sweep(ws, camera, target=args.target, spacing=args.spacing,
-                                       turntable_centre=args.turntable_centre, overlap=args.overlap)
+                                       turntable_centre=args.turntable_centre, overlap=args.overlap,
+                                       rigid_turntable=not args.free_poses)
             r = result["report"]
             print(f"structure from motion: {r['sfm']['registered']}/{r['sfm']['images']} shots registered, "
                   f"reprojection {r['sfm']['reprojection_px']:.3f} px, {r['sfm']['points']} points, "
                   f"{r['sfm']['time_s']['total_s']:.1f} s")
+            if "rigid_turntable" in r:
+                rt = r["rigid_turntable"]
+                print(f"rigid turntable: reprojection {rt['rms_px']:.3f} px RMS on one axis against "
+                      f"{rt['rms_px_free']:.3f} px with free poses, {rt['time_s']:.1f} s"
+                      + ("" if rt["used"] else f"\nwarning: {rt['warning']}"))
             if "turntable" in r:
                 tt = r["turntable"]
                 print(f"turntable: axis tilt {tt['axis_tilt_deg']:.3f} deg, angle error max "

@@ -54,7 +54,8 @@ def summarise(ws) -> dict:
                           "sigma_position": l.get("sigma_position")} for l in lights.get("lights", [])]
     sfm = _load(ws.root / "sfm.json")
     if sfm:
-        out["reconstruction"] = {k: sfm.get(k) for k in ("sfm", "turntable", "reference", "time_s")}
+        out["reconstruction"] = {k: sfm.get(k) for k in ("sfm", "rigid_turntable", "turntable", "reference", "time_s")
+                                 if k in sfm}
     scene = _load(ws.scene)
     if scene:
         out["scene"] = [{"name": s.get("name"), "brdf": s.get("material", {}).get("brdf"),

@@ -1,7 +1,7 @@
 """`reflab reconstruct` on the simulated lab's own 36-shot turntable sweep, measured against the lab's truth.
 
     .venv/bin/python docs/figures/reconstruction_simlab.py WORKDIR [--size 480x360] [--grain 0.2]
-                                                           [--ground turning|fixed]
+                                                           [--ground turning|fixed] [--free-poses]
 
 1. Renders the sweep as `reflab capture sweep --camera sim` does (``hardware.simlab.build_lab`` +
    ``hardware.cameras.lab_renderer``, depth 3, turntable axis through (0, 0)), with the lab's
@@ -94,7 +94,7 @@ def measure(root: Path, lab, seconds: float, ground: str, grain: float) -> dict:
            "reprojection_px": rep["sfm"]["reprojection_px"], "sfm_time_s": rep["sfm"]["time_s"],
            "points": rep["sfm"]["points"], "turntable": {k: rep["turntable"][k] for k in
                                                          ("axis_tilt_deg", "max_angle_error_deg", "rms_angle_error_deg")},
-           "reference": rep["reference"]}
+           "reference": rep["reference"], "rigid_turntable": rep.get("rigid_turntable")}
     names = rep["images"]
     C = np.array([-np.array(rep["poses"][n]["R"]).T @ rep["poses"][n]["t"] if n in rep["poses"] else [np.nan] * 3
                   for n in names])
@@ -127,6 +127,7 @@ def run(argv=None) -> dict:
     ap.add_argument("--size", default="480x360")
     ap.add_argument("--grain", type=float, default=0.2, help="print grain of the lab's textures (0 = none)")
     ap.add_argument("--ground", choices=["turning", "fixed"], default="turning")
+    ap.add_argument("--free-poses", action="store_true", help="pass --free-poses to reflab reconstruct")
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
     root = args.workdir
@@ -138,7 +139,8 @@ def run(argv=None) -> dict:
         print(f"rendered the sweep in {render_s:.1f} s (load average {os.getloadavg()[0]:.2f})")
     write_marks(root / "marks.json", lab, np.random.default_rng(0))
     t0 = time.perf_counter()
-    code = main(["reconstruct", str(root), "--turntable-centre", "0,0", "--marks", str(root / "marks.json"), "--force"])
+    code = main(["reconstruct", str(root), "--turntable-centre", "0,0", "--marks", str(root / "marks.json"), "--force"]
+                + ["--free-poses"] * args.free_poses)
     seconds = time.perf_counter() - t0
     if code:
         raise SystemExit(f"reflab reconstruct exited {code}")
