@@ -153,11 +153,11 @@ def test_sweep_registered_turntable_and_centres(sweep):
     rep = read_json(root / "sfm.json")
     assert rep["sfm"]["registered"] == N_SHOTS and rep["sfm"]["reprojection_px"] < 0.5
     assert rep["rigid_turntable"]["used"]  # one turntable axis explains the shots
-    assert rep["turntable"]["max_angle_error_deg"] < 0.2
+    assert rep["turntable"]["max_angle_error_deg"] < 0.1  # the bar is 0.2; measured 0.028
     assert rep["turntable"]["axis_tilt_deg"] < 0.2 and rep["turntable"]["direction"] == 1
     C = np.array([-np.array(rep["poses"][n]["R"]).T @ rep["poses"][n]["t"] for n in rep["images"]])
-    assert np.linalg.norm(C - true_centres(cam, angles), axis=1).max() < 2e-3
-    assert rep["reference"]["centre_mm"] < 2.0
+    assert np.linalg.norm(C - true_centres(cam, angles), axis=1).max() < 1e-3  # bar 2 mm; measured 0.18 mm
+    assert rep["reference"]["centre_mm"] < 1.0
 
 
 @pytest.mark.slow  # shares one render + SfM run of the sweep
