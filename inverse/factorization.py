@@ -100,6 +100,11 @@ class Factorization:
     mask : (H*W,) bool, optional
         Pixels to use (False drops e.g. saturated pixels). Rows of every matrix are the used
         pixels, in :attr:`rows` order.
+    albedo : (N, 3) array_like, optional
+        A known diffuse texture: per tree node and band, a factor on the ``kd`` term of the
+        node's surface (NaN or absent: 1). The surface's ``kd`` parameter is then a gain on that
+        texture (1 where the texture is right), and the fit judges the other parameters against
+        it instead of against a homogeneous albedo.
 
     Attributes
     ----------
@@ -114,7 +119,7 @@ class Factorization:
         The monomial of each distinct column group.
     """
 
-    def __init__(self, trees, models, intensities, mask=None):
+    def __init__(self, trees, models, intensities, mask=None, albedo=None):
         self.trees = trees
         self.models = list(models)
         n_surf = len(self.models)
@@ -145,6 +150,10 @@ class Factorization:
         keep = (row_of_pixel[pixel] >= 0) & np.any(weight > 0, axis=(1, 2))
         self.node = np.flatnonzero(keep)
         self.weight = weight[self.node]
+        self.albedo = None
+        if albedo is not None:
+            albedo = np.asarray(albedo, dtype=np.float64).reshape(len(pixel), BANDS)[self.node]
+            self.albedo = np.where(np.isfinite(albedo), albedo, 1.0)
         node_surf = surface[self.node]
 
         # Monomial of each node: (surface, multiset of path factors).
@@ -255,10 +264,15 @@ class Factorization:
             # Sums over the K lights as batched (3 × K)(K × J) products: matmul beats einsum here.
             wt = w.transpose(0, 2, 1)
             acc = np.matmul(wt, g.reshape(len(idx), K, J))  # (n, 3, J)
+            kd = self._kd_index(s)
+            if kd is not None:
+                acc[:, :, kd] *= self.albedo[idx]
             a[start:start + len(idx) * J] = acc.transpose(0, 2, 1).reshape(-1, BANDS)
             dacc = None
             if dg is not None:
                 dacc = np.matmul(wt, dg.reshape(len(idx), K, J * P)).reshape(len(idx), BANDS, J, P)
+                if kd is not None:
+                    dacc[:, :, kd] *= self.albedo[idx][:, :, None]
                 # (P, 3, n·J), entries in order along the last axis: contiguous per (θ, band).
                 dacc = np.ascontiguousarray(dacc.transpose(3, 1, 0, 2).reshape(P, BANDS, -1))
                 das.append((start, len(idx) * J, dacc, self.layout.theta_offset[s]))
@@ -269,6 +283,12 @@ class Factorization:
         if not grad:
             return a
         return a, das
+
+    def _kd_index(self, s: int):
+        """Index of ``kd`` among surface ``s``'s linear parameters when a known texture scales it."""
+        if self.albedo is None or "kd" not in self.models[s].linear:
+            return None
+        return self.models[s].linear.index("kd")
 
     def matrices(self, theta) -> list:
         """A_c(θ) for each band: CSR (rows × columns)."""

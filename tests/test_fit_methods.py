@@ -176,3 +176,40 @@ def test_wall_clock_budget_stops_the_fit(lab):
     assert res.message.startswith("stopped: wall-clock budget")
     assert res.stats["status"] in ("not converged", "poor fit") and "did not converge" in res.stats["warnings"][0]
     assert all(np.all(np.isfinite(a)) for a in (res.params.x, res.params.s, res.params.theta, res.rms))
+
+
+def test_ftbo_with_a_known_texture_recovers_the_rest_exactly():
+    """Factorization(albedo=...): kd becomes a gain on a known texture, the fit is then exact.
+
+    The textured lab's image (forward model, per-node true albedo) fitted with homogeneous
+    surfaces gets the non-Lambertian parameters wrong; with the true texture it recovers them
+    and a gain of 1 — the building block of a texture-aware fit (docs/texture.md).
+    """
+    from hardware.simlab import build_lab
+    from inverse.trees import build_trees
+
+    lab = build_lab(W, H)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material for s in lab.scene]
+    textured = np.array([s.textured for s in lab.scene])
+    on_tex = textured[trees.surface]
+    albedo = np.full((len(trees.pixel), 3), np.nan)
+    albedo[on_tex] = lab.albedo_at(trees.surface[on_tex], trees.point[on_tex])
+    kd_nodes = np.where(on_tex[:, None], albedo, np.stack([m["kd"] for m in truth])[trees.surface])
+    img = render(trees, truth, lab.lights.intensities, kd_nodes=kd_nodes)
+    models = [get_model(m.brdf) for m in truth]
+    gain_truth = [m.copy() for m in truth]
+    for s in np.flatnonzero(textured):
+        gain_truth[s].params["kd"] = np.ones(3)
+
+    fac = Factorization(trees, models, lab.lights.intensities, albedo=albedo)
+    res = fit(fac, img, _initial(truth), "ftbo")
+    errs = _errors(fac, res, gain_truth)
+    assert len(errs) > 20
+    for name, got, want, _ in errs:
+        assert abs(got - want) <= 1e-4 * abs(want) + 1e-7, (name, got, want)
+
+    homogeneous = Factorization(trees, models, lab.lights.intensities)
+    res_h = fit(homogeneous, img, _initial(truth), "ftbo")
+    theta_true = params_of(homogeneous, truth).theta
+    assert np.max(np.abs(np.log2(res_h.params.theta / theta_true))[res_h.free.theta]) > 0.5
