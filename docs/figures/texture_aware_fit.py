@@ -1,6 +1,6 @@
 """Toward a texture-aware fit: what fitting the non-Lambertian parameters of a textured scene needs.
 
-    .venv/bin/python docs/figures/texture_aware_fit.py WORKSPACE [oracle|alternate|criterion|scan ...]
+    .venv/bin/python docs/figures/texture_aware_fit.py WORKSPACE [oracle|alternate|exclude|criterion|scan ...]
 
 WORKSPACE is a demo workspace (`reflab demo WORKSPACE`: the simulated lab, photograph by the
 independent reference renderer, fit.json and textures/ from the homogeneous fit). Trees are built
@@ -11,6 +11,9 @@ lab's truth:
   (``Factorization(albedo=...)``: kd becomes a gain);
 - ``alternate``: the same with the texture that `reflab texture` recovered from the homogeneous
   fit's parameters (pixels whose nodes have no known albedo left out): one round of alternation;
+- ``exclude``: four rounds of alternation in which the texture solve leaves out the pixels where
+  anything but directly seen texture carries more than 10 % of the model's light, and texels left
+  unknown take their surface's mean;
 - ``criterion``: the texture stage's residual RMS and per-surface texel-gradient energy with
   every parameter true but one (the ground's r, the box's ns) swept;
 - ``scan``: a coordinate scan of r, t, ns and ks (ns and ks one at a time) on the texture-eliminated
@@ -80,6 +83,44 @@ def alternate(ctx):
     bad[trees.pixel[unknown]] = True
     print(f"alternate: F-TBO with the texture recovered from the homogeneous fit ({bad.sum()} pixels left out)")
     fit_with(ctx, albedo, ctx["used"] & ~bad)
+
+
+def exclude(ctx, share_limit=0.1, rounds=4):
+    from inverse.rendering import node_radiance
+
+    scene, trees, lab, image = ctx["scene"], ctx["trees"], ctx["lab"], ctx["image"]
+    H, W = image.shape[:2]
+    npix, on, tex = H * W, ctx["textured"][trees.surface], ctx["textured"]
+    primary = np.array([len(p) == 0 for p in trees.paths])[trees.path]
+    mats, _ = load_materials(ctx["ws"].root, scene)
+    relative = None
+    print(f"exclude: alternation, texture from pixels where direct texture carries > {1 - share_limit:.0%} of the light")
+    for k in range(rounds):
+        kd_table = np.stack([np.broadcast_to(m["kd"], (3,)) for m in mats]).astype(float)[trees.surface]
+        kd_nodes = kd_table if relative is None else np.where(on[:, None], relative * kd_table, kd_table)
+        light = node_radiance(trees, mats, lab.lights.intensities, kd_nodes=kd_nodes)
+        total = np.stack([np.bincount(trees.pixel, weights=light[:, c], minlength=npix) for c in range(3)], 1)
+        d = on & primary
+        direct = np.stack([np.bincount(trees.pixel[d], weights=light[d, c], minlength=npix) for c in range(3)], 1)
+        left_out = ((1 - direct / np.maximum(total, 1e-300)) > share_limit).any(1) | (total <= 0).any(1)
+        img = image.reshape(-1, 3).copy()
+        img[left_out] = 1e6  # dropped as "saturated" by the texture stage
+        res = recover_texture(scene, trees, mats, lab.lights.intensities, img.reshape(H, W, 3),
+                              TextureOptions(saturation=1e6))
+        relative = np.full((len(trees.pixel), 3), np.nan)
+        for s in np.flatnonzero(tex):
+            sel = np.nonzero(trees.surface == s)[0]
+            if s not in res.kd or not res.mask[s].any():
+                continue
+            a = sample_texture(res.maps[s], res.kd[s], res.mask[s], trees.triangle[sel], trees.barycentric[sel])
+            mean = res.kd[s][res.mask[s]].mean(axis=0)
+            relative[sel] = np.where(np.isfinite(a), a, mean) / mean  # texture relative to its mean
+        fac = Factorization(trees, [get_model(x.material.brdf) for x in scene], lab.lights.intensities,
+                            mask=ctx["used"], albedo=relative)
+        out = fit(fac, image, mats, "ftbo", textured=list(tex), names=scene.names)
+        mats = out.materials
+        print(f"  round {k}: {left_out.sum()} pixels left out, RMS per band {np.round(out.rms, 5).tolist()}")
+    show("exclude", scene, mats, ctx["truth"])
 
 
 def criterion(ctx):
@@ -164,8 +205,8 @@ def main(argv):
     ctx = {"ws": ws, "scene": scene, "lab": lab, "image": image, "truth": [s.material for s in lab.scene],
            "trees": build_trees(scene, camera, lights, depth=3), "used": ~saturated_pixels(image).reshape(-1),
            "textured": np.array([s.textured for s in scene])}
-    for what in argv[1:] or ["oracle", "alternate", "criterion", "scan"]:
-        {"oracle": oracle, "alternate": alternate, "criterion": criterion, "scan": scan}[what](ctx)
+    for what in argv[1:] or ["oracle", "alternate", "exclude", "criterion", "scan"]:
+        {"oracle": oracle, "alternate": alternate, "exclude": exclude, "criterion": criterion, "scan": scan}[what](ctx)
 
 
 if __name__ == "__main__":
