@@ -283,8 +283,9 @@ def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Pa
     lab : SimLab
     materials : bool
         True: scene.json carries the true materials. False: only what a user knows before
-        fitting (``brdf`` and ``ior``), and the truth goes to ``truth.json`` (fit.json's
-        "surfaces" layout) for comparison.
+        fitting — ``brdf``, ``ior``, and that a matte (``lambert``) surface such as the paper
+        ground does not mirror (``r = 0``, so the trees leave out its reflections) — and the
+        truth goes to ``truth.json`` (fit.json's "surfaces" layout) for comparison.
 
     Returns
     -------
@@ -295,8 +296,9 @@ def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Pa
     root.mkdir(parents=True, exist_ok=True)
     surfaces = lab.scene.surfaces
     if not materials:
-        surfaces = [Surface(s.name, s.mesh_path, Material(s.material.brdf, {}, s.material.ior), s.textured, s.mesh, s.extra)
-                    for s in surfaces]
+        known = lambda m: {"r": np.zeros(3)} if m.brdf == "lambert" else {}  # noqa: E731 -- matte: no mirror
+        surfaces = [Surface(s.name, s.mesh_path, Material(s.material.brdf, known(s.material), s.material.ior),
+                            s.textured, s.mesh, s.extra) for s in surfaces]
     scene = Scene(surfaces, root)
     written = {"camera": lab.camera.save(root / "camera.json"), "lights": lab.lights.save(root / "lights.json"),
                "scene": scene.save(root / "scene.json")}

@@ -1,8 +1,8 @@
 """The simulated lab end to end: write its workspace, render the "photograph", recover, compare.
 
 1. writes the simulated lab (hardware/simlab.py) as a workspace: camera.json, lights.json,
-   meshes, and a scene.json with only what a user knows before fitting (``brdf``, ``ior``); the
-   true materials go to truth.json;
+   meshes, and a scene.json with only what a user knows before fitting (``brdf``, ``ior``, and
+   ``r = 0`` for the matte paper ground); the true materials go to truth.json;
 2. renders input.exr with the independent reference renderer (hardware/reference.py) and the
    true textures, optionally with Gaussian noise;
 3. runs the later stages (`reflab fit`, `reflab texture`);
