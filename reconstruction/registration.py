@@ -400,10 +400,15 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
     if rigid_turntable and sfm.observations is not None and len(sfm.points):
         from reconstruction.turntable import explains, refine
 
-        rigid = refine(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
-        rr = rigid["report"]
-        # A turntable that wobbles or slips on its axis does not fit one axis: keep the free poses.
-        rr["used"] = explains(rr)
+        try:
+            rigid = refine(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
+            rr = rigid["report"]
+            # A turntable that wobbles or slips on its axis does not fit one axis: keep the free poses.
+            rr["used"] = explains(rr)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. the camera on the axis: no circle
+            rigid = {"report": {"used": False, "warning": f"one turntable axis could not be fitted ({exc}): "
+                                                           "kept the free poses"}}
+            rr = rigid["report"]
         if rr["used"]:
             sfm.R, sfm.t, sfm.points, sfm.point_error = rigid["R"], rigid["t"], rigid["points"], rigid["point_error"]
         else:

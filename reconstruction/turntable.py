@@ -74,6 +74,8 @@ def turntable_model(R: np.ndarray, t: np.ndarray, reference: int) -> tuple[np.nd
     ok = np.all(np.isfinite(t), axis=1)
     u = rotation_axis(R, reference)
     C = -np.einsum("nji,nj->ni", R[ok], t[ok])
+    if np.linalg.norm(C - C.mean(axis=0), axis=1).max() <= 1e-6 * max(np.linalg.norm(C.mean(axis=0)), 1.0):
+        raise ValueError("the camera centres coincide: the camera lies on the turntable axis (no circle to fit)")
     a = _fit_circle_axis(C, u)
     phi = np.full(len(R), np.nan)
     for i in np.flatnonzero(ok):
@@ -191,6 +193,8 @@ def _solve(R, t, X0, pi, ii, xy, reference, focal, ok, loss_scale_px, max_evalua
     R0, t0 = R[reference], t[reference]
     C0 = -R0.T @ t0
     d0 = np.linalg.norm((C0 - a0) - ((C0 - a0) @ u0) * u0)
+    if not np.isfinite(d0) or d0 <= 1e-9 * max(np.linalg.norm(C0 - a0), 1e-300):
+        raise ValueError("the reference camera lies on the turntable axis (its centre traces no circle)")
     shots = np.flatnonzero(ok & (np.arange(n) != reference))
     slot = np.full(n, -1)
     slot[shots] = np.arange(len(shots))

@@ -117,3 +117,19 @@ def test_wobbling_turntable_fits_worse_than_free_poses(sweep):
     assert rep["rms_px_free"] < 0.45
     assert rep["rms_px"] > 1.8 * rep["rms_px_free"]
     assert not explains(rep)
+
+
+def test_partial_sweep_and_camera_on_the_axis(sweep):
+    """A quarter turn in 10 shots is refined like a full one; a camera on the axis is refused."""
+    cam, X, angles, R, t, rng = sweep
+    part = np.linspace(0.0, 90.0, 10)
+    Rq, tq = turntable_poses(cam, part, (0.0, 0.0))
+    obs = _obs(cam, Rq, tq, X, rng)
+    Rp, tp = _perturb(Rq, tq, rng)
+    out = refine(Rp, tp, X + rng.normal(0, 1e-3, X.shape), obs, REF, cam.K[0, 0])
+    assert np.abs(_angle_error(out["angles_deg"], part)).max() < 0.1
+    assert explains(out["report"])
+    # The camera centre on the turntable axis: its circle has no radius, the frame no scale.
+    Ra, ta = turntable_poses(cam, part, (cam.center[0], cam.center[1]))
+    with pytest.raises(ValueError, match="on the turntable axis"):
+        refine(Ra, ta, X, obs, REF, cam.K[0, 0])

@@ -9,6 +9,8 @@ docs/reconstruction.md describes the files and the marks format.
 """
 from __future__ import annotations
 
+import sys
+
 HELP = "recover geometry from the turntable sweep (pycolmap) and model surfaces: scene.json + meshes/"
 
 
@@ -80,9 +82,11 @@ def run(args) -> int:
                   f"{r['sfm']['time_s']['total_s']:.1f} s")
             if "rigid_turntable" in r:
                 rt = r["rigid_turntable"]
-                print(f"rigid turntable: reprojection {rt['rms_px']:.3f} px RMS on one axis against "
-                      f"{rt['rms_px_free']:.3f} px with free poses, {rt['time_s']:.1f} s"
-                      + ("" if rt["used"] else f"\nwarning: {rt['warning']}"))
+                if "rms_px" in rt:
+                    print(f"rigid turntable: reprojection {rt['rms_px']:.3f} px RMS on one axis against "
+                          f"{rt['rms_px_free']:.3f} px with free poses, {rt['time_s']:.1f} s")
+                if not rt["used"]:
+                    print(f"warning: {rt['warning']}", file=sys.stderr)
             if "turntable" in r:
                 tt = r["turntable"]
                 print(f"turntable: axis tilt {tt['axis_tilt_deg']:.3f} deg, angle error max "
