@@ -819,7 +819,7 @@ def _theta_resolution(pb: Problem, p: Params, sig: Params) -> np.ndarray:
 
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
-        names=None) -> FitResult:
+        names=None, scan: bool = True) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -845,6 +845,9 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         (:func:`diagnose`) excuses a residual up to its diffuse radiance. Default: none textured.
     names : list of str, optional
         Surface names for the diagnosis' warnings (default ``surface 0``, …).
+    scan : bool
+        F-TBO's coarse global scan of each θ before the local search (off when ``materials``
+        already start near the answer, e.g. a refit).
 
     Returns
     -------
@@ -870,7 +873,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     for rounds in range(1, max_rounds + 1):
         if method == "ftbo":
             # The global scan picks the basins once; later rounds only hold parameters.
-            p, nit, message = _ftbo(pb, p, free, t0, trace, scan=rounds == 1, **kw)
+            p, nit, message = _ftbo(pb, p, free, t0, trace, scan=scan and rounds == 1, **kw)
         else:
             p, nit, message = _nftbo(pb, p, free, t0, trace, **kw)
         iterations += nit
@@ -968,7 +971,8 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple
     noise = ", ".join(f"{v:.3g}" for v in pb.noise)
     pending = any(textured)
     return ("texture pending" if pending else "poor fit"), [
-        f"the fitted {'homogeneous ' if pending else ''}model does not explain {int(bad.sum())} of {fac.n_rows} pixels (residual above "
+        f"the fitted {'homogeneous ' if pending and fac.albedo is None else ''}model"
+        f"{' (with the recovered texture)' if fac.albedo is not None else ''} does not explain {int(bad.sum())} of {fac.n_rows} pixels (residual above "
         f"{DIAG_SIGMAS:g} times the image noise [{noise}]{' plus textured albedo' if diffuse.any() else ''}); "
         f"they hold {100 * share:.0f}% of the squared residual; first seen surface: {parts or 'none'}",
         f"RMS residual per band [{rms}]: "
@@ -1031,7 +1035,8 @@ def _sigma_list(sig, free) -> list:
 
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
-                  maxiter: int | None = None, max_seconds: float | None = None) -> tuple[dict, FitResult]:
+                  maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
+                  progress=None) -> tuple[dict, FitResult]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -1048,6 +1053,12 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         Outer iteration cap.
     max_seconds : float, optional
         Wall-clock budget of the fit itself (trees and factorization excluded).
+    texture_rounds : int
+        When some surface is textured: rounds of refitting against the recovered texture after
+        the homogeneous fit (:func:`inverse.texture_fit.fit_with_texture`); 0 keeps the
+        homogeneous fit, as the dissertation does.
+    progress : callable, optional
+        Called with each texture round's record.
 
     Returns
     -------
@@ -1082,11 +1093,23 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                              got="no pixel sees a lit surface")
     result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
                  textured=[s.textured for s in scene], names=scene.names)
+    rounds = None
+    seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
+    if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
+        from inverse.texture_fit import fit_with_texture
+
+        homogeneous_rms = [float(v) for v in result.rms]
+        result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
+                                           mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
+                                           progress=progress)
+        rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": 0.9}
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
                        "saturated_pixels": int(saturated.sum()),
                        "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
              "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
              "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths)}}
+    if rounds is not None:
+        extra["texture_rounds"] = rounds
     report = fit_json(result, fac, scene, depth, extra)
     write_json(ws.fit, report)
     return report, result

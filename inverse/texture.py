@@ -194,8 +194,11 @@ def _compress(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(used), (np.cumsum(used) - 1)[keys]
 
 
-def build_system(trees, materials, intensities, image, maps, options: TextureOptions) -> _System:
+def build_system(trees, materials, intensities, image, maps, options: TextureOptions, exclude=None) -> _System:
     """Assemble E, b − Q and the per-texel coverage / weight.
+
+    ``exclude`` (H*W bool, optional): pixels left out of the system, as saturated ones are (but
+    not flagged as saturated).
 
     Vectorised over (node, bilinear corner, band) entries: no Python loop beyond one per
     textured surface (its bilinear lookup).
@@ -235,6 +238,8 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
     pix = trees.pixel[nodes]
     lit = coef > 0
     ok = lit & ~saturated[pix].T  # (3, n)
+    if exclude is not None:
+        ok &= ~np.asarray(exclude, dtype=bool).reshape(npix)[pix][None, :]
 
     # Entries (band, node, corner) as (3, n, 4) arrays; column key band * total + texel.
     key = idx[None, :, :] + (np.arange(3) * total)[:, None, None]
@@ -463,7 +468,8 @@ def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, d
     return out, stats
 
 
-def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None) -> TextureResult:
+def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None,
+                    exclude=None) -> TextureResult:
     """Recover the diffuse texture of every textured surface the trees reach.
 
     Parameters
@@ -479,6 +485,8 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     image : (H, W, 3) array_like
         The linear input image (same size as the trees).
     options : TextureOptions, optional
+    exclude : (H, W) or (H*W,) bool array_like, optional
+        Pixels to leave out (their texels are then known only from other pixels, or not at all).
 
     Returns
     -------
@@ -494,7 +502,7 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     t0 = time.perf_counter()
     maps = build_maps(scene, trees, options)
     t_maps = time.perf_counter()
-    system = build_system(trees, materials, intensities, image, maps, options)
+    system = build_system(trees, materials, intensities, image, maps, options, exclude)
     t_sys = time.perf_counter()
     z, stats = solve(system, maps, options)
 

@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.commands._args import positive_float, positive_int
+from app.commands._args import nonneg_int, positive_float, positive_int
 
 HELP = "fit kd, ks, shininess, r and t of every surface from the input image (F-TBO or NF-TBO)"
 
@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pixel value at which the camera clips (default: detect a clipped plateau)")
     parser.add_argument("--max-iterations", type=positive_int, default=None,
                         help="cap on outer iterations (default: 100 for ftbo, 5000 for nftbo)")
+    parser.add_argument("--texture-rounds", type=nonneg_int, default=2,
+                        help="when a surface is textured: rounds of refitting against the texture recovered from "
+                             "the pixels that directly seen texture lights (default 2; 0 = the homogeneous fit "
+                             "alone, as in the dissertation)")
     parser.add_argument("--max-seconds", type=positive_float, default=None,
                         help="wall-clock budget of the fit (trees excluded); it stops at the next iteration "
                              "and fit.json's message says so (default: none)")
@@ -44,8 +48,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from inverse.fitting import fit_workspace
 
+    def progress(rec):
+        rms = ", ".join(f"{v:.3g}" for v in rec["rms"])
+        print(f"reflab fit: texture round {rec['round']}: texture from all but {rec['pixels_left_out']} pixels "
+              f"({rec['texture_s']:.1f} s), refit RMS per band [{rms}] ({rec['fit_s']:.1f} s)", flush=True)
+
     report, result = fit_workspace(args.workspace, args.method, args.depth, saturation=args.saturation,
-                                   maxiter=args.max_iterations, max_seconds=args.max_seconds)
+                                   maxiter=args.max_iterations, max_seconds=args.max_seconds,
+                                   texture_rounds=args.texture_rounds, progress=progress)
     img, cols = report["image"], report["columns"]
     print(f"reflab fit: {img['width']}x{img['height']} image, {img['saturated_pixels']} saturated pixels masked, "
           f"{report['trees']['nodes']} tree nodes")
