@@ -66,6 +66,7 @@ def summarise(ws) -> dict:
         out["fit"] = {"method": fit.get("method"), "depth": fit.get("depth"), "time_s": fit.get("time_s"),
                       "rms": fit.get("rms"), "trace_points": len(fit.get("trace", [])),
                       "status": fit.get("status"), "warnings": fit.get("warnings"),
+                      "texture_rounds": len((fit.get("texture_rounds") or {}).get("rounds", [])),
                       "undetermined": {s.get("name"): s.get("undetermined", []) for s in fit.get("surfaces", [])}}
     tex = _load(ws.textures / "index.json")
     if tex:

@@ -11,9 +11,9 @@ lab's truth:
   (``Factorization(albedo=...)``: kd becomes a gain);
 - ``alternate``: the same with the texture that `reflab texture` recovered from the homogeneous
   fit's parameters (pixels whose nodes have no known albedo left out): one round of alternation;
-- ``exclude``: four rounds of alternation in which the texture solve leaves out the pixels where
-  anything but directly seen texture carries more than 10 % of the model's light, and texels left
-  unknown take their surface's mean;
+- ``exclude``: the homogeneous fit, then four of `reflab fit`'s texture rounds
+  (:func:`inverse.texture_fit.fit_with_texture`: the texture from the pixels where directly seen
+  texture carries at least 90 % of the model's light, texels left unknown at their surface's mean);
 - ``criterion``: the texture stage's residual RMS and per-surface texel-gradient energy with
   every parameter true but one (the ground's r, the box's ns) swept;
 - ``scan``: a coordinate scan of r, t, ns and ks (ns and ks one at a time) on the texture-eliminated
@@ -85,42 +85,20 @@ def alternate(ctx):
     fit_with(ctx, albedo, ctx["used"] & ~bad)
 
 
-def exclude(ctx, share_limit=0.1, rounds=4):
-    from inverse.rendering import node_radiance
+def exclude(ctx, rounds=4):
+    """The homogeneous fit, then ``rounds`` of :func:`inverse.texture_fit.fit_with_texture`."""
+    from inverse.texture_fit import fit_with_texture
 
     scene, trees, lab, image = ctx["scene"], ctx["trees"], ctx["lab"], ctx["image"]
-    H, W = image.shape[:2]
-    npix, on, tex = H * W, ctx["textured"][trees.surface], ctx["textured"]
-    primary = np.array([len(p) == 0 for p in trees.paths])[trees.path]
-    mats, _ = load_materials(ctx["ws"].root, scene)
-    relative = None
-    print(f"exclude: alternation, texture from pixels where direct texture carries > {1 - share_limit:.0%} of the light")
-    for k in range(rounds):
-        kd_table = np.stack([np.broadcast_to(m["kd"], (3,)) for m in mats]).astype(float)[trees.surface]
-        kd_nodes = kd_table if relative is None else np.where(on[:, None], relative * kd_table, kd_table)
-        light = node_radiance(trees, mats, lab.lights.intensities, kd_nodes=kd_nodes)
-        total = np.stack([np.bincount(trees.pixel, weights=light[:, c], minlength=npix) for c in range(3)], 1)
-        d = on & primary
-        direct = np.stack([np.bincount(trees.pixel[d], weights=light[d, c], minlength=npix) for c in range(3)], 1)
-        left_out = ((1 - direct / np.maximum(total, 1e-300)) > share_limit).any(1) | (total <= 0).any(1)
-        img = image.reshape(-1, 3).copy()
-        img[left_out] = 1e6  # dropped as "saturated" by the texture stage
-        res = recover_texture(scene, trees, mats, lab.lights.intensities, img.reshape(H, W, 3),
-                              TextureOptions(saturation=1e6))
-        relative = np.full((len(trees.pixel), 3), np.nan)
-        for s in np.flatnonzero(tex):
-            sel = np.nonzero(trees.surface == s)[0]
-            if s not in res.kd or not res.mask[s].any():
-                continue
-            a = sample_texture(res.maps[s], res.kd[s], res.mask[s], trees.triangle[sel], trees.barycentric[sel])
-            mean = res.kd[s][res.mask[s]].mean(axis=0)
-            relative[sel] = np.where(np.isfinite(a), a, mean) / mean  # texture relative to its mean
-        fac = Factorization(trees, [get_model(x.material.brdf) for x in scene], lab.lights.intensities,
-                            mask=ctx["used"], albedo=relative)
-        out = fit(fac, image, mats, "ftbo", textured=list(tex), names=scene.names)
-        mats = out.materials
-        print(f"  round {k}: {left_out.sum()} pixels left out, RMS per band {np.round(out.rms, 5).tolist()}")
-    show("exclude", scene, mats, ctx["truth"])
+    models = [get_model(x.material.brdf) for x in scene]
+    fac = Factorization(trees, models, lab.lights.intensities, mask=ctx["used"])
+    start = fit(fac, image, [x.material for x in scene], "ftbo", textured=list(ctx["textured"]), names=scene.names)
+    print(f"exclude: homogeneous fit RMS per band {np.round(start.rms, 5).tolist()}, then {rounds} texture rounds")
+    out, records = fit_with_texture(trees, scene, models, lab.lights.intensities, image, start, mask=ctx["used"],
+                                    rounds=rounds)
+    for r in records:
+        print(f"  round {r['round']}: {r['pixels_left_out']} pixels left out, RMS per band {np.round(r['rms'], 5).tolist()}")
+    show("exclude", scene, out.materials, ctx["truth"])
 
 
 def criterion(ctx):
