@@ -1101,7 +1101,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         homogeneous_rms = [float(v) for v in result.rms]
         result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
                                            mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
-                                           progress=progress)
+                                           maxiter=maxiter, progress=progress,
+                                           max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": 0.9}
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
                        "saturated_pixels": int(saturated.sum()),

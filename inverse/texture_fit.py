@@ -89,6 +89,7 @@ def relative_albedo(trees, textured, result) -> np.ndarray:
 
 def fit_with_texture(trees, scene, models, intensities, image, start: FitResult, *, mask=None, rounds: int = 2,
                      min_share: float = 0.9, method: str = "ftbo", options: TextureOptions | None = None,
+                     maxiter: int | None = None, max_seconds: float | None = None,
                      progress=None) -> tuple[FitResult, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
@@ -112,6 +113,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         predicted light in every band.
     method : {"ftbo", "nftbo"}
     options : TextureOptions, optional
+    maxiter : int, optional
+        Outer iteration cap of each round's fit.
+    max_seconds : float, optional
+        Wall-clock budget of all rounds together: no round starts once it is spent, and each
+        round's fit gets what is left.
     progress : callable, optional
         Called with each round's record.
 
@@ -130,15 +136,20 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
     result, records, relative = start, [], None
     trace, elapsed = [list(p) for p in start.trace], start.time_s
     evaluations, iterations = start.evaluations, start.iterations
+    t_start = time.perf_counter()
     for k in range(int(rounds)):
         t0 = time.perf_counter()
+        left = None if max_seconds is None else max_seconds - (t0 - t_start)
+        if left is not None and left <= 0:
+            break
         share = direct_share(trees, result.materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
         tex = recover_texture(scene, trees, result.materials, intensities, image, options, exclude=left_out)
         relative = relative_albedo(trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
-        result = fit(fac, image, result.materials, method, textured=list(textured), names=scene.names, scan=False)
+        result = fit(fac, image, result.materials, method, textured=list(textured), names=scene.names, scan=False,
+                     maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3))
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0
