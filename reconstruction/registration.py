@@ -398,22 +398,11 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
                                                         "from motion", got="not registered")
     rigid = None
     if rigid_turntable and sfm.observations is not None and len(sfm.points):
-        from reconstruction.turntable import explains, refine
+        from reconstruction.turntable import refine_if_rigid
 
-        try:
-            rigid = refine(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
-            rr = rigid["report"]
-            # A turntable that wobbles or slips on its axis does not fit one axis: keep the free poses.
-            rr["used"] = explains(rr)
-        except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. the camera on the axis: no circle
-            rigid = {"report": {"used": False, "warning": f"one turntable axis could not be fitted ({exc}): "
-                                                           "kept the free poses"}}
-            rr = rigid["report"]
-        if rr["used"]:
+        rigid = refine_if_rigid(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
+        if rigid["report"]["used"]:
             sfm.R, sfm.t, sfm.points, sfm.point_error = rigid["R"], rigid["t"], rigid["points"], rigid["point_error"]
-        else:
-            rr["warning"] = (f"one turntable axis explains the shots at {rr['rms_px']:.2f} px RMS against "
-                             f"{rr['rms_px_free']:.2f} px with free poses: kept the free poses (does the turntable wobble?)")
     if target is not None:
         from calibration.circles import parse_grid
 

@@ -289,6 +289,26 @@ def explains(report: dict) -> bool:
     return bool(report["rms_px"] <= 1.25 * report["rms_px_free"] + 0.1)
 
 
+def refine_if_rigid(R, t, points, obs: Observations, reference: int, focal: float) -> dict:
+    """:func:`refine`, with the report's ``used`` saying whether to take its poses.
+
+    ``used`` is False, with a ``warning``, when one axis does not explain the shots
+    (:func:`explains`: a turntable that wobbles or slips) or cannot be fitted at all (the camera
+    on the axis); the caller then keeps the free poses. Otherwise as :func:`refine`.
+    """
+    try:
+        out = refine(R, t, points, obs, reference, focal)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return {"report": {"used": False, "warning": f"one turntable axis could not be fitted ({exc}): "
+                                                      "kept the free poses"}}
+    rr = out["report"]
+    rr["used"] = explains(rr)
+    if not rr["used"]:
+        rr["warning"] = (f"one turntable axis explains the shots at {rr['rms_px']:.2f} px RMS against "
+                         f"{rr['rms_px_free']:.2f} px with free poses: kept the free poses (does the turntable wobble?)")
+    return out
+
+
 def _reprojection(R, t, X, pi, ii, xy, focal) -> np.ndarray:
     """(K,) reprojection error of each observation, pixels."""
     c = np.einsum("kij,kj->ki", R[ii], X[pi]) + t[ii]

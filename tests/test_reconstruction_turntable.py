@@ -11,7 +11,7 @@ import pytest
 
 from hardware.simlab import build_lab
 from reconstruction.sfm import turntable_poses
-from reconstruction.turntable import Observations, explains, refine, rotations, turntable_model
+from reconstruction.turntable import Observations, explains, refine, refine_if_rigid, rotations, turntable_model
 
 N = 36
 REF = 0
@@ -117,6 +117,8 @@ def test_wobbling_turntable_fits_worse_than_free_poses(sweep):
     assert rep["rms_px_free"] < 0.45
     assert rep["rms_px"] > 1.8 * rep["rms_px_free"]
     assert not explains(rep)
+    kept = refine_if_rigid(Rw, tw, X, obs, REF, cam.K[0, 0])["report"]
+    assert not kept["used"] and "wobble" in kept["warning"]
 
 
 def test_partial_sweep_and_camera_on_the_axis(sweep):
@@ -133,3 +135,6 @@ def test_partial_sweep_and_camera_on_the_axis(sweep):
     Ra, ta = turntable_poses(cam, part, (cam.center[0], cam.center[1]))
     with pytest.raises(ValueError, match="on the turntable axis"):
         refine(Ra, ta, X, obs, REF, cam.K[0, 0])
+    kept = refine_if_rigid(Ra, ta, X, obs, REF, cam.K[0, 0])  # what reconstruct does: free poses, a warning
+    assert kept["report"] == {"used": False, "warning": kept["report"]["warning"]}
+    assert "on the turntable axis" in kept["report"]["warning"] and "R" not in kept
