@@ -1096,14 +1096,14 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     rounds = None
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
     if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
-        from inverse.texture_fit import fit_with_texture
+        from inverse.texture_fit import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
         result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
                                            mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
-        rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": 0.9}
+        rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
                        "saturated_pixels": int(saturated.sum()),
                        "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},

@@ -18,8 +18,8 @@ those against it. Each round:
    ``Factorization(albedo=...)``): ``kd`` stays the surface's mean albedo, and texels no kept
    pixel sees count as the mean.
 
-Measured on the demo (docs/texture.md): the mirror's r, the sheet's t and the tile's ks come to
-within 0.01 of the truth; the box's shininess, whose stripes cross its highlight, does not.
+Measured on the demo (docs/fit.md): the mirror's r, the sheet's t and the tile's ks and r come
+to within 0.03 of the truth; the box's shininess, whose stripes cross its highlight, does not.
 """
 from __future__ import annotations
 
@@ -32,6 +32,9 @@ from inverse.factorization import Factorization
 from inverse.fitting import FitResult, fit
 from inverse.rendering import node_radiance
 from inverse.texture import TextureOptions, recover_texture, sample_texture
+
+#: A pixel feeds the texture when directly seen texture carries at least this share of its light.
+MIN_SHARE = 0.9
 
 
 def direct_share(trees, materials, intensities, textured, relative=None) -> np.ndarray:
@@ -58,7 +61,7 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     if relative is not None:
         kd = np.where(on[:, None], kd * relative, kd)
     light = node_radiance(trees, materials, intensities, kd_nodes=kd)
-    first = np.array([len(p) == 0 for p in trees.paths], dtype=bool)[trees.path] & on
+    first = (np.asarray(trees.level) == 1) & on  # the primary hit: seen directly
 
     def per_pixel(sel):
         return np.stack([np.bincount(trees.pixel[sel], weights=light[sel, c], minlength=npix) for c in range(3)], axis=1)
@@ -88,7 +91,7 @@ def relative_albedo(trees, textured, result) -> np.ndarray:
 
 
 def fit_with_texture(trees, scene, models, intensities, image, start: FitResult, *, mask=None, rounds: int = 2,
-                     min_share: float = 0.9, method: str = "ftbo", options: TextureOptions | None = None,
+                     min_share: float = MIN_SHARE, method: str = "ftbo", options: TextureOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
                      progress=None) -> tuple[FitResult, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
