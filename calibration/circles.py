@@ -24,7 +24,7 @@ class GridDetection:
     found : bool
         True when all ``cols * rows`` circles were found and ordered.
     centres : (N, 2) ndarray or None
-        Sub-pixel ellipse centres, row by row (see :func:`hardware.simtarget.target_points`).
+        Sub-pixel ellipse centres, row by row (see :func:`calibration.target.target_points`).
     areas : (N,) ndarray or None
         Ellipse areas in px² (used to estimate the printed circles' radius).
     n_blobs : int

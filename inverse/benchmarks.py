@@ -1,7 +1,7 @@
 """Timings of the forward model: tree building and re-rendering at three image sizes.
 
 Run ``python -m inverse.benchmarks [WORKSPACE]``: with a workspace (camera.json, lights.json,
-scene.json) it times that scene, else the simulated lab (``hardware.simlab.build_lab``). It prints
+scene.json) it times that scene, else the simulated lab (``hardware.sim.lab.build_lab``). It prints
 a Markdown table (the one in docs/forward-model.md) and the machine it ran on.
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ def machine() -> str:
 def load_scene(workspace=None):
     """(scene, camera, lights) of a workspace, or of the simulated lab when ``workspace`` is None."""
     if workspace is None:
-        from hardware.simlab import build_lab
+        from hardware.sim.lab import build_lab
 
         lab = build_lab()
         return lab.scene, lab.camera, lab.lights

@@ -4,7 +4,7 @@ SfM knows the scene up to a similarity (scale, rotation, translation). Two ways 
 
 * the calibration target lying on the ground plane (turning with the objects): its circle centres
   are found in the shots, triangulated with the recovered poses, and matched to their known
-  positions (:func:`hardware.simtarget.target_points`) by Umeyama's closed-form similarity;
+  positions (:func:`hardware.sim.props.target_points`) by Umeyama's closed-form similarity;
 * the input view and the turntable axis: the shot taken at the input view's angle must have
   camera.json's pose, which fixes everything but the scale; the camera centres circle the
   turntable axis, whose place on the ground (x, y) then gives the scale.
@@ -170,7 +170,7 @@ def register_target(images: list, R: np.ndarray, t: np.ndarray, camera: Camera, 
         The report has ``method``, ``views`` (shots where the target was found), ``rms_mm``
         (triangulated centres against their known places) and ``max_mm``.
     """
-    from hardware.simtarget import target_points
+    from calibration.target import target_points
 
     cols, rows = grid
     ok = np.all(np.isfinite(t), axis=1)

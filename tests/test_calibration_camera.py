@@ -14,7 +14,7 @@ from app.cli import main
 from calibration.camera import Camera
 from calibration.circles import detect_grid, parse_grid
 from calibration.tsai import CalibrationError, calibrate
-from hardware import simtarget as st
+from hardware.sim import props as st
 from hardware.images import write_image
 
 COLS, ROWS, SPACING, RADIUS = 11, 8, 0.015, 0.0045

@@ -13,7 +13,7 @@ from app.cli import main
 from calibration.camera import Camera
 from calibration.lamps import Mark, detect_rod_marks, lamp_intensity, locate_lamp, read_marks, write_marks
 from calibration.lights import Lights
-from hardware import simtarget as st
+from hardware.sim import props as st
 from hardware.images import write_image
 from hardware.workspace import WorkspaceError, write_json
 

@@ -5,7 +5,7 @@ import pytest
 
 from app.cli import main
 from hardware.images import read_image
-from hardware.simlab import build_lab
+from hardware.sim.lab import build_lab
 from hardware.workspace import read_json
 from inverse.rendering import render
 from inverse.trees import build_trees

@@ -1,13 +1,13 @@
 """`reflab render` end to end on a small simulated-lab workspace, checked against the independent
-reference renderer (hardware/reference.py) with the same materials, lights, camera and texture."""
+reference renderer (hardware/sim/reference.py) with the same materials, lights, camera and texture."""
 import numpy as np
 import pytest
 
 from app.cli import main
 from calibration.lights import Lights
 from hardware.images import read_image, write_image
-from hardware.reference import render_reference
-from hardware.simlab import build_lab, write_lab
+from hardware.sim.reference import render_reference
+from hardware.sim.lab import build_lab, write_lab
 from hardware.workspace import write_json
 from inverse.trees import build_trees
 from reconstruction.scene import Scene

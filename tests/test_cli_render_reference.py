@@ -1,4 +1,4 @@
-"""Recover-then-render checked against the independent reference renderer (hardware/reference.py).
+"""Recover-then-render checked against the independent reference renderer (hardware/sim/reference.py).
 
 The photograph comes from the reference renderer with the lab's true albedo function; `reflab
 texture` recovers the textures; the render command's code renders the recovered model for the
@@ -15,8 +15,8 @@ from app.commands.render import render_workspace
 from calibration.camera import Camera
 from calibration.lights import Lights, PointLight
 from hardware.images import write_image
-from hardware.reference import render_reference
-from hardware.simlab import build_lab, write_lab
+from hardware.sim.reference import render_reference
+from hardware.sim.lab import build_lab, write_lab
 from inverse.rendering import render
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from hardware.simlab import build_lab, write_lab
+from hardware.sim.lab import build_lab, write_lab
 from hardware.workspace import write_json
 
 

@@ -11,7 +11,7 @@ from hardware.workspace import write_json
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    from hardware.simlab import build_lab, write_lab
+    from hardware.sim.lab import build_lab, write_lab
     from inverse.rendering import render
     from inverse.trees import build_trees
 

@@ -76,7 +76,7 @@ def test_mask_drops_rows_and_nodes():
 
 @pytest.fixture(scope="module")
 def lab80():
-    from hardware.simlab import build_lab
+    from hardware.sim.lab import build_lab
     from inverse.trees import build_trees
 
     lab = build_lab(80, 60, textured=False)

@@ -19,7 +19,7 @@ def _initial(materials):
 
 @pytest.fixture(scope="module")
 def lab():
-    from hardware.simlab import build_lab
+    from hardware.sim.lab import build_lab
     from inverse.trees import build_trees
 
     lab = build_lab(W, H, textured=False)
@@ -185,7 +185,7 @@ def test_ftbo_with_a_known_texture_recovers_the_rest_exactly():
     surfaces gets the non-Lambertian parameters wrong; with the true texture it recovers them
     and a gain of 1 — the building block of a texture-aware fit (docs/texture.md).
     """
-    from hardware.simlab import build_lab
+    from hardware.sim.lab import build_lab
     from inverse.trees import build_trees
 
     lab = build_lab(W, H)
@@ -219,7 +219,7 @@ def test_texture_rounds_correct_what_texture_hid_from_the_homogeneous_fit():
     """inverse.texture_fit on the textured lab (forward model, true per-node albedo, 80x60), the
     paper ground given r = 0: the homogeneous fit is off by 0.13-0.15 in the mirror's r and the
     tile's ks and r; two texture rounds bring them within 0.03 of the truth."""
-    from hardware.simlab import build_lab
+    from hardware.sim.lab import build_lab
     from inverse.texture_fit import fit_with_texture
     from inverse.trees import build_trees
 

@@ -8,7 +8,7 @@ import serial
 
 from hardware.grbl import (DeviceLost, GrblAlarm, GrblCommandError, GrblConfig, GrblController, GrblProtocolError,
                            GrblTimeout, Status)
-from hardware.simdevice import SimulatedGrbl
+from hardware.sim.device import SimulatedGrbl
 from hardware.workspace import WorkspaceError
 
 FAST = dict(timeout_s=0.4, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)

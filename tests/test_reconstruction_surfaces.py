@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from hardware.simlab import build_lab
+from hardware.sim.lab import build_lab
 from hardware.workspace import WorkspaceError
 from reconstruction import surfaces as surf
 from reconstruction.scene import Mesh, Scene

@@ -13,7 +13,7 @@ import pytest
 from app.cli import main
 from calibration.camera import Camera
 from hardware.images import write_image
-from hardware.simlab import box_mesh
+from hardware.sim.lab import box_mesh
 from hardware.workspace import WorkspaceError, read_json
 from reconstruction import registration as reg
 from reconstruction import surfaces as surf
@@ -93,7 +93,7 @@ def true_box(name):
 
 def render_sweep(tmpdir, angles, width=480, height=360, spp=4):
     from hardware.mitsuba_env import mitsuba
-    from hardware.simtarget import render_view
+    from hardware.sim.props import render_view
     mi = mitsuba()
     rng = np.random.default_rng(7)
     cam = camera(width, height)
@@ -254,7 +254,7 @@ def test_moving_masks_drop_a_still_ground_crossed_by_shadows():
 
 def test_turntable_poses_see_what_the_turned_objects_show():
     """The commanded poses project an unturned point where the camera sees it after the turn."""
-    from hardware.cameras import rotate_about_z
+    from hardware.sim.camera import rotate_about_z
 
     cam = camera(160, 120)
     X = np.array([[0.05, 0.02, 0.03], [-0.04, 0.06, 0.0]])

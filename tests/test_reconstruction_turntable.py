@@ -9,7 +9,7 @@ say so when no single axis explains the shots (a wobbling turntable).
 import numpy as np
 import pytest
 
-from hardware.simlab import build_lab
+from hardware.sim.lab import build_lab
 from reconstruction.sfm import turntable_poses
 from reconstruction.turntable import Observations, explains, refine, refine_if_rigid, rotations, turntable_model
 

@@ -1,6 +1,6 @@
 """The reference renderer against closed-form images and against Mitsuba's own path tracer.
 
-Ground truth here never comes from hardware/reference.py: planes are intersected by formula,
+Ground truth here never comes from hardware/sim/reference.py: planes are intersected by formula,
 mirrors by reflecting the camera, slabs by Snell's law on paper, and one case by Mitsuba's
 ``path`` integrator with its own ``diffuse`` and ``conductor`` BSDFs.
 """
@@ -9,8 +9,8 @@ import pytest
 
 from calibration.camera import Camera
 from calibration.lights import Lights, PointLight
-from hardware.reference import fresnel, render_reference
-from hardware.simlab import box_mesh, plane_mesh
+from hardware.sim.reference import fresnel, render_reference
+from hardware.sim.lab import box_mesh, plane_mesh
 from reconstruction.scene import Material, Mesh, Scene, Surface
 
 

@@ -1,12 +1,12 @@
 """The proof: the forward model (inverse.trees + inverse.rendering) agrees with the independent
-reference renderer (hardware.reference, Mitsuba ray casting) on the simulated lab, where mirror
+reference renderer (hardware.sim.reference, Mitsuba ray casting) on the simulated lab, where mirror
 reflection, refraction through the sheet and total internal reflection all occur.
 """
 import numpy as np
 import pytest
 
-from hardware.reference import render_reference
-from hardware.simlab import build_lab
+from hardware.sim.reference import render_reference
+from hardware.sim.lab import build_lab
 from inverse.rendering import render
 from inverse.trees import build_trees
 

@@ -4,8 +4,8 @@ import pytest
 
 from calibration.camera import Camera
 from calibration.lights import Lights
-from hardware.reference import render_reference
-from hardware.simlab import A4, ALBEDO_RANGE, build_lab, write_lab
+from hardware.sim.reference import render_reference
+from hardware.sim.lab import A4, ALBEDO_RANGE, build_lab, write_lab
 from reconstruction.scene import Scene
 
 

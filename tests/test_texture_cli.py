@@ -6,7 +6,7 @@ import pytest
 
 from app.cli import main
 from hardware.images import read_image, write_image
-from hardware.simlab import build_lab, write_lab
+from hardware.sim.lab import build_lab, write_lab
 from inverse.rendering import render
 from inverse.texture import albedo_nodes
 from inverse.trees import build_trees

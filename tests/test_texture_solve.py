@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera
-from hardware.simlab import build_lab
+from hardware.sim.lab import build_lab
 from inverse.rendering import render
 from inverse.texture import (AMPLIFIED, SATURATED, TextureOptions, build_maps, build_system,
                              recover_texture, sample_texture)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera
-from hardware.simlab import box_mesh, plane_mesh
+from hardware.sim.lab import box_mesh, plane_mesh
 from inverse.texels import PAD, TexelMap, bilinear_weights, build_texel_map, choose_texel_size, pixel_footprint
 from reconstruction.scene import Mesh
 

@@ -78,7 +78,7 @@ def _camera(args) -> int:
     from calibration.circles import detect_grid, parse_grid
     from calibration.tsai import calibrate
     from hardware.images import read_image
-    from hardware.simtarget import target_points
+    from calibration.target import target_points
     from hardware.workspace import Workspace
 
     ws = Workspace(args.workspace)

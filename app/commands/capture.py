@@ -61,14 +61,15 @@ def _plan(args, n_lamps: int):
 
 
 def _camera(args, config, ctl, sim):
-    from hardware.cameras import SimulatedCamera, lab_renderer, open_camera
+    from hardware.cameras import open_camera
+    from hardware.sim.camera import SimulatedCamera, lab_renderer
 
     if args.camera != "sim":
         if args.camera.startswith("folder:"):
             trigger = args.trigger.split() if args.trigger else None
             return open_camera(args.camera, trigger=trigger, timeout_s=args.camera_timeout)
         return open_camera(args.camera)
-    from hardware.simlab import build_lab
+    from hardware.sim.lab import build_lab
 
     if not 0.0 <= args.grain < 1.0:
         raise SystemExit(f"reflab capture: error: --grain must be in [0, 1), got {args.grain}")

@@ -1,9 +1,9 @@
 """The simulated lab end to end: write its workspace, render the "photograph", recover, compare.
 
-1. writes the simulated lab (hardware/simlab.py) as a workspace: camera.json, lights.json,
+1. writes the simulated lab (hardware/sim/lab.py) as a workspace: camera.json, lights.json,
    meshes, and a scene.json with only what a user knows before fitting (``brdf``, ``ior``, and
    ``r = 0`` for the matte paper ground); the true materials go to truth.json;
-2. renders input.exr with the independent reference renderer (hardware/reference.py) and the
+2. renders input.exr with the independent reference renderer (hardware/sim/reference.py) and the
    true textures, optionally with Gaussian noise;
 3. runs the later stages (`reflab fit`, `reflab texture`);
 4. renders the recovered model (`reflab render`) and prints its RMS error against input.exr.
@@ -69,8 +69,8 @@ def run(args) -> int:
 
     from app.commands.render import render_workspace
     from hardware.images import write_image, write_preview
-    from hardware.reference import render_reference
-    from hardware.simlab import build_lab, write_lab
+    from hardware.sim.reference import render_reference
+    from hardware.sim.lab import build_lab, write_lab
 
     start = time.perf_counter()
     root = Path(args.workspace)

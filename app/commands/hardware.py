@@ -36,7 +36,7 @@ def open_port(port: str, config, log=print):
     """(port name, simulated board or None) for ``--port``; 'sim' starts a simulated board."""
     if port != "sim":
         return port, None
-    from hardware.simdevice import SimulatedGrbl
+    from hardware.sim.device import SimulatedGrbl
 
     sim = SimulatedGrbl(time_scale=20.0).start()
     log(f"simulated GRBL board on {sim.port}")

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 def run(sizes, nftbo_seconds, path: Path) -> dict:
     """Fit every size with both methods; the JSON is rewritten after each fit."""
-    from hardware.simlab import build_lab
+    from hardware.sim.lab import build_lab
     from hardware.workspace import write_json
     from inverse.factorization import Factorization
     from inverse.fitting import fit

@@ -32,8 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from hardware.reference import render_reference  # noqa: E402
-from hardware.simlab import build_lab  # noqa: E402
+from hardware.sim.reference import render_reference  # noqa: E402
+from hardware.sim.lab import build_lab  # noqa: E402
 from hardware.workspace import read_json, write_json  # noqa: E402
 from inverse.texture import recover_texture  # noqa: E402
 from inverse.trees import build_trees  # noqa: E402

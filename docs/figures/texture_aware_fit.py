@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from calibration.camera import Camera  # noqa: E402
 from calibration.lights import Lights  # noqa: E402
 from hardware.images import read_image  # noqa: E402
-from hardware.simlab import build_lab  # noqa: E402
+from hardware.sim.lab import build_lab  # noqa: E402
 from hardware.workspace import Workspace  # noqa: E402
 from inverse.factorization import Factorization  # noqa: E402
 from inverse.fitting import fit, saturated_pixels  # noqa: E402

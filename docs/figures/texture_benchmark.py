@@ -20,7 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import scipy.sparse.csgraph  # noqa: E402,F401 -- import time is not the stage's
 from calibration.camera import Camera  # noqa: E402
-from hardware.simlab import build_lab  # noqa: E402
+from hardware.sim.lab import build_lab  # noqa: E402
 from inverse.rendering import render  # noqa: E402
 from inverse.texture import TextureOptions, recover_texture, sample_texture  # noqa: E402
 from inverse.trees import build_trees  # noqa: E402

@@ -1,4 +1,4 @@
-"""Recover-then-render against the independent reference renderer (hardware/reference.py).
+"""Recover-then-render against the independent reference renderer (hardware/sim/reference.py).
 
 The simulated lab's photograph is rendered by the reference renderer with the lab's true albedo
 function; `reflab texture` recovers the textures from it (true non-Lambertian parameters in
@@ -29,8 +29,8 @@ from app.commands.render import render_workspace  # noqa: E402
 from calibration.camera import Camera  # noqa: E402
 from calibration.lights import Lights, PointLight  # noqa: E402
 from hardware.images import write_image  # noqa: E402
-from hardware.reference import render_reference  # noqa: E402
-from hardware.simlab import build_lab, write_lab  # noqa: E402
+from hardware.sim.reference import render_reference  # noqa: E402
+from hardware.sim.lab import build_lab, write_lab  # noqa: E402
 from inverse.rendering import render  # noqa: E402
 
 #: Two lamps unlike the capture's: one above the camera, one bluish behind the mirror's right.

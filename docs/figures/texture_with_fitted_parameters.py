@@ -3,7 +3,7 @@
 import numpy as np, subprocess, sys
 from pathlib import Path
 from app.cli import main
-from hardware.simlab import build_lab
+from hardware.sim.lab import build_lab
 from inverse.trees import build_trees
 from hardware.mitsuba_env import mitsuba
 ws = Path(sys.argv[1] if len(sys.argv) > 1 else 'demo-workspace')  # made by `make demo` (320x240)

@@ -16,12 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.camera import Camera
-
-
-def target_points(cols: int, rows: int, spacing: float) -> np.ndarray:
-    """(rows*cols, 3) centres of a symmetric circle grid, row-major, on the plane z = 0."""
-    j, i = np.mgrid[0:rows, 0:cols]
-    return np.stack([i.ravel() * spacing, -j.ravel() * spacing, np.zeros(i.size)], axis=1).astype(np.float64)
+from calibration.target import target_points  # noqa: F401  (re-exported for the twin's users)
 
 
 def target_texture(cols: int, rows: int, spacing: float, radius: float, texels_per_m: float = 8000.0):

@@ -1,0 +1,86 @@
+"""The simulated camera: the virtual lab rendered at the simulated rig's turntable angle and lamps."""
+from __future__ import annotations
+
+import numpy as np
+
+
+class SimulatedCamera:
+    """The virtual lab seen at the rig's current turntable angle and lamp states.
+
+    Parameters
+    ----------
+    render : callable
+        ``render(angle_deg, lamps) -> (H, W, 3)`` linear radiance (see :func:`lab_renderer`).
+    state : callable
+        ``state() -> (angle_deg, lamps)``: the rig as it physically is (the simulated board's
+        axis and outputs), so that a move or lamp command that did not happen shows in the image.
+    ambient : float
+        Room light added to every pixel, lamps on or off (what a lamps-off frame removes).
+    reference_exposure : float
+        The exposure at which a pixel holds the radiance itself; pixels scale with exposure.
+    lab : dict, optional
+        How the lab was built (e.g. its print grain, what stays still), recorded by :meth:`describe`.
+    """
+
+    def __init__(self, render, state, *, ambient: float = 0.0, reference_exposure: float = 1.0, lab: dict | None = None):
+        self.render, self.state, self.lab = render, state, lab
+        self.ambient, self.reference_exposure = float(ambient), float(reference_exposure)
+        self.last_state = None
+
+    def capture(self, exposure: float | None = None) -> np.ndarray:
+        angle, lamps = self.state()
+        self.last_state = (float(angle), [bool(x) for x in lamps])
+        scale = (self.reference_exposure if exposure is None else float(exposure)) / self.reference_exposure
+        img = (np.asarray(self.render(angle, lamps), dtype=np.float64) + self.ambient) * scale
+        return img.astype(np.float32)
+
+    def describe(self) -> dict:
+        out = {"type": "simulated", "ambient": self.ambient, "reference_exposure": self.reference_exposure}
+        return out if self.lab is None else dict(out, lab=self.lab)
+
+    def close(self) -> None:
+        pass
+
+
+def rotate_about_z(points: np.ndarray, degrees: float, centre) -> np.ndarray:
+    """Points (N, 3) turned by ``degrees`` (counter-clockwise seen from +z) about the vertical axis through ``centre``."""
+    a = np.radians(degrees)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    c = np.array([centre[0], centre[1], 0.0], dtype=np.float64)
+    return (np.asarray(points, dtype=np.float64) - c) @ R.T + c
+
+
+def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",)):
+    """A ``render(angle, lamps)`` for :class:`SimulatedCamera` from a :class:`hardware.sim.lab.SimLab`.
+
+    The surfaces not named in ``fixed`` stand on the turntable: their meshes and textures turn
+    with it about the vertical axis through ``centre`` (x, y in metres). Lamps that are off are
+    left out; with every lamp off the image is black.
+    """
+    from calibration.lights import Lights
+    from hardware.sim.reference import render_reference
+    from reconstruction.scene import Mesh, Scene, Surface
+
+    unknown = set(fixed) - set(lab.scene.names)
+    if unknown:
+        raise ValueError(f"lab_renderer: no surface named {sorted(unknown)} (surfaces: {lab.scene.names})")
+    turning = [s.name not in fixed for s in lab.scene]
+
+    def render(angle: float, lamps) -> np.ndarray:
+        lamps = list(lamps)
+        if len(lamps) != len(lab.lights):
+            raise ValueError(f"{len(lamps)} lamp states for a lab with {len(lab.lights)} lamps")
+        on = [light for light, state in zip(lab.lights, lamps) if state]
+        if not on:
+            return np.zeros((lab.camera.height, lab.camera.width, 3))
+        surfaces = [Surface(s.name, s.mesh_path, s.material, s.textured,
+                            Mesh(rotate_about_z(s.mesh.vertices, angle, centre), s.mesh.triangles) if moves else s.mesh)
+                    for s, moves in zip(lab.scene, turning)]
+
+        def albedo(index: int, points: np.ndarray) -> np.ndarray:
+            # A turned surface shows at p the texture its unturned self has at R^-1 p.
+            return lab.albedo(index, rotate_about_z(points, -angle, centre) if turning[index] else points)
+
+        return render_reference(Scene(surfaces), lab.camera, Lights(on), depth, albedo)
+
+    return render
