@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.images import clip_level
+from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
 from inverse.factorization import BANDS, Factorization
 from reconstruction.scene import INITIAL, SCALAR_RANGE
@@ -248,10 +249,16 @@ class Problem:
         self.evaluations = 0
         #: perf_counter() time after which the methods stop (None: no wall-clock budget).
         self.deadline = None
+        #: The stage's :class:`hardware.task.Task` (progress, pause, cancel, deadline).
+        self.task = ensure(None)
 
     def out_of_time(self) -> bool:
-        """True once the wall-clock budget of the fit is spent."""
-        return self.deadline is not None and time.perf_counter() > self.deadline
+        """True once the wall-clock budget of the fit (or the task's) is spent."""
+        return (self.deadline is not None and time.perf_counter() > self.deadline) or self.task.out_of_time
+
+    def step(self, done, total, message) -> None:
+        """Report one outer iteration to the task; raises :class:`hardware.task.Cancelled`."""
+        self.task.step(done, total, message)
 
     def residual(self, A, y) -> np.ndarray:
         """Model minus image (3, R)."""
@@ -451,6 +458,7 @@ def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True)
     lam, message, it = 1e-3, f"stopped after {maxiter} iterations", 0
     lo, hi = srch.lo[q], srch.hi[q]
     for it in range(1, maxiter + 1):
+        pb.step(it, maxiter, "F-TBO iteration")
         if pb.out_of_time():
             it -= 1
             message = BUDGET_MESSAGE
@@ -497,6 +505,7 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
             for value in np.linspace(pb.scan_lo[qk], pb.scan_hi[qk], SCAN_POINTS):
                 if abs(value - u[k]) < 1e-12 or pb.out_of_time():
                     continue
+                pb.task.check()
                 trial_u = u.copy()
                 trial_u[k] = value
                 trial = evaluate(trial_u, state[2])
@@ -604,6 +613,7 @@ def _nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=5000):
     message, it, since_restart, direction, prev = f"stopped after {maxiter} iterations", 0, n, None, None
     stalls = 0
     for it in range(1, maxiter + 1):
+        pb.step(it, maxiter, "NF-TBO iteration")
         if pb.out_of_time():
             it -= 1
             message = BUDGET_MESSAGE
@@ -819,7 +829,7 @@ def _theta_resolution(pb: Problem, p: Params, sig: Params) -> np.ndarray:
 
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
-        names=None, scan: bool = True) -> FitResult:
+        names=None, scan: bool = True, task: Task | None = None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -848,6 +858,9 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     scan : bool
         F-TBO's coarse global scan of each θ before the local search (off when ``materials``
         already start near the answer, e.g. a refit).
+    task : hardware.task.Task, optional
+        Stepped once per outer iteration (raises ``Cancelled`` when cancelled); its deadline
+        stops the methods like ``max_seconds``.
 
     Returns
     -------
@@ -859,6 +872,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         raise ValueError(f"{len(materials)} materials for {len(fac.models)} surfaces")
     t0 = time.perf_counter()
     pb = Problem(fac, image, [m.transparent for m in materials])
+    pb.task = ensure(task)
     if max_seconds is not None:
         pb.deadline = t0 + float(max_seconds)
     init = params_of(fac, materials)
@@ -1036,7 +1050,7 @@ def _sigma_list(sig, free) -> list:
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
-                  progress=None) -> tuple[dict, FitResult]:
+                  progress=None, task: Task | None = None) -> tuple[dict, FitResult]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -1059,6 +1073,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         homogeneous fit, as the dissertation does.
     progress : callable, optional
         Called with each texture round's record.
+    task : hardware.task.Task, optional
+        Progress, pause and cancel (``Cancelled`` is raised before fit.json is written); its
+        deadline stops the fit like ``max_seconds``.
 
     Returns
     -------
@@ -1092,7 +1109,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
                              got="no pixel sees a lit surface")
     result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
-                 textured=[s.textured for s in scene], names=scene.names)
+                 textured=[s.textured for s in scene], names=scene.names, task=task)
     rounds = None
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
     if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
@@ -1101,7 +1118,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         homogeneous_rms = [float(v) for v in result.rms]
         result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
                                            mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
-                                           maxiter=maxiter, progress=progress,
+                                           maxiter=maxiter, progress=progress, task=task,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
@@ -1112,5 +1129,6 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if rounds is not None:
         extra["texture_rounds"] = rounds
     report = fit_json(result, fac, scene, depth, extra)
+    ensure(task).check()  # a cancel during the last iteration: nothing written
     write_json(ws.fit, report)
     return report, result

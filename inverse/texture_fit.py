@@ -93,7 +93,7 @@ def relative_albedo(trees, textured, result) -> np.ndarray:
 def fit_with_texture(trees, scene, models, intensities, image, start: FitResult, *, mask=None, rounds: int = 2,
                      min_share: float = MIN_SHARE, method: str = "ftbo", options: TextureOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
-                     progress=None) -> tuple[FitResult, list]:
+                     progress=None, task=None) -> tuple[FitResult, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
     Parameters
@@ -123,6 +123,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         round's fit gets what is left.
     progress : callable, optional
         Called with each round's record.
+    task : hardware.task.Task, optional
+        Handed to each round's fit; no round starts once it is out of time.
 
     Returns
     -------
@@ -143,8 +145,10 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
     for k in range(int(rounds)):
         t0 = time.perf_counter()
         left = None if max_seconds is None else max_seconds - (t0 - t_start)
-        if left is not None and left <= 0:
+        if (left is not None and left <= 0) or (task is not None and task.out_of_time):
             break
+        if task is not None:
+            task.step(k, rounds, "texture round")
         share = direct_share(trees, result.materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
         tex = recover_texture(scene, trees, result.materials, intensities, image, options, exclude=left_out)
@@ -152,7 +156,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
         result = fit(fac, image, result.materials, method, textured=list(textured), names=scene.names, scan=False,
-                     maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3))
+                     maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0

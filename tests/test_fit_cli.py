@@ -93,3 +93,21 @@ def test_poor_fit_is_reported_and_exits_3(workspace, capsys):
     assert "poor fit" in err and "does not explain" in err
     fit = json.loads((root / "fit.json").read_text())
     assert fit["status"] == "poor fit" and fit["warnings"] and len(fit["noise"]) == 3
+
+
+def test_fit_workspace_task_progress_and_cancel(workspace):
+    """fit_workspace steps the task per iteration; a cancel raises Cancelled and writes no fit.json."""
+    from hardware.task import Cancelled, Task
+    from inverse.fitting import fit_workspace
+
+    root, img, truth = workspace
+    write_image(root / "input.exr", img)
+    (root / "fit.json").unlink(missing_ok=True)
+    steps = []
+    report, _ = fit_workspace(root, task=Task(progress=lambda d, t, m: steps.append((d, t, m))))
+    assert steps and (root / "fit.json").exists() and report["status"] == "ok"
+    (root / "fit.json").unlink()
+    task = Task(progress=lambda d, t, m: task.cancel())
+    with pytest.raises(Cancelled):
+        fit_workspace(root, task=task)
+    assert not (root / "fit.json").exists()
