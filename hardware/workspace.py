@@ -58,6 +58,11 @@ class Workspace:
     fit = property(lambda self: self.root / "fit.json")
     textures = property(lambda self: self.root / "textures")
     captures = property(lambda self: self.root / "captures")
+    cache = property(lambda self: self.root / "cache")
+
+    def trees_cache(self, key: str) -> Path:
+        """Cached pixel-intensity trees named by their inputs' hash (inverse.trees.trees_for_workspace)."""
+        return self.cache / f"trees-{key}.npz"
 
     @property
     def input_image(self) -> Path:

@@ -1088,7 +1088,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     from hardware.images import read_image
     from hardware.workspace import Workspace, write_json
     from inverse.models import get_model
-    from inverse.trees import build_trees
+    from inverse.trees import trees_for_workspace
     from reconstruction.scene import Scene
 
     ws = Workspace(workspace)
@@ -1101,7 +1101,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if saturated.all():
         raise WorkspaceError(image_path, "pixels", "some pixels below the saturation level", got="every pixel saturated")
     t0 = time.perf_counter()
-    trees = build_trees(scene, camera, lights, depth=depth)
+    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth)
     t1 = time.perf_counter()
     fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], lights.intensities, mask=~saturated)
     t2 = time.perf_counter()
@@ -1125,7 +1125,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                        "saturated_pixels": int(saturated.sum()),
                        "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
              "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
-             "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths)}}
+             "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
     if rounds is not None:
         extra["texture_rounds"] = rounds
     report = fit_json(result, fac, scene, depth, extra)

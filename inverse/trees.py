@@ -111,9 +111,16 @@ class Trees:
         return trees
 
 
+#: Bumped whenever :func:`build_trees` changes what it stores, so older cache files are not reused.
+TREES_VERSION = 1
+#: Cached trees files kept per workspace (novel views and relightings add their own); oldest go first.
+CACHE_KEEP = 4
+
+
 def trees_key(scene, camera, lights, depth: int, prune_tol: float) -> str:
     """SHA-1 of everything the trees depend on: camera, light positions, meshes, iors, r/t zeros."""
     h = hashlib.sha1()
+    h.update(f"trees v{TREES_VERSION}".encode())
     for a in (camera.K, camera.dist, camera.R, camera.t, lights.positions):
         h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
     h.update(repr((camera.width, camera.height, int(depth), float(prune_tol))).encode())
@@ -124,6 +131,67 @@ def trees_key(scene, camera, lights, depth: int, prune_tol: float) -> str:
             h.update(np.ascontiguousarray(m.normals).tobytes())
         h.update(repr((s.material.ior, _given_zero(s.material, "r"), _given_zero(s.material, "t"))).encode())
     return h.hexdigest()
+
+
+def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4,
+                        log=None, task=None) -> Trees:
+    """The trees of a workspace's scene, from its cache when nothing they depend on has changed.
+
+    The cache file (``Workspace.trees_cache(key)``, ``cache/trees-<key>.npz``) is named by
+    :func:`trees_key`, a hash of the camera, the light positions, every mesh's vertices,
+    triangles and normals, the iors, which r / t scene.json gives as 0, ``depth`` and
+    ``prune_tol``: any change to one of them names another file, so a stale file is never read.
+    A cache file that cannot be read (truncated, older format) is rebuilt and replaced. At most
+    :data:`CACHE_KEEP` files are kept (a novel view or a relighting adds one).
+
+    Parameters
+    ----------
+    workspace : path-like or hardware.workspace.Workspace
+    scene, camera, lights, depth, prune_tol
+        As for :func:`build_trees`.
+    log : callable, optional
+        Called with one line: ``"trees: reused cache <file> (N nodes, X s)"`` or
+        ``"trees: built in X s (N nodes), cached as <file>"``.
+    task : hardware.task.Task, optional
+        Checked between levels of a build (pause, cancel); a cancelled build writes nothing.
+
+    Returns
+    -------
+    Trees
+        ``stats["cache"]`` is ``"reused"`` or ``"built"``, ``stats["load_s"]`` the seconds to read
+        a reused file.
+    """
+    from hardware.workspace import Workspace
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    key = trees_key(scene, camera, lights, depth, prune_tol)
+    path = ws.trees_cache(key)
+    if path.exists():
+        t0 = time.perf_counter()
+        try:
+            trees = Trees.load(path)
+        except WorkspaceError:
+            trees = None
+        if trees is not None and trees.key == key and (trees.width, trees.height) == (camera.width, camera.height):
+            trees.stats["cache"] = "reused"
+            trees.stats["load_s"] = time.perf_counter() - t0
+            if log is not None:
+                log(f"trees: reused cache {path.name} ({len(trees)} nodes, {trees.stats['load_s']:.2f} s)")
+            return trees
+    trees = build_trees(scene, camera, lights, depth, prune_tol=prune_tol, task=task)
+    trees.stats["cache"] = "built"
+    trees.save(path)
+    _prune_cache(path.parent, keep=CACHE_KEEP)
+    if log is not None:
+        log(f"trees: built in {trees.stats['build_s']:.2f} s ({len(trees)} nodes), cached as {path.name}")
+    return trees
+
+
+def _prune_cache(folder: Path, keep: int) -> None:
+    """Delete all but the ``keep`` most recently written trees files in ``folder``."""
+    files = sorted(folder.glob("trees-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
+    for old in files[keep:]:
+        old.unlink(missing_ok=True)
 
 
 def _given_zero(material, name: str) -> bool:
@@ -225,7 +293,7 @@ def _dot(a, b):
     return np.einsum("...i,...i->...", a, b)
 
 
-def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4) -> Trees:
+def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4, task=None) -> Trees:
     """Cast the pixel-intensity trees of ``scene`` seen by ``camera`` under point ``lights``.
 
     Parameters
@@ -239,6 +307,8 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     prune_tol : float
         A branch whose largest possible weight (product of Fresnel factors, r and t being <= 1)
         is below this is not followed.
+    task : hardware.task.Task, optional
+        Told after each level (``step``: pause, cancel).
 
     Returns
     -------
@@ -288,6 +358,8 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     n_before = 0
 
     for level in range(1, depth + 1):
+        if task is not None:
+            task.step(level - 1, depth, f"trees: level {level} of {depth}")
         if len(origin) == 0:
             break
         hit, surf, tri, uv, point = caster.cast(origin, direction, offset, eps)

@@ -22,6 +22,8 @@ def test_demo_end_to_end(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "stage fit: exit 0" in out and "stage texture: exit 0" in out
     assert "materials from fit.json" in out and "recovered texture" in out
+    # One camera, one lamp set: fit builds the trees, texture and render reuse the workspace's cache.
+    assert out.count("trees: built") == 1 and out.count("trees: reused cache") == 2
     # The photograph is the true lab: the forward model with true materials and texture agrees.
     lab = build_lab(64, 48)
     photo = read_image(ws / "input.exr")

@@ -96,7 +96,7 @@ def run(args) -> int:
             print(f"[demo] stage {name} failed: later stages skipped")
             break
 
-    image, info = render_workspace(root, depth=args.depth)
+    image, info = render_workspace(root, depth=args.depth, log=lambda line: print(f"[demo] {line}"))
     write_image(root / "render.exr", image)
     write_preview(root / "render.png", image)
     rms = np.sqrt(np.mean((image - photo) ** 2, axis=(0, 1)))

@@ -57,6 +57,8 @@ def run(args) -> int:
                                    maxiter=args.max_iterations, max_seconds=args.max_seconds,
                                    texture_rounds=args.texture_rounds, progress=progress)
     img, cols = report["image"], report["columns"]
+    seconds = report["setup_s"]["trees"]
+    print(f"reflab fit: trees: {'reused cache' if report['trees']['cache'] == 'reused' else 'built'} in {seconds:.2f} s")
     print(f"reflab fit: {img['width']}x{img['height']} image, {img['saturated_pixels']} saturated pixels masked, "
           f"{report['trees']['nodes']} tree nodes")
     print(f"reflab fit: {cols['used']} monomial columns used (the dense factorization has {cols['dense_dissertation']})")

@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", type=positive_int, default=3, help="maximum internal nodes per path (default 3)")
 
 
-def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3) -> tuple:
+def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3, log=None) -> tuple:
     """Render the model of ``workspace`` (see the module's description).
 
     Parameters
@@ -38,6 +38,8 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         None: linear radiance; "albedo": kd of the surface seen at each pixel, NaN where unknown.
     depth : int
         Maximum internal nodes per path.
+    log : callable, optional
+        Told whether the trees were built or reused from the workspace's cache.
 
     Returns
     -------
@@ -55,7 +57,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     from hardware.workspace import Workspace
     from inverse.rendering import render, render_albedo
     from inverse.texture import albedo_nodes, load_materials
-    from inverse.trees import build_trees
+    from inverse.trees import trees_for_workspace
     from reconstruction.scene import Scene
 
     ws = Workspace(workspace)
@@ -65,7 +67,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     materials, source = load_materials(ws, scene)
 
     t0 = time.perf_counter()
-    trees = build_trees(scene, cam, lig, depth=depth)
+    trees = trees_for_workspace(ws, scene, cam, lig, depth=depth, log=log)
     t1 = time.perf_counter()
     kd_nodes = albedo_nodes(ws, scene, trees) if ws.textures.is_dir() else None
     info = {"materials": source, "texture_nodes": None, "unknown_albedo": 0,
@@ -91,7 +93,7 @@ def run(args) -> int:
     from hardware.images import write_image, write_preview
 
     start = time.perf_counter()
-    image, info = render_workspace(args.workspace, args.camera, args.lights, aov=args.aov, depth=args.depth)
+    image, info = render_workspace(args.workspace, args.camera, args.lights, aov=args.aov, depth=args.depth, log=print)
     default = "albedo.exr" if args.aov == "albedo" else "render.exr"
     out = Path(args.output) if args.output else Path(args.workspace) / default
     write_image(out, image, allow_nan=args.aov == "albedo")

@@ -40,7 +40,7 @@ def run(args) -> int:
     from hardware.images import read_image
     from hardware.workspace import Workspace, WorkspaceError, read_json
     from inverse.texture import TextureOptions, load_materials, recover_texture, write_textures
-    from inverse.trees import build_trees
+    from inverse.trees import trees_for_workspace
     from reconstruction.scene import Scene
 
     ws = Workspace(args.workspace)
@@ -58,7 +58,7 @@ def run(args) -> int:
         depth = int(read_json(ws.fit).get("depth", 3)) if ws.fit.exists() else 3
     options = TextureOptions(texel_scale=args.texel_scale, texel_size=args.texel_size, prior=args.prior,
                              smoothness=args.smoothness, saturation=args.saturation, bounds=(0.0, args.max_albedo))
-    trees = build_trees(scene, camera, lights, depth=depth)
+    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=lambda line: print(f"reflab texture: {line}"))
     result = recover_texture(scene, trees, materials, lights.intensities, image, options)
     extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
              "options": {"texel_scale": options.texel_scale, "texel_size": options.texel_size, "prior": options.prior,
@@ -67,11 +67,12 @@ def run(args) -> int:
                          "amplification_limit": options.amplification_limit}}
     written = write_textures(ws, scene, result, extra)
     st = result.stats
+    trees_note = "from the cache" if trees.stats["cache"] == "reused" else f"{trees.stats['build_s']:.2f} s"
     rms = ", ".join(f"{v:.3g}" for v in st["residual_rms"])
     print(f"reflab texture: materials from {source}; {st['rows']} equations, {st['unknowns']} unknowns, "
           f"{st['components']} components")
     print(f"reflab texture: {st['iterations']} CG iterations, solve {st['solve_s']:.2f} s, total {st['total_s']:.2f} s "
-          f"(+ trees {trees.stats.get('build_s', float('nan')):.2f} s); residual RMS per band [{rms}]")
+          f"(+ trees {trees_note}); residual RMS per band [{rms}]")
     for s, m in result.maps.items():
         print(f"  {m.name}: {m.kind} {m.width}x{m.height} texels of {m.texel_size * 1000:.2f} mm, "
               f"{int(result.mask[s].sum())} known, {int(np.count_nonzero(result.flags[s] & 1))} amplified > "

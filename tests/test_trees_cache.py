@@ -1,0 +1,86 @@
+"""The workspace's trees cache: built once, reused while nothing the trees depend on changes."""
+import numpy as np
+import pytest
+
+from calibration.camera import Camera
+from calibration.lights import Lights
+from hardware.sim.lab import build_lab, write_lab
+from hardware.task import Cancelled, Task
+from hardware.workspace import Workspace, read_json, write_json
+from inverse.trees import _ARRAYS, build_trees, trees_for_workspace
+from reconstruction.scene import Mesh, Scene
+
+
+def _load(ws):
+    return Scene.load(ws.scene), Camera.load(ws.camera), Lights.load(ws.lights)
+
+
+def _trees(ws, log):
+    return trees_for_workspace(ws, *_load(ws), depth=3, log=log.append)
+
+
+def test_trees_cache_reused_and_invalidated(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    write_lab(ws.root, build_lab(48, 36), materials=False)
+    log = []
+    first = _trees(ws, log)
+    assert first.stats["cache"] == "built" and log[-1].startswith("trees: built in")
+    assert len(list(ws.cache.glob("trees-*.npz"))) == 1
+
+    # Same inputs (files re-read): the cached trees come back, identical to a fresh build.
+    again = _trees(ws, log)
+    assert again.stats["cache"] == "reused" and log[-1].startswith("trees: reused cache")
+    fresh = build_trees(*_load(ws), depth=3)
+    assert again.key == fresh.key and again.paths == fresh.paths
+    for name in _ARRAYS:
+        np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name), err_msg=name)
+
+    # A mesh moved by 1 mm: rebuilt, and the new trees see the moved box.
+    box = ws.root / "meshes" / "box.ply"
+    mesh = Mesh.load(box)
+    Mesh(mesh.vertices + [0.0, 0.0, 0.001], mesh.triangles, mesh.normals).save(box)
+    moved = _trees(ws, log)
+    assert moved.stats["cache"] == "built" and log[-1].startswith("trees: built in")
+    assert moved.key != first.key
+    box_i = Scene.load(ws.scene).index("box")
+    on_box = (moved.surface == box_i) & (moved.level == 1)
+    assert not np.array_equal(moved.point[on_box], first.point[(first.surface == box_i) & (first.level == 1)])
+    assert _trees(ws, log).stats["cache"] == "reused"
+
+    # Other inputs the trees depend on: a lamp's position, r given as 0 (pruning), the depth.
+    lights = read_json(ws.lights)
+    lights["lights"][0]["position"][0] += 0.01
+    write_json(ws.lights, lights)
+    assert _trees(ws, log).stats["cache"] == "built"
+    scene = read_json(ws.scene)
+    scene["surfaces"][0]["material"].pop("r")  # the ground no longer declared matte: its reflections are followed
+    write_json(ws.scene, scene)
+    assert _trees(ws, log).stats["cache"] == "built"
+    assert trees_for_workspace(ws, *_load(ws), depth=2).stats["cache"] == "built"
+    # A lamp's intensity is not a tree input.
+    lights["lights"][1]["intensity"] = [0.5, 0.5, 0.5]
+    write_json(ws.lights, lights)
+    assert _trees(ws, log).stats["cache"] == "reused"
+    assert len(list(ws.cache.glob("trees-*.npz"))) <= 4  # older files pruned
+
+
+def test_trees_cache_unreadable_file_is_rebuilt(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    write_lab(ws.root, build_lab(32, 24), materials=False)
+    log = []
+    trees = _trees(ws, log)
+    (path,) = ws.cache.glob("trees-*.npz")
+    path.write_bytes(b"not an npz file")
+    again = _trees(ws, log)
+    assert again.stats["cache"] == "built" and len(again) == len(trees)
+    assert _trees(ws, log).stats["cache"] == "reused"
+
+
+def test_trees_cancelled_build_writes_nothing(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    write_lab(ws.root, build_lab(32, 24), materials=False)
+    task = Task()
+    task.cancel()
+    with pytest.raises(Cancelled):
+        trees_for_workspace(ws, *_load(ws), depth=3, task=task)
+    assert not ws.cache.exists() or not list(ws.cache.glob("trees-*"))
