@@ -1,0 +1,307 @@
+"""The guided lab window: a step list, one page per step, progress, cancel and a log pane.
+
+Object names are part of INTERFACES.md's contract (GUI): ``steps``, ``page_<step>``,
+``run_<step>``, ``status_<step>``, ``progress``, ``cancel``. One step runs at a time, in a
+:class:`app.gui.worker.Worker` thread; its Task is what ``cancel`` stops. The window emits
+:attr:`MainWindow.step_finished` ``(step, outcome)`` with outcome ``done``, ``failed`` or
+``cancelled`` once a step's thread has ended (tests wait on it).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtGui import QColor, QFont
+from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem, QMainWindow, QMessageBox,
+                               QPlainTextEdit, QProgressBar, QPushButton, QSplitter, QStackedWidget, QVBoxLayout,
+                               QWidget)
+
+from app.gui import stages
+from app.gui.pages import PAGES
+from app.gui.rig import Rig
+from app.gui.worker import Worker
+
+
+class MainWindow(QMainWindow):
+    """``MainWindow(workspace, port="sim", camera="sim")``: the wizard over one workspace.
+
+    Parameters
+    ----------
+    workspace : path-like
+        Created when missing; an existing one reopens at its first missing step.
+    port, camera : str
+        As ``reflab capture``'s ``--port`` and ``--camera`` (``sim`` = the simulated lab).
+    size : (int, int)
+        Image size of the simulated camera.
+    live_preview_ms : int
+        Interval of the live camera view (0 turns it off).
+    options : dict, optional
+        ``{step: {option: value}}`` set on the pages' option widgets (tests, scripts).
+    """
+
+    step_finished = Signal(str, str)
+    log_line = Signal(str)
+
+    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=(320, 240),
+                 live_preview_ms: int = 1500, options: dict | None = None):
+        super().__init__()
+        self.workspace = Path(workspace)
+        self.workspace.mkdir(parents=True, exist_ok=True)
+        self.port, self.camera = port, camera
+        self.rig = Rig(self.workspace, port, camera, size=size, log=self.log_line.emit)
+        self.worker: Worker | None = None
+        self.running: str | None = None
+        self._background: list[Worker] = []
+        self._preview: Worker | None = None
+        self.setWindowTitle(f"reflab — {self.workspace}")
+        self.log_line.connect(self._append_log)
+
+        self.step_list = QListWidget()
+        self.step_list.setObjectName("steps")
+        self.step_list.setMinimumWidth(200)
+        self.step_list.setMaximumWidth(260)
+        self.stack = QStackedWidget()
+        self.stack.setObjectName("pages")
+        self.pages = {}
+        for step in stages.STEPS:
+            item = QListWidgetItem(step.title)
+            item.setData(Qt.ItemDataRole.UserRole, step.name)
+            self.step_list.addItem(item)
+            page = PAGES[step.name](step, self)
+            self.pages[step.name] = page
+            self.stack.addWidget(page)
+        self.step_list.currentRowChanged.connect(self._show_page)
+
+        self.progress = QProgressBar()
+        self.progress.setObjectName("progress")
+        self.progress.setRange(0, 1000)
+        self.progress.setValue(0)
+        self.progress.setFormat("idle")
+        self.progress.setTextVisible(True)
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.setObjectName("cancel")
+        self.cancel_button.setEnabled(False)
+        self.cancel_button.clicked.connect(self.cancel)
+        self.log_pane = QPlainTextEdit()
+        self.log_pane.setObjectName("log")
+        self.log_pane.setReadOnly(True)
+        self.log_pane.setMaximumBlockCount(5000)
+        self.log_pane.setFont(QFont("monospace", 8))
+
+        top = QSplitter(Qt.Orientation.Horizontal)
+        top.addWidget(self.step_list)
+        top.addWidget(self.stack)
+        top.setStretchFactor(1, 1)
+        bar = QHBoxLayout()
+        bar.addWidget(self.progress, 1)
+        bar.addWidget(self.cancel_button)
+        bottom = QWidget()
+        bl = QVBoxLayout(bottom)
+        bl.setContentsMargins(0, 0, 0, 0)
+        bl.addLayout(bar)
+        bl.addWidget(QLabel("Log"))
+        bl.addWidget(self.log_pane)
+        vsplit = QSplitter(Qt.Orientation.Vertical)
+        vsplit.addWidget(top)
+        vsplit.addWidget(bottom)
+        vsplit.setStretchFactor(0, 5)
+        vsplit.setStretchFactor(1, 1)
+        central = QWidget()
+        QVBoxLayout(central).addWidget(vsplit)
+        self.setCentralWidget(central)
+        self.resize(1280, 860)
+
+        for name, values in (options or {}).items():
+            self.set_options(name, **values)
+        self.refresh_steps()
+        for page in self.pages.values():
+            page.refresh()
+        self.step_list.setCurrentRow(stages.resume_index(self.workspace))
+
+        self.preview_timer = QTimer(self)
+        self.preview_timer.timeout.connect(self._tick_preview)
+        if live_preview_ms:
+            self.preview_timer.start(live_preview_ms)
+
+    # ------------------------------------------------------------------ pages and steps
+    def page(self, name: str):
+        return self.pages[name]
+
+    def current_step(self) -> str:
+        return stages.NAMES[self.step_list.currentRow()]
+
+    def go_to(self, name: str) -> None:
+        self.step_list.setCurrentRow(stages.NAMES.index(name))
+
+    def _show_page(self, row: int) -> None:
+        if row >= 0:
+            self.stack.setCurrentIndex(row)
+
+    def set_options(self, name: str, **values) -> None:
+        """Set a page's option widgets (``spin``, ``line edit``, ``check box``) by key."""
+        from PySide6.QtWidgets import QCheckBox, QComboBox, QDoubleSpinBox, QSpinBox
+
+        widgets = self.pages[name]._options
+        for key, value in values.items():
+            w = widgets[key]
+            if isinstance(w, QCheckBox):
+                w.setChecked(bool(value))
+            elif isinstance(w, (QSpinBox, QDoubleSpinBox)):
+                w.setValue(value)
+            elif isinstance(w, QComboBox):
+                w.setCurrentText(str(value))
+            else:
+                w.setText(str(value))
+
+    def refresh_steps(self) -> None:
+        """Tick the steps that are done, from the workspace's files."""
+        for i, step in enumerate(stages.STEPS):
+            item = self.step_list.item(i)
+            done = step.done(self.workspace)
+            running = step.name == self.running
+            item.setText(("▶ " if running else "✓ " if done else "   ") + f"{i + 1}. {step.title}")
+            item.setForeground(QColor("#2050a0" if running else "#207020" if done else "#222"))
+
+    def run_step(self, name: str) -> bool:
+        """Start step ``name`` in a worker thread; False when another step is running."""
+        if self.running is not None:
+            self.log(f"{self.running} is running: wait for it or cancel it first")
+            return False
+        step = stages.STEPS[stages.NAMES.index(name)]
+        page = self.pages[name]
+        ctx = stages.Context(self.workspace, self.rig, page.options(), log=self.log_line.emit)
+        worker = Worker(lambda task: step.run(ctx, task), name)
+        ctx.image = worker.image.emit
+        ctx.report = worker.progress.emit
+        worker.progress.connect(self._progress)
+        worker.image.connect(lambda img: self.pages[name].preview.set_image(img))
+        worker.succeeded.connect(lambda summary: self._ended(name, "done", str(summary)))
+        worker.failed.connect(lambda msg, details: self._ended(name, "failed", msg))
+        worker.cancelled.connect(lambda msg: self._ended(name, "cancelled", "stopped; Run again resumes"))
+        worker.thread.finished.connect(lambda: self._thread_done(name))
+        self.worker, self.running = worker, name
+        page.set_status("running…")
+        self.progress.setValue(0)
+        self.progress.setFormat(f"{step.title}: starting")
+        self.progress.setRange(0, 0)  # busy until the stage reports progress
+        self.cancel_button.setEnabled(True)
+        for p in self.pages.values():
+            p.run_button.setEnabled(False)
+        self.refresh_steps()
+        self.log(f"--- {step.title}: started")
+        worker.start()
+        return True
+
+    def cancel(self) -> None:
+        if self.worker is not None:
+            self.log(f"cancelling {self.running}…")
+            self.cancel_button.setEnabled(False)
+            self.worker.cancel()
+
+    def _progress(self, done: float, total: float, message: str) -> None:
+        if total > 0:
+            self.progress.setRange(0, 1000)
+            self.progress.setValue(int(1000 * min(done / total, 1.0)))
+        self.progress.setFormat(message or "%p%")
+        if message:
+            self.log(message)
+
+    def _ended(self, name: str, outcome: str, text: str) -> None:
+        self.pages[name].set_status(f"{outcome}: {text}")
+        self.log(f"--- {stages.STEPS[stages.NAMES.index(name)].title}: {outcome}: {text}")
+        self._outcome = outcome
+
+    def _thread_done(self, name: str) -> None:
+        outcome = getattr(self, "_outcome", "failed")
+        self.worker, self.running = None, None
+        self.progress.setRange(0, 1000)
+        self.progress.setValue(1000 if outcome == "done" else 0)
+        self.progress.setFormat(f"{outcome}")
+        self.cancel_button.setEnabled(False)
+        for p in self.pages.values():
+            p.run_button.setEnabled(True)
+        self.refresh_steps()
+        try:
+            self.pages[name].refresh()
+            if name == "devices" or not self.rig.connected:
+                self.pages["devices"].refresh()
+        except Exception as exc:  # noqa: BLE001 -- a result that cannot be shown is logged, not raised
+            self.log(f"could not show the result of {name}: {exc}")
+        self.step_finished.emit(name, outcome)
+
+    # ------------------------------------------------------------------ hardware page actions
+    def hardware_action(self, what: str, *args) -> None:
+        """Jog or switch a lamp in a background thread (never while a step runs)."""
+        if self.running is not None:
+            self.log("a step is using the rig")
+            return
+        fn = {"rotate": self.rig.rotate, "lamp": self.rig.set_lamp}[what]
+        self.background(lambda task: fn(*args), self._hardware_done, "hardware")
+
+    def _hardware_done(self, ok: bool, result) -> None:
+        devices = self.pages["devices"]
+        devices.show_connection(str(result) if ok else f"failed: {result}")
+
+    def disconnect_rig(self) -> None:
+        if self.running is not None:
+            self.log("a step is using the rig: cancel it first")
+            return
+        self.rig.disconnect()
+        self.pages["devices"].show_connection("disconnected")
+        self.log("rig disconnected")
+
+    def background(self, fn, done, name: str = "background") -> Worker:
+        """Run ``fn(task)`` off the UI thread; ``done(ok, result_or_message)`` on the UI thread."""
+        worker = Worker(fn, name)
+        worker.log.connect(self.log)
+        worker.succeeded.connect(lambda result: done(True, result))
+        worker.failed.connect(lambda msg, details: done(False, msg))
+        worker.cancelled.connect(lambda msg: done(False, msg))
+        worker.thread.finished.connect(lambda: self._background.remove(worker) if worker in self._background else None)
+        self._background.append(worker)
+        return worker.start()
+
+    # ------------------------------------------------------------------ live camera view
+    def _tick_preview(self) -> None:
+        if not self.rig.connected or self.running is not None or self._preview is not None or not self.isVisible():
+            return
+        page = self.pages[self.current_step()]
+        if page.preview_stretch == 0:
+            return
+
+        def done(ok, img):
+            self._preview = None
+            if ok and img is not None:
+                page.preview.set_image(img)
+
+        self._preview = self.background(lambda task: self.rig.preview(), done, "preview")
+
+    # ------------------------------------------------------------------ log and closing
+    def log(self, text: str) -> None:
+        self.log_line.emit(str(text))
+
+    def _append_log(self, text: str) -> None:
+        self.log_pane.appendPlainText(text)
+
+    def ask_close(self) -> bool:
+        """Ask before closing while a step runs (tests replace this)."""
+        title = stages.STEPS[stages.NAMES.index(self.running)].title
+        answer = QMessageBox.question(self, "A step is running",
+                                      f"“{title}” is still running. Cancel it and close? Its finished work is kept "
+                                      "and Run resumes it next time.")
+        return answer == QMessageBox.StandardButton.Yes
+
+    def closeEvent(self, event) -> None:
+        if self.running is not None:
+            if not self.ask_close():
+                event.ignore()
+                return
+            self.cancel()
+            if self.worker is not None:
+                self.worker.wait(10000)
+        self.preview_timer.stop()
+        for w in list(self._background):
+            w.cancel()
+            w.wait(10000)
+        self.rig.disconnect()
+        event.accept()

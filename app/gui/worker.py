@@ -1,0 +1,98 @@
+"""Long work off the UI thread: one :class:`Worker` per run, in its own ``QThread``.
+
+The worker owns a :class:`hardware.task.Task`; the stage reports through ``task.step`` (emitted
+as :attr:`Worker.progress`, queued to the UI thread) and the cancel button calls
+:meth:`Worker.cancel`, which the stage sees at its next check. Exactly one of ``succeeded``,
+``failed`` or ``cancelled`` is emitted, then ``finished``. A failure carries the stage's one-line
+message and, separately, the details (the traceback) for the log pane: no dialog ever shows it.
+"""
+from __future__ import annotations
+
+import traceback
+
+from PySide6.QtCore import QObject, QThread, Signal
+
+from hardware.task import Cancelled, Task
+
+
+class StepFailed(RuntimeError):
+    """A stage stopped with a message meant for the user (one line, says what to fix)."""
+
+
+def one_line(exc: BaseException) -> str:
+    """The first line of an exception's message, named by its type when it has none."""
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+class _Thread(QThread):
+    def __init__(self, target):
+        super().__init__()
+        self.target = target
+
+    def run(self) -> None:
+        self.target()
+
+
+class Worker(QObject):
+    """Run ``fn(task)`` in a thread; ``fn`` returns a one-line summary (or any object)."""
+
+    progress = Signal(float, float, str)
+    log = Signal(str)
+    image = Signal(object)  # a frame the stage just took (numpy array), for the live preview
+    succeeded = Signal(object)
+    failed = Signal(str, str)  # one-line message, details
+    cancelled = Signal(str)
+    finished = Signal()
+
+    def __init__(self, fn, name: str = ""):
+        super().__init__()
+        self.fn, self.name = fn, name
+        self.task = Task(progress=lambda done, total, msg: self.progress.emit(done, total, msg))
+        # The worker object stays in the UI thread, so every slot connected to its signals (lambdas
+        # included) runs there, queued; only _run executes in the thread.
+        self.thread = _Thread(self._run)
+        self.thread.setObjectName(f"worker_{name}")
+
+    def start(self) -> "Worker":
+        self.thread.start()
+        return self
+
+    def cancel(self) -> None:
+        self.task.cancel()
+
+    @property
+    def running(self) -> bool:
+        return self.thread.isRunning()
+
+    def wait(self, ms: int = -1) -> bool:
+        return self.thread.wait() if ms < 0 else self.thread.wait(ms)
+
+    def _run(self) -> None:
+        from app.gui.rig import RigError
+        from hardware.cameras import CameraError
+        from hardware.capture import CaptureCancelled, CaptureError
+        from hardware.grbl import GrblError
+        from hardware.workspace import WorkspaceError
+
+        expected = (StepFailed, WorkspaceError, CaptureError, GrblError, CameraError, RigError, ValueError)
+
+        try:
+            result = self.fn(self.task)
+        except (Cancelled, CaptureCancelled, KeyboardInterrupt) as exc:
+            self.log.emit(str(exc))
+            self.cancelled.emit(one_line(exc))
+        except expected as exc:  # the stage's own message names what to fix
+            self.log.emit(str(exc))
+            self.failed.emit(one_line(exc), str(exc))
+        except Exception as exc:  # noqa: BLE001 -- any other error is shown in the page, not raised
+            details = traceback.format_exc()
+            self.log.emit(details)
+            self.failed.emit(f"{type(exc).__name__}: {one_line(exc)}", details)
+        else:
+            if self.task.cancelled:
+                self.cancelled.emit("cancelled")
+            else:
+                self.succeeded.emit(result)
+        finally:
+            self.finished.emit()
