@@ -19,11 +19,30 @@ maps them to its search space (log2 shininess).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 BANDS = 3
+
+
+def one_blas_thread(func):
+    """Run ``func`` with BLAS (OpenBLAS in numpy and scipy) on one thread.
+
+    The fit's dense products are small (monomial space, or R × a few dozen columns): OpenBLAS's
+    threads cost more than they gain, and on a loaded machine their spin-waiting halves the speed.
+    Measured on the 320×240 demo, 2 cores at load ≈ 4.5: one fit 25.4 s → 13.8 s, and the inner
+    gradient 6.7 → 1.2 ms, the normal matrix 92 → 26 ms (docs/fit.md, "Speed").
+    """
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            return func(*args, **kwargs)
+
+    return wrapper
 
 
 @dataclass

@@ -32,7 +32,7 @@ import numpy as np
 from hardware.images import clip_level
 from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
-from inverse.factorization import BANDS, Factorization
+from inverse.factorization import BANDS, Factorization, one_blas_thread
 from reconstruction.scene import INITIAL, SCALAR_RANGE
 
 #: Nonlinear parameters searched in log2 (scale parameters spanning decades).
@@ -827,6 +827,7 @@ def _theta_resolution(pb: Problem, p: Params, sig: Params) -> np.ndarray:
                     sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
 
 
+@one_blas_thread
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None) -> FitResult:
