@@ -35,7 +35,14 @@ from calibration.circles import ellipse_boundaries, ellipse_centres, polygon_cen
 
 
 class CalibrationError(ValueError):
-    """The views cannot determine the camera (too few, degenerate, inconsistent)."""
+    """The views cannot determine the camera (too few, degenerate, inconsistent).
+
+    ``view``: index of the observation at fault, when one is.
+    """
+
+    def __init__(self, message: str, view: int | None = None):
+        super().__init__(message)
+        self.view = view
 
 
 def rodrigues(rvec: np.ndarray) -> np.ndarray:
@@ -145,6 +152,10 @@ class CalibrationResult:
         Target-to-camera pose of every used view.
     rms, worst : (V,) ndarray
         RMS and largest reprojection error (px) per used view.
+    views : list of int
+        The used views (indices into the observations given), in the order of ``poses``.
+    rejected : dict
+        Views left out because they reprojected far worse than the others: index -> RMS (px).
     sigma : dict
         One-standard-deviation uncertainty of every intrinsic (OpenCV and Tsai names).
     crosscheck : dict
@@ -163,20 +174,27 @@ class CalibrationResult:
     bias_correction: bool
     time_s: float = 0.0
     stages: dict = field(default_factory=dict)
+    views: list = field(default_factory=list)
+    rejected: dict = field(default_factory=dict)
 
     @property
     def rms_all(self) -> float:
         return float(np.sqrt(np.mean(self.rms**2)))
 
     def report(self, names=None) -> dict:
-        """JSON-ready summary (written beside camera.json by the CLI)."""
-        names = names or [f"view {i}" for i in range(len(self.rms))]
+        """JSON-ready summary (written beside camera.json by the CLI).
+
+        ``names``: one per observation given to :func:`calibrate` (rejected views included).
+        """
+        views = self.views or list(range(len(self.rms)))
+        names = names or [f"view {i}" for i in range(max(views + list(self.rejected), default=-1) + 1)]
         K, d = self.camera.K, self.camera.dist
         return {
             "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "k1": d[0], "k2": d[1],
             "tsai": self.camera.tsai, "sigma": self.sigma, "rms_px": self.rms_all,
-            "views": [{"image": str(n), "rms_px": float(r), "worst_px": float(w)}
-                      for n, r, w in zip(names, self.rms, self.worst)],
+            "views": [{"image": str(names[i]), "rms_px": float(r), "worst_px": float(w)}
+                      for i, r, w in zip(views, self.rms, self.worst)],
+            "rejected": [{"image": str(names[i]), "rms_px": r} for i, r in self.rejected.items()],
             "bias_correction": self.bias_correction, "circle_radius_m": self.radius,
             "opencv_crosscheck": self.crosscheck, "stages": self.stages, "time_s": self.time_s,
         }
@@ -229,26 +247,71 @@ def _centres(pixels, intr, R, t, points, radius):
     return polygon_centroids(pixels(intr, b[..., 0], b[..., 1]))
 
 
-def _opencv_crosscheck(obs, points, size, ours: Camera) -> dict:
+def _opencv_calibration(obs, points, size):
+    """``cv2.calibrateCamera`` (k1, k2; no tangential terms) on projected circle centres.
+
+    Its start is Zhang's: intrinsics from the homographies of all views at once, so no single view
+    (a frontal one, where Tsai's per-view closed form cannot separate f from the distance) decides
+    it. Returns (rms, K, dist, poses).
+    """
     import cv2
 
     objp = [points.astype(np.float32)] * len(obs)
     imgp = [o.reshape(-1, 1, 2).astype(np.float32) for o in obs]
     flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
-    rms, K, dist, _, _ = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags)
-    K, dist = np.asarray(K), np.asarray(dist).ravel()
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags)
+    poses = [(rodrigues(np.asarray(r, dtype=np.float64).ravel()), np.asarray(t, dtype=np.float64).ravel())
+             for r, t in zip(rvecs, tvecs)]
+    return float(rms), np.asarray(K, dtype=np.float64), np.asarray(dist, dtype=np.float64).ravel(), poses
+
+
+def _crosscheck(cv, ours: Camera) -> dict:
+    rms, K, dist, _ = cv
     return {
-        "rms_px": float(rms), "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+        "rms_px": rms, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
         "k1": dist[0], "k2": dist[1],
         "minus_ours": {"fx": K[0, 0] - ours.K[0, 0], "fy": K[1, 1] - ours.K[1, 1], "cx": K[0, 2] - ours.K[0, 2],
                        "cy": K[1, 2] - ours.K[1, 2], "k1": dist[0] - ours.dist[0], "k2": dist[1] - ours.dist[1]},
     }
 
 
+def _tsai_start(obs, points, Cx0, Cy0, dx, dy):
+    """Tsai's stages 1-2 per view: poses and the median f, kappa1 (the fallback start)."""
+    from scipy.optimize import least_squares
+
+    poses, fs, kappas = [], [], []
+    for o in obs:
+        R, t, f = tsai_linear(points, o, Cx0, Cy0, dx, dy)
+
+        def res(p, R=R, t=t, o=o):
+            xn = (R[0, :2] @ points[:, :2].T + t[0]) / (R[2, :2] @ points[:, :2].T + p[1])
+            yn = (R[1, :2] @ points[:, :2].T + t[1]) / (R[2, :2] @ points[:, :2].T + p[1])
+            return (tsai_pixels(xn, yn, p[0], p[2], Cx0, Cy0, 1.0, dx, dy) - o).ravel()
+
+        p = least_squares(res, [f, t[2], 0.0], x_scale="jac").x
+        poses.append((R, np.array([t[0], t[1], p[1]])))
+        fs.append(p[0])
+        kappas.append(p[2])
+    return np.array([np.median(fs), np.median(kappas), Cx0, Cy0, 1.0]), poses
+
+
+def _view_rms(res) -> np.ndarray:
+    return np.sqrt(np.mean(np.sum(res**2, axis=2), axis=1))
+
+
+def _worst_view(rms: np.ndarray, ratio: float, floor_px: float) -> int | None:
+    """Index of the view that reprojects far worse than the others (else None)."""
+    k = int(np.argmax(rms))
+    others = np.delete(rms, k)
+    limit = max(ratio * float(np.median(others)), floor_px) if len(others) else np.inf
+    return k if rms[k] > limit else None
+
+
 def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[int, int], *,
               radius: float | None = None, pixel_size: float = 0.005, reference: int = 0,
               bias_correction: bool = True, areas: list[np.ndarray] | None = None,
-              min_views: int = 3, min_spread_deg: float = 5.0) -> CalibrationResult:
+              min_views: int = 3, min_spread_deg: float = 5.0, bad_view_ratio: float = 3.0,
+              bad_view_px: float = 0.5) -> CalibrationResult:
     """Calibrate one camera from several views of a planar circle grid.
 
     Parameters
@@ -269,14 +332,17 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
         Model the perspective bias of ellipse centres (else fit projected circle centres).
     areas : list of (N,) ndarray, optional
         Measured ellipse areas (px²) per view, to estimate ``radius``.
+    bad_view_ratio, bad_view_px : float
+        A view whose RMS reprojection error exceeds both ``bad_view_ratio`` × the median of the
+        others and ``bad_view_px`` is left out (named in ``rejected``) and the rest recalibrated;
+        when it is the reference view the calibration is refused.
 
     Raises
     ------
     CalibrationError
-        Fewer than ``min_views`` views, or all target orientations within ``min_spread_deg``.
+        Fewer than ``min_views`` views, all target orientations within ``min_spread_deg``, or the
+        reference view far worse than the others.
     """
-    from scipy.optimize import least_squares
-
     t0 = time.perf_counter()
     W, H = size
     nv = len(observations)
@@ -285,48 +351,64 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
                                "(tilted differently) to determine focal length, image centre and distortion")
     if not 0 <= reference < nv:
         raise CalibrationError(f"reference view {reference} out of range 0..{nv - 1}")
-    obs = [np.asarray(o, dtype=np.float64).reshape(-1, 2) for o in observations]
+    obs_all = [np.asarray(o, dtype=np.float64).reshape(-1, 2) for o in observations]
     points = np.asarray(points, dtype=np.float64)
     dx = dy = float(pixel_size)
     Cx0, Cy0 = (W - 1) / 2, (H - 1) / 2
-
-    # Stages 1-2, per view.
-    poses, fs, kappas = [], [], []
-    for o in obs:
-        R, t, f = tsai_linear(points, o, Cx0, Cy0, dx, dy)
-
-        def res(p, R=R, t=t, o=o):
-            xn = (R[0, :2] @ points[:, :2].T + t[0]) / (R[2, :2] @ points[:, :2].T + p[1])
-            yn = (R[1, :2] @ points[:, :2].T + t[1]) / (R[2, :2] @ points[:, :2].T + p[1])
-            return (tsai_pixels(xn, yn, p[0], p[2], Cx0, Cy0, 1.0, dx, dy) - o).ravel()
-
-        p = least_squares(res, [f, t[2], 0.0], x_scale="jac").x
-        poses.append((R, np.array([t[0], t[1], p[1]])))
-        fs.append(p[0])
-        kappas.append(p[2])
-    normals = np.array([R[:, 2] for R, _ in poses])
-    spread = np.degrees(np.arccos(np.clip(normals @ normals.T, -1, 1))).max()
-    if spread < min_spread_deg:
-        raise CalibrationError(f"all {nv} views hold the target within {spread:.1f} deg of the same orientation "
-                               f"(degenerate: focal length and distance trade off); tilt it differently "
-                               f"between views (at least {min_spread_deg:.0f} deg apart, 20-45 deg is good)")
-    stages = {"per_view_f_mm": [float(f) for f in fs], "orientation_spread_deg": float(spread)}
-
-    # Stage 3: Tsai's full optimisation over all views (radius from the data when unknown).
     spacing = np.median(np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1))
-    rad = float(radius) if radius else 0.3 * spacing
     tsai_model = lambda x, xn, yn: tsai_pixels(xn, yn, x[0], x[1], x[2], x[3], x[4], dx, dy)  # noqa: E731
-    r_fit = rad if bias_correction else 0.0
-    x_t, poses, res_t, cov_t = _refine(tsai_model, np.array([np.median(fs), np.median(kappas), Cx0, Cy0, 1.0]),
-                                       poses, obs, points, r_fit)
-    if bias_correction and radius is None and areas is not None:
-        pred = _centres(tsai_model, x_t, np.array([R for R, _ in poses]), np.array([t for _, t in poses]),
-                        points, rad)[1]
-        rad *= float(np.sqrt(np.median(np.asarray(areas) / pred)))
-        x_t, poses, res_t, cov_t = _refine(tsai_model, x_t, poses, obs, points, rad)
+    keep, rejected = list(range(nv)), {}
+    while True:
+        obs = [obs_all[i] for i in keep]
+        if len(obs) < min_views:
+            raise CalibrationError(f"only {len(obs)} view(s) left after leaving out {len(rejected)} that reproject "
+                                   f"far worse than the others; need at least {min_views}")
+        # Start: Zhang's (every view's homography at once) through cv2.calibrateCamera, so no single
+        # view decides it; Tsai's per-view closed form only when OpenCV cannot start.
+        try:
+            cv = _opencv_calibration(obs, points, (W, H))
+            _, K0, d0, poses = cv
+            f0 = K0[1, 1] * dy
+            x0, start = np.array([f0, -d0[0] / f0**2, K0[0, 2], K0[1, 2], K0[0, 0] / K0[1, 1]]), "zhang"
+        except Exception:  # noqa: BLE001 - cv2.error and numerical failures alike
+            cv = None
+            x0, poses = _tsai_start(obs, points, Cx0, Cy0, dx, dy)
+            start = "tsai"
+        if not np.all(np.isfinite(x0)) or x0[0] <= 0:
+            raise CalibrationError("no starting camera fits these views (are they of one planar target?)")
+        normals = np.array([R[:, 2] for R, _ in poses])
+        spread = np.degrees(np.arccos(np.clip(normals @ normals.T, -1, 1))).max()
+        if spread < min_spread_deg:
+            raise CalibrationError(f"all {len(obs)} views hold the target within {spread:.1f} deg of the same "
+                                   f"orientation (degenerate: focal length and distance trade off); tilt it "
+                                   f"differently between views (at least {min_spread_deg:.0f} deg apart, 20-45 deg "
+                                   "is good)")
+        # Stage 3: Tsai's full optimisation over all views (radius from the data when unknown).
+        rad = float(radius) if radius else 0.3 * spacing
+        r_fit = rad if bias_correction else 0.0
+        x_t, poses, res_t, cov_t = _refine(tsai_model, x0, poses, obs, points, r_fit)
+        if bias_correction and radius is None and areas is not None:
+            pred = _centres(tsai_model, x_t, np.array([R for R, _ in poses]), np.array([t for _, t in poses]),
+                            points, rad)[1]
+            rad *= float(np.sqrt(np.median(np.asarray([areas[i] for i in keep]) / pred)))
+            x_t, poses, res_t, cov_t = _refine(tsai_model, x_t, poses, obs, points, rad)
+        rms_t = _view_rms(res_t)
+        bad = _worst_view(rms_t, bad_view_ratio, bad_view_px)
+        if bad is None:
+            break
+        others = float(np.median(np.delete(rms_t, bad)))
+        if keep[bad] == reference:
+            raise CalibrationError(f"the reference view reprojects at {rms_t[bad]:.2f} px RMS, the other views at "
+                                   f"{others:.2f} px: its circles do not fit the camera the others agree on (other "
+                                   "zoom or focus, target moved, blur); retake it, its pose is the one camera.json "
+                                   "needs", view=reference)
+        rejected[keep[bad]] = float(rms_t[bad])
+        keep.pop(bad)
     f, kappa1, Cx, Cy, sx = x_t
     tsai = {"f": f, "kappa1": kappa1, "sx": sx, "Cx": Cx, "Cy": Cy, "dx": dx, "dy": dy}
-    stages["tsai_rms_px"] = float(np.sqrt(np.mean(np.sum(res_t**2, axis=2))))
+    stages = {"start": start, "orientation_spread_deg": float(spread),
+              "tsai_rms_px": float(np.sqrt(np.mean(rms_t**2))),
+              "rejected_views": {str(k): v for k, v in rejected.items()}}
 
     # Stage 4: OpenCV form.
     kn = kappa1 * f**2
@@ -338,10 +420,10 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     sigma = dict(zip(["fx", "fy", "cx", "cy", "k1", "k2"], sig_c.tolist()))
     sigma["tsai"] = dict(zip(["f", "kappa1", "Cx", "Cy", "sx"], sig_t.tolist()))
 
-    R_ref, t_ref = poses[reference]
+    R_ref, t_ref = poses[keep.index(reference)]
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     camera = Camera(W, H, K, np.array([k1, k2, 0, 0, 0.0]), R_ref, t_ref, tsai=tsai)
     err = np.linalg.norm(res_c, axis=2)
-    crosscheck = _opencv_crosscheck(obs, points, (W, H), camera)
+    crosscheck = _crosscheck(cv if cv is not None else _opencv_calibration(obs, points, (W, H)), camera)
     return CalibrationResult(camera, poses, np.sqrt(np.mean(err**2, axis=1)), err.max(axis=1), sigma,
-                             crosscheck, rad, bias_correction, time.perf_counter() - t0, stages)
+                             crosscheck, rad, bias_correction, time.perf_counter() - t0, stages, keep, rejected)

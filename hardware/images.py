@@ -1,10 +1,15 @@
-"""Linear image I/O: float32 OpenEXR by default, 16-bit PNG/TIFF read as value / 65535.
+"""Image I/O: float32 OpenEXR by default, 16-bit PNG/TIFF read as value / 65535.
 
-Arrays are float32, shape (H, W, 3), RGB order, linear radiance (OpenCV's BGR is hidden here).
-OpenEXR goes through Mitsuba's Bitmap: the OpenCV 5 wheels are built without OpenEXR.
+Arrays are float32, shape (H, W, 3), RGB order (OpenCV's BGR is hidden here). OpenEXR goes
+through Mitsuba's Bitmap: the OpenCV 5 wheels are built without OpenEXR.
+
+Two kinds of reader (INTERFACES.md, Images): photometric stages need linear radiance
+(:func:`read_image`, then :func:`check_radiance`); geometric stages take any image a camera
+writes (``read_image(path, linear=False)``: 8-bit JPEG/PNG too, sRGB-decoded).
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -33,15 +38,47 @@ def _write_exr(path: Path, img: np.ndarray) -> None:
     mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32), fmt).write(str(path))
 
 
-def read_image(path) -> np.ndarray:
-    """Read a linear RGB image as float32 (H, W, 3).
+#: Files the geometric stages read (any image a camera writes).
+CAMERA_SUFFIXES = (".exr", ".png", ".tif", ".tiff", ".jpg", ".jpeg")
 
-    EXR is taken as is; 16-bit PNG/TIFF are divided by 65535; 8-bit images are refused because
-    they are not linear captures. NaN or inf in the file is an error naming the file.
+
+def image_files(folder) -> list[Path]:
+    """The images a camera may have written into ``folder``, in name order (hidden files left out)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in CAMERA_SUFFIXES and not p.name.startswith("."))
+
+
+def _truncated_jpeg(path: Path) -> bool:
+    """A JPEG whose last scan has no end-of-image marker after it (a cut-off file).
+
+    OpenCV decodes such a file anyway (grey below the cut, "Premature end of JPEG file" on
+    stderr). 0xFF inside entropy-coded data is stuffed, so SOS (FFDA) and EOI (FFD9) occur only as
+    markers.
+    """
+    data = path.read_bytes()
+    return data.rfind(b"\xff\xd9") < max(data.rfind(b"\xff\xda"), 0) or not data.startswith(b"\xff\xd8")
+
+
+def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def read_image(path, *, linear: bool = True) -> np.ndarray:
+    """Read an RGB image as float32 (H, W, 3).
+
+    EXR is taken as is; 16-bit PNG/TIFF are divided by 65535. 8-bit images (JPEG, PNG) are
+    refused with ``linear=True`` (they are not linear captures) and sRGB-decoded to [0, 1] with
+    ``linear=False`` (geometric stages: detection needs shapes, not radiance). NaN or inf in the
+    file, a file that cannot be decoded or a cut-off JPEG is an error naming the file.
     """
     path = Path(path)
     if not path.exists():
         raise WorkspaceError(path, expected="an image file", got="missing")
+    if not os.access(path, os.R_OK) or path.is_dir():
+        raise WorkspaceError(path, expected="a readable image file", got="no read permission" if path.is_file()
+                             else "a folder")
     if path.suffix.lower() == ".exr":
         try:
             img = _read_exr(path)
@@ -51,13 +88,19 @@ def read_image(path) -> np.ndarray:
             img = img[:, :, :3]
         return _checked(path, np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img)
     cv2 = _cv2()
+    kinds = "EXR, 16-bit PNG or TIFF" if linear else "EXR, PNG, TIFF or JPEG"
+    if path.suffix.lower() in (".jpg", ".jpeg") and _truncated_jpeg(path):
+        raise WorkspaceError(path, expected=f"a complete {kinds} image", got="a cut-off JPEG (no end-of-image marker)")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise WorkspaceError(path, expected="a readable EXR, 16-bit PNG or TIFF image")
+        raise WorkspaceError(path, expected=f"a readable {kinds} image", got="a file that cannot be decoded")
     if img.dtype == np.uint16:
         img = img.astype(np.float32) / 65535.0
+    elif img.dtype == np.uint8 and linear:
+        raise WorkspaceError(path, expected="a linear image (float EXR or 16-bit PNG/TIFF); 8-bit JPEG/PNG serve "
+                                            "the geometric stages only", got="8-bit")
     elif img.dtype == np.uint8:
-        raise WorkspaceError(path, expected="a linear image (float EXR or 16-bit PNG/TIFF)", got="8-bit")
+        img = _srgb_to_linear(img.astype(np.float32) / 255.0)
     img = img.astype(np.float32, copy=False)
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
@@ -70,6 +113,30 @@ def _checked(path: Path, img: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(img)):
         raise WorkspaceError(path, expected="finite pixel values", got=f"{int((~np.isfinite(img)).sum())} NaN/inf")
     return img
+
+
+#: A linear photograph with more than this share of negative values is not noise around black.
+MAX_NEGATIVE_SHARE = 0.5
+
+
+def check_radiance(image, path="image") -> np.ndarray:
+    """Refuse what cannot be a linear photograph; return the image as float64.
+
+    Small negative values are data (noise where a dark or ambient frame was subtracted:
+    INTERFACES.md, Images). Refused: NaN or inf, no pixel above 0 (all zero or black), more than
+    :data:`MAX_NEGATIVE_SHARE` of the values below 0.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    if not np.all(np.isfinite(image)):
+        raise WorkspaceError(path, "pixels", "finite values", got=f"{int((~np.isfinite(image)).sum())} NaN/inf")
+    if not np.any(image > 0):
+        raise WorkspaceError(path, "pixels", "a lit image (some pixel above 0)", got="all pixels are 0 (black)"
+                             if not np.any(image) else "no pixel above 0 (black)")
+    share = float(np.mean(image < 0))
+    if share > MAX_NEGATIVE_SHARE:
+        raise WorkspaceError(path, "pixels", "linear radiance (at most noise-level negative values after a dark-"
+                             "frame subtraction)", got=f"{100 * share:.0f}% of the values negative")
+    return image
 
 
 def write_image(path, img: np.ndarray, *, allow_nan: bool = False) -> Path:

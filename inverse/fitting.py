@@ -73,19 +73,16 @@ def check_image(image, width: int, height: int, path="input image") -> np.ndarra
     Raises
     ------
     WorkspaceError
-        Size different from camera.json, negative values, or an all-black image.
+        Size different from camera.json, or not a photograph (:func:`hardware.images.check_radiance`:
+        NaN, mostly negative, all black); noise-level negative values are kept.
     """
     image = np.asarray(image, dtype=np.float64)
     if image.ndim != 3 or image.shape[2] != 3 or image.shape[:2] != (height, width):
         raise WorkspaceError(path, "size", f"{width}x{height} RGB as in camera.json",
                              got=f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else image.shape)
-    if not np.all(np.isfinite(image)):
-        raise WorkspaceError(path, "pixels", "finite values", got=f"{int((~np.isfinite(image)).sum())} NaN/inf")
-    if np.any(image < 0):
-        raise WorkspaceError(path, "pixels", "non-negative linear radiance", got=f"minimum {image.min():g}")
-    if not np.any(image > 0):
-        raise WorkspaceError(path, "pixels", "a lit image (some pixel above 0)", got="all pixels are 0 (black)")
-    return image
+    from hardware.images import check_radiance
+
+    return check_radiance(image, path)
 
 
 def saturated_pixels(image, level: float | None = None) -> np.ndarray:

@@ -383,7 +383,7 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
             centre = []
         if len(centre) != 2 or not np.all(np.isfinite(centre)):
             raise ValueError(f"--turntable-centre: expected X,Y in metres, got {turntable_centre!r}")
-    images = [read_image(p) for p in paths]
+    images = [read_image(p, linear=False) for p in paths]  # geometry: any image a camera writes
     names = [str(p.relative_to(ws.root)) for p in paths]
     ref_angle = _reference_angle(ws)
     reference = 0 if angles is None else int(np.argmin(np.abs((angles - ref_angle + 180.0) % 360.0 - 180.0)))

@@ -462,8 +462,9 @@ def load_sweep(folder) -> tuple[list, np.ndarray | None]:
             angles.append(float(angle))
         order = np.argsort(np.mod(angles, 360.0), kind="stable")
         return [paths[i] for i in order], np.asarray(angles)[order]
-    paths = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".exr", ".png", ".tif", ".tiff")
-                   and not p.name.startswith(".")) if folder.is_dir() else []
+    from hardware.images import image_files
+
+    paths = image_files(folder)
     if not paths:
         raise WorkspaceError(folder, expected="turntable shots (captures/turntable/*.exr and its manifest.json, "
                                               "made by `reflab capture sweep`)", got="none")

@@ -16,9 +16,6 @@ from pathlib import Path
 
 HELP = "calibrate the camera (circle target, Tsai) or the lamps (rod shadows)"
 
-_IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
-
-
 def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="what", metavar="WHAT", required=True)
     cam = sub.add_parser("camera", help="camera.json from views of a printed circle grid")
@@ -69,17 +66,19 @@ def run(args) -> int:
 def _images(explicit, folder: Path) -> list[Path]:
     if explicit:
         return list(explicit)
-    return sorted(p for p in folder.glob("*") if p.suffix.lower() in _IMAGE_SUFFIXES) if folder.is_dir() else []
+    from hardware.images import image_files
+
+    return image_files(folder)
 
 
 def _camera(args) -> int:
     import numpy as np
 
     from calibration.circles import detect_grid, parse_grid
-    from calibration.tsai import calibrate
+    from calibration.tsai import CalibrationError, calibrate
     from hardware.images import read_image
     from calibration.target import target_points
-    from hardware.workspace import Workspace
+    from hardware.workspace import Workspace, WorkspaceError
 
     ws = Workspace(args.workspace)
     cols, rows = parse_grid(args.grid)
@@ -93,7 +92,13 @@ def _camera(args) -> int:
     used, obs, areas, blobs, reasons = [], [], [], [], ""
     size = None
     for i, path in enumerate(paths):
-        img = read_image(path)
+        try:  # any image a camera writes (8-bit JPEG too); one unreadable photo is not fatal
+            img = read_image(path, linear=False)
+        except WorkspaceError as exc:
+            if i == args.reference:
+                raise
+            print(f"warning: skipping {path}: {exc}", file=sys.stderr)
+            continue
         shape = (img.shape[1], img.shape[0])
         if size is None:
             size = shape
@@ -108,23 +113,33 @@ def _camera(args) -> int:
         used.append(i)
         obs.append(det.centres)
         areas.append(det.areas)
+    if not blobs:
+        raise ValueError(f"none of the {len(paths)} target images could be read")
     if not used and (np.median(blobs) != cols * rows or "grid size" in reasons):
         raise ValueError(f"grid {cols}x{rows} ({cols * rows} circles) found in none of {len(paths)} images; "
                          f"they show about {int(np.median(blobs))} dark blobs: check --grid (COLSxROWS)")
     if args.reference not in used:
         raise ValueError(f"the reference image {paths[args.reference]} has no detectable grid; "
                          "its pose is the one camera.json needs")
-    res = calibrate(obs, target_points(cols, rows, args.spacing), size, radius=args.radius,
-                    pixel_size=args.pixel_size, reference=used.index(args.reference),
-                    bias_correction=not args.no_bias_correction, areas=areas)
+    try:
+        res = calibrate(obs, target_points(cols, rows, args.spacing), size, radius=args.radius,
+                        pixel_size=args.pixel_size, reference=used.index(args.reference),
+                        bias_correction=not args.no_bias_correction, areas=areas)
+    except CalibrationError as exc:
+        if exc.view is None:
+            raise
+        raise ValueError(f"{paths[used[exc.view]]}: {exc}") from None
     cam = res.camera
     cam.extra["calibration"] = dict(res.report([str(paths[i]) for i in used]), grid=[cols, rows],
                                     spacing=args.spacing, reference_image=str(paths[args.reference]),
                                     skipped=[str(p) for i, p in enumerate(paths) if i not in used])
     out = cam.save(ws.camera)
     s = res.sigma
-    for i, r, w in zip(used, res.rms, res.worst):
-        print(f"  {paths[i]}: rms {r:.3f} px, worst {w:.3f} px")
+    for j, r, w in zip(res.views, res.rms, res.worst):
+        print(f"  {paths[used[j]]}: rms {r:.3f} px, worst {w:.3f} px")
+    for j, r in res.rejected.items():
+        print(f"warning: left out {paths[used[j]]}: it reprojects at {r:.2f} px RMS, far worse than the other views "
+              "(target moved, blur, wrong circle order?)", file=sys.stderr)
     K, d = cam.K, cam.dist
     print(f"fx {K[0, 0]:.2f} ± {s['fx']:.2f}  fy {K[1, 1]:.2f} ± {s['fy']:.2f}  cx {K[0, 2]:.2f} ± {s['cx']:.2f}  "
           f"cy {K[1, 2]:.2f} ± {s['cy']:.2f}  k1 {d[0]:.4f} ± {s['k1']:.4f}  k2 {d[1]:.4f} ± {s['k2']:.4f}")
@@ -132,7 +147,7 @@ def _camera(args) -> int:
     print(f"Tsai: f {t['f']:.4f} mm, kappa1 {t['kappa1']:.5f} /mm², sx {t['sx']:.5f}, "
           f"Cx {t['Cx']:.2f}, Cy {t['Cy']:.2f}; circle radius {res.radius * 1000:.2f} mm")
     cc = res.crosscheck
-    print(f"rms {res.rms_all:.3f} px over {len(used)} views; cv2.calibrateCamera (uncorrected centres): "
+    print(f"rms {res.rms_all:.3f} px over {len(res.views)} views; cv2.calibrateCamera (uncorrected centres): "
           f"fx {cc['fx']:.2f} cx {cc['cx']:.2f} cy {cc['cy']:.2f} k1 {cc['k1']:.4f}, rms {cc['rms_px']:.3f} px")
     print(f"wrote {out} ({res.time_s:.1f} s)")
     return 0
@@ -158,7 +173,7 @@ def _lights(args) -> int:
             height, marks = read_marks(marks_path)
         for path in args.images:
             try:
-                base, tip = detect_rod_marks(read_image(path))
+                base, tip = detect_rod_marks(read_image(path, linear=False))
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc}; mark it by hand in marks.json") from None
             name = str(path.relative_to(ws.root)) if path.is_relative_to(ws.root) else str(path)

@@ -37,7 +37,7 @@ def run(args) -> int:
 
     from calibration.camera import Camera
     from calibration.lights import Lights
-    from hardware.images import read_image
+    from hardware.images import check_radiance, read_image
     from hardware.workspace import Workspace, WorkspaceError, read_json
     from inverse.texture import TextureOptions, load_materials, recover_texture, write_textures
     from inverse.trees import trees_for_workspace
@@ -52,6 +52,7 @@ def run(args) -> int:
     if image.shape[:2] != (camera.height, camera.width):
         raise WorkspaceError(image_path, expected=f"a {camera.width}x{camera.height} image like camera.json",
                              got=f"{image.shape[1]}x{image.shape[0]}")
+    check_radiance(image, image_path)
     materials, source = load_materials(ws, scene)
     depth = args.depth
     if depth is None:

@@ -1,0 +1,79 @@
+"""`reflab fit` and `reflab texture` on linear images as a real lab makes them (issue 18).
+
+A dark- or ambient-frame subtraction leaves small negative values where noise meets black: that
+is data. Refused, with one line naming the file and nothing written: NaN, mostly negative, all
+zero, an 8-bit image (not linear). Truth: the parameters that rendered the image.
+"""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from app.cli import main
+from hardware.images import write_image
+from hardware.workspace import write_json
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    from hardware.sim.lab import build_lab, write_lab
+    from inverse.rendering import render
+    from inverse.trees import build_trees
+
+    root = tmp_path_factory.mktemp("noisyws")
+    lab = build_lab(64, 48, textured=False)
+    write_lab(root, lab)
+    truth = [s.material for s in lab.scene]
+    img = render(build_trees(lab.scene, lab.camera, lab.lights, depth=3), truth, lab.lights.intensities)
+    scene = json.loads((root / "scene.json").read_text())
+    for item, m in zip(scene["surfaces"], truth):
+        item["material"] = {"brdf": m.brdf, "ior": m.ior, **({"r": 0.0} if m.brdf == "lambert" else {})}
+    write_json(root / "scene.json", scene)
+    for stale in ("fit.json", "textures"):
+        assert not (root / stale).exists()
+    return root, img, truth
+
+
+def _noisy(img, seed=0):
+    """The image after a dark-frame subtraction: sensor noise of 0.3 % of the peak, black goes negative."""
+    rng = np.random.default_rng(seed)
+    return img + rng.normal(0, 0.003 * img.max(), img.shape)
+
+
+def test_noise_level_negatives_are_data(workspace, capsys):
+    root, img, truth = workspace
+    noisy = _noisy(img)
+    assert noisy.min() < 0 and np.mean(noisy < 0) < 0.5
+    write_image(root / "input.exr", noisy)
+    assert main(["fit", str(root), "--texture-rounds", "0"]) in (0, 3)
+    fit = json.loads((root / "fit.json").read_text())
+    kd = {s["name"]: s["material"]["kd"] for s in fit["surfaces"]}
+    np.testing.assert_allclose(kd["ground"], truth[0]["kd"], rtol=0.03)
+    assert main(["texture", str(root)]) == 0
+    assert (root / "textures").is_dir()
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize("case", ["nan", "negative", "zero", "8-bit"])
+def test_what_cannot_be_a_photograph_is_refused(workspace, case, tmp_path, capsys):
+    root, img, _ = workspace
+    for name in ("input.exr", "input.png"):
+        (root / name).unlink(missing_ok=True)
+    before = {p: p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
+    if case == "8-bit":
+        path = root / "input.png"
+        cv2.imwrite(str(path), (np.clip(img / img.max(), 0, 1) * 255).astype(np.uint8))
+        before[path] = path.stat().st_mtime_ns
+    else:
+        bad = {"nan": np.where(np.arange(img.size).reshape(img.shape) % 7 == 0, np.nan, img),
+               "negative": img - np.percentile(img, 80), "zero": np.zeros_like(img)}[case]
+        path = write_image(root / "input.exr", bad, allow_nan=True)
+        before[path] = path.stat().st_mtime_ns
+    for command in ("fit", "texture"):
+        assert main([command, str(root)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and path.name in err[0], err
+        assert {"nan": "NaN", "negative": "negative", "zero": "black", "8-bit": "8-bit"}[case] in err[0]
+        assert {p: p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()} == before
+    path.unlink()
