@@ -180,3 +180,17 @@ def test_closing_with_a_step_running_asks_first(qtbot, tmp_path):
     with qtbot.waitSignal(window.step_finished, timeout=30_000) as blocker:
         assert window.close()
     assert asked == [True, True] and blocker.args == ["sweep", "cancelled"]
+
+
+def test_cancelling_the_fit_writes_no_fit_json(qtbot, lab_workspace):
+    window = open_window(qtbot, lab_workspace, fit={"texture_rounds": 0})
+    window.run_step("fit")
+    cancelled = []
+    window.worker.progress.connect(lambda done, total, msg: msg.startswith("F-TBO") and not cancelled and
+                                   (cancelled.append(done), window.cancel()))
+    with qtbot.waitSignal(window.step_finished, timeout=60_000) as blocker:
+        pass
+    assert cancelled and blocker.args == ["fit", "cancelled"]
+    assert window.findChild(QLabel, "status_fit").text().startswith("cancelled")
+    assert not (lab_workspace / "fit.json").exists()
+    assert run(qtbot, window, "fit")[0] == "done" and (lab_workspace / "fit.json").exists()

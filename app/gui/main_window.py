@@ -53,6 +53,7 @@ class MainWindow(QMainWindow):
         self.running: str | None = None
         self._background: list[Worker] = []
         self._preview: Worker | None = None
+        self._last_message = ""
         self.setWindowTitle(f"reflab — {self.workspace}")
         self.log_line.connect(self._append_log)
 
@@ -202,9 +203,10 @@ class MainWindow(QMainWindow):
         if total > 0:
             self.progress.setRange(0, 1000)
             self.progress.setValue(int(1000 * min(done / total, 1.0)))
-        self.progress.setFormat(message or "%p%")
-        if message:
+        self.progress.setFormat(f"{message} ({done:.0f} of {total:.0f})" if message and total > 0 else message or "%p%")
+        if message and message != self._last_message:
             self.log(message)
+        self._last_message = message
 
     def _ended(self, name: str, outcome: str, text: str) -> None:
         self.pages[name].set_status(f"{outcome}: {text}")

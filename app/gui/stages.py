@@ -256,14 +256,22 @@ def _input(ctx, task) -> str:
 
 
 def _fit(ctx, task) -> str:
+    from inverse.fitting import fit_workspace
+
     o = ctx.options
-    argv = [ctx.workspace, "--texture-rounds", o.get("texture_rounds", 2)]
-    if o.get("max_seconds"):
-        argv += ["--max-seconds", o["max_seconds"]]
-    run_command(ctx, "fit", argv)
-    fit = read_json(ctx.ws.fit)
-    rms = ", ".join(f"{v:.3g}" for v in fit.get("rms", []))
-    return f"fit.json written: {fit.get('status', 'ok')}, RMS per band [{rms}] in {fit.get('time_s', 0):.1f} s"
+    report, result = fit_workspace(ctx.workspace, o.get("method", "ftbo"), int(o.get("depth", 3)),
+                                   max_seconds=o.get("max_seconds") or None,
+                                   texture_rounds=int(o.get("texture_rounds", 2)), task=task,
+                                   progress=lambda rec: ctx.log(f"texture round {rec['round']}: refit RMS per band "
+                                                                f"{[round(v, 4) for v in rec['rms']]}"))
+    for text in report.get("warnings", []):
+        ctx.log(f"warning: {text}")
+    rms = ", ".join(f"{v:.3g}" for v in report["rms"])
+    if report.get("status") == "poor fit":
+        raise StepFailed(f"poor fit (RMS per band [{rms}]): the fitted model does not explain the image; "
+                         "fit.json says why")
+    return (f"fit.json written: {report.get('status', 'ok')}, RMS per band [{rms}], {result.iterations} iterations "
+            f"in {report['time_s']:.1f} s")
 
 
 def _texture(ctx, task) -> str:
