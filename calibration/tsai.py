@@ -162,6 +162,10 @@ class CalibrationResult:
         ``cv2.calibrateCamera`` on the same detections, and its differences from ours.
     radius : float
         Printed circle radius used for the bias correction (metres).
+    residuals : (V, N, 2) ndarray, optional
+        Model minus measured centre (px) of every circle in every used view.
+    observations : (V, N, 2) ndarray, optional
+        The measured centres.
     """
 
     camera: Camera
@@ -176,6 +180,8 @@ class CalibrationResult:
     stages: dict = field(default_factory=dict)
     views: list = field(default_factory=list)
     rejected: dict = field(default_factory=dict)
+    residuals: np.ndarray | None = None
+    observations: np.ndarray | None = None
 
     @property
     def rms_all(self) -> float:
@@ -197,6 +203,10 @@ class CalibrationResult:
             "rejected": [{"image": str(names[i]), "rms_px": r} for i, r in self.rejected.items()],
             "bias_correction": self.bias_correction, "circle_radius_m": self.radius,
             "opencv_crosscheck": self.crosscheck, "stages": self.stages, "time_s": self.time_s,
+            # Per view, [u, v, du, dv] of each circle: measured centre and model minus measured
+            # (the report's residual vector field), 0.1 mpx resolution.
+            "residuals_px": [] if self.residuals is None else
+            np.round(np.concatenate([self.observations, self.residuals], axis=2), 4).tolist(),
         }
 
 
@@ -426,4 +436,5 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     err = np.linalg.norm(res_c, axis=2)
     crosscheck = _crosscheck(cv if cv is not None else _opencv_calibration(obs, points, (W, H)), camera)
     return CalibrationResult(camera, poses, np.sqrt(np.mean(err**2, axis=1)), err.max(axis=1), sigma,
-                             crosscheck, rad, bias_correction, time.perf_counter() - t0, stages, keep, rejected)
+                             crosscheck, rad, bias_correction, time.perf_counter() - t0, stages, keep, rejected,
+                             residuals=np.asarray(res_c), observations=np.asarray(obs))

@@ -153,7 +153,7 @@ def test_cli_help_is_light():
     import sys
 
     code = ("import sys, app.cli; app.cli.build_parser();"
-            "heavy = [m for m in ('mitsuba', 'open3d', 'pycolmap', 'PySide6', 'cv2', 'scipy') if m in sys.modules];"
+            "heavy = [m for m in ('mitsuba', 'open3d', 'pycolmap', 'PySide6', 'cv2', 'scipy', 'matplotlib', 'jinja2') if m in sys.modules];"
             "print(heavy); sys.exit(bool(heavy))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr

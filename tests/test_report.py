@@ -1,0 +1,227 @@
+"""`reflab report` writes a self-contained report.html whose numbers come from the stages' files and truth/.
+
+The workspace is the simulated lab at 80×60 with every stage's output made by the product's own
+code where it is quick (camera calibration on projected target centres, lamp location from
+projected rod marks, the texture stage, the reference renderer for input and truth images) and
+written by hand where the real stage takes minutes (sfm.json, sparse.ply: points sampled on the
+true surfaces and moved off them by a known distance; fit.json: the true materials, one
+perturbed). The truth is perturbed by known amounts, and the report must show those amounts.
+"""
+import base64
+import json
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from calibration.camera import Camera
+from calibration.lamps import Mark, locate_lamps, write_marks
+from calibration.lights import Lights, PointLight
+from calibration.tsai import calibrate
+from hardware.images import write_image
+from hardware.sim import props as st
+from hardware.sim.lab import build_lab, write_lab
+from hardware.sim.reference import render_reference
+from hardware.workspace import write_json
+
+SIZE = (80, 60)
+LAMP_SHIFT_MM = 2.0  # lamp 0 of lights.json is this far from the truth, along x
+SURFACE_OFFSET_MM = 1.0  # the sparse points sit this far off the true surfaces
+FX_SHIFT = 0.5  # camera.json's fx minus the truth's
+
+
+class Page(HTMLParser):
+    """Ids, images and every URL-carrying attribute of an HTML page."""
+
+    def __init__(self):
+        super().__init__()
+        self.ids, self.images, self.urls, self.tags, self.text = {}, [], [], [], []
+        self._stack = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        self.tags.append(tag)
+        if "id" in a:
+            self.ids[a["id"]] = tag
+        if tag == "img":
+            self.images.append(a.get("src", ""))
+        self.urls += [v for k, v in attrs if k in ("src", "href", "data", "action", "poster") and v]
+        self._stack.append(tag)
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def parse(path) -> Page:
+    page = Page()
+    page.feed(path.read_text())
+    page.all_text = " ".join(page.text)
+    return page
+
+
+def _calibration_block(lab):
+    """camera.json's calibration block from calibrate() on projected target centres (4 views)."""
+    cam = lab.camera
+    points = st.target_points(7, 5, 0.02)
+    rng = np.random.default_rng(0)
+    obs = [Camera(cam.width, cam.height, cam.K, cam.dist, R, t).project(points) + rng.normal(0, 0.05, (len(points), 2))
+           for R, t in st.random_target_poses(4, 7, 5, 0.02, seed=3, distance=0.3, max_tilt_deg=35)]
+    res = calibrate(obs, points, (cam.width, cam.height), bias_correction=False)
+    return dict(res.report([f"captures/calibration/{i:04d}.exr" for i in range(4)]), grid=[7, 5], spacing=0.02)
+
+
+def _lamps(root, lab):
+    """marks.json from projected rod feet and shadow tips, and the lamps located from them."""
+    rng = np.random.default_rng(1)
+    marks = []
+    for k, light in enumerate(lab.lights):
+        feet = np.column_stack([rng.uniform(-0.1, 0.1, 6), rng.uniform(-0.05, 0.1, 6), np.zeros(6)])
+        tips = np.array([st.RodScene(f, 0.05, 0.0015, light.position).tip for f in feet])
+        for b, t in zip(lab.camera.project(feet) + rng.normal(0, 0.1, (6, 2)), lab.camera.project(tips)):
+            marks.append(Mark(f"captures/lights/{k:04d}.exr", k, b, t))
+    write_marks(root / "marks.json", 0.05, marks)
+    fits = locate_lamps(lab.camera, marks, 0.05)
+    lights = [PointLight(f.position, l.intensity, f.covariance, {"calibration": dict(f.report(), time_s=0.01)})
+              for f, l in zip(fits, lab.lights)]
+    # lights.json as written holds the truth shifted: the report must show the shift as the error.
+    lights[0] = PointLight(lab.lights[0].position + [LAMP_SHIFT_MM / 1e3, 0, 0], lights[0].intensity,
+                           lights[0].sigma_position, lights[0].extra)
+    Lights(lights).save(root / "lights.json")
+
+
+def _sparse(root, lab):
+    """sfm.json and sparse.ply: points on the true ground and tile, moved off them along +z."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(2)
+    ground = np.column_stack([rng.uniform(-0.2, 0.2, 300), rng.uniform(-0.1, 0.3, 300), np.zeros(300)])
+    tile = lab.scene[lab.scene.index("tile")].mesh
+    top = tile.vertices[tile.vertices[:, 2] > 0.007]
+    w = rng.dirichlet(np.ones(len(top)), 100)
+    points = np.concatenate([ground, w @ top]) + [0, 0, SURFACE_OFFSET_MM / 1e3]
+    o3d.io.write_point_cloud(str(root / "sparse.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
+    angles = np.arange(0, 360, 45.0)
+    err = [0.01 * np.sin(np.radians(a)) for a in angles]
+    write_json(root / "sfm.json", {
+        "sfm": {"images": 8, "registered": 8, "reprojection_px": 0.31, "points": 400, "time_s": {"total_s": 4.2}},
+        "rigid_turntable": {"used": True, "rms_px": 0.35, "rms_px_free": 0.31, "time_s": 1.1},
+        "turntable": {"axis_tilt_deg": 0.05, "angle_error_deg": err, "max_angle_error_deg": 0.01,
+                      "rms_angle_error_deg": 0.007, "angles_deg": angles.tolist()},
+        "registration": {"method": "axis", "scale": 1.0}, "reference": {"centre_mm": 0.2, "rotation_deg": 0.01},
+        "time_s": 6.0, "images": [f"captures/turntable/{i:04d}.exr" for i in range(8)],
+        "poses": {f"captures/turntable/{i:04d}.exr": {"R": lab.camera.R, "t": lab.camera.t} for i in range(1)}})
+
+
+def _captures(root, photo):
+    for folder, kind in (("turntable", "sweep"), ("input", "input")):
+        shots = []
+        for i in range(2 if kind == "sweep" else 1):
+            name = f"{i:04d}.exr" if kind == "sweep" else "input.exr"
+            write_image(root / "captures" / folder / name, photo)
+            shots.append({"file": name, "role": kind, "angle": 180.0 * i, "lamps": [True, True],
+                          "time": f"2026-11-23T10:0{i}:00+00:00", "exposure": 0.5, "size": list(SIZE)})
+        write_json(root / "captures" / folder / "manifest.json", {
+            "kind": kind, "status": "complete", "error": None, "plan": shots, "shots": shots,
+            "camera": {"type": "simulated"}, "started": "2026-11-23T10:00:00+00:00", "updated": "2026-11-23T10:01:00+00:00"})
+
+
+@pytest.fixture(scope="module")
+def lab_workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    lab = build_lab(*SIZE)
+    write_lab(root, lab, materials=False)
+    write_lab(root / "truth", lab)  # truth/camera.json, lights.json, scene.json + meshes
+    (root / "truth" / "truth.json").unlink(missing_ok=True)
+    photo = render_reference(lab.scene, lab.camera, lab.lights, depth=2, albedo=lab.albedo)
+    write_image(root / "input.exr", photo)
+    novel = Camera.look_at(*SIZE, 50.0, eye=(0.35, -0.25, 0.4), target=(0.0, 0.03, 0.0))
+    novel.save(root / "truth" / "novel_camera.json")
+    write_image(root / "truth" / "novel.exr", render_reference(lab.scene, novel, lab.lights, depth=2, albedo=lab.albedo))
+    relit = Lights([PointLight([-0.3, 0.3, 0.5], lab.lights[0].intensity)])
+    relit.save(root / "truth" / "relit_lights.json")
+    write_image(root / "truth" / "relit.exr", render_reference(lab.scene, lab.camera, relit, depth=2, albedo=lab.albedo))
+
+    cam = json.loads((root / "camera.json").read_text())
+    cam["K"][0][0] += FX_SHIFT
+    cam["calibration"] = _calibration_block(lab)
+    write_json(root / "camera.json", cam)
+    _lamps(root, lab)
+    _sparse(root, lab)
+    _captures(root, photo)
+    surfaces = []
+    for s in lab.scene:
+        material = s.material.to_json()
+        if s.name == "tile":
+            material["ns"] = 50.0  # truth 60
+        surfaces.append({"name": s.name, "material": material, "sigma": {"ns": 2.0}, "undetermined": []})
+    write_json(root / "fit.json", {"method": "ftbo", "depth": 2, "time_s": 1.5, "rms": [0.01, 0.02, 0.03],
+                                   "status": "ok", "noise": [0.001, 0.001, 0.001],
+                                   "trace": [[0.1, [0.1, 0.1, 0.1]], [0.8, [0.02, 0.03, 0.03]], [1.5, [0.01, 0.02, 0.03]]],
+                                   "surfaces": surfaces})
+    assert main(["texture", str(root)]) == 0
+    return root, lab
+
+
+def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_workspace, capsys):
+    root, lab = lab_workspace
+    assert main(["report", str(root)]) == 0
+    page = parse(root / "report.html")
+    for section in ("captures", "camera", "lights", "geometry", "fit", "texture", "views"):
+        assert page.ids.get(section) == "section", section
+    assert page.ids.get("error-vs-time") == "figure"
+    # Every image embedded as a PNG that decodes; nothing fetched from anywhere.
+    assert len(page.images) >= 15
+    for src in page.images:
+        assert src.startswith("data:image/png;base64,")
+        assert base64.b64decode(src.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
+    assert all(u.startswith(("data:", "#")) for u in page.urls), [u[:40] for u in page.urls if not u.startswith(("data:", "#"))]
+    assert not {"script", "link", "iframe", "object"} & set(page.tags)
+    assert "@import" not in (root / "report.html").read_text() and "url(" not in (root / "report.html").read_text()
+    text = page.all_text
+    # Camera against truth/camera.json: the fx shift, to the report's 3 significant digits.
+    cal = json.loads((root / "camera.json").read_text())["calibration"]
+    assert len(cal["residuals_px"]) == 4 and len(cal["residuals_px"][0][0]) == 4
+    assert re.search(r"fx\s+\d+\.\d+ ± [\d.e-]+\s+[\d.]+\s+" + re.escape(f"{lab.camera.K[0, 0]:.6g}") + r"\s+0\.5\b", text)
+    # Lamp 0 is LAMP_SHIFT_MM from the truth; lamp 1 is where the marks put it.
+    row = re.search(r"\b0\s+\[[^\]]+\]\s+\[[^\]]+\]\s+\[[^\]]+\].*?\[[^\]]+\]\s+([\d.]+)\s", text)
+    assert row and float(row.group(1)) == pytest.approx(LAMP_SHIFT_MM, rel=1e-3)
+    # The sparse points sit SURFACE_OFFSET_MM off the ground: its point-to-surface RMS says so.
+    ground = re.search(r"ground\s+\S+\s+lambert\s+opaque\s+yes\s+(\d+)\s+([\d.]+)", text)
+    assert ground and int(ground.group(1)) >= 250 and float(ground.group(2)) == pytest.approx(SURFACE_OFFSET_MM, rel=0.01)
+    # Surfaces are the truth's own meshes: placement error 0.
+    assert re.search(r"tile\s+\S+\s+phong\s+opaque\s+yes\s+\d+\s+[\d.]+\s+[\d.]+\s+0\.000\s+0\.000\s", text)
+    # The fit's tile ns is 10 below the truth, with its sigma.
+    assert re.search(r"\b50 ± 2\s+truth 60, error -10\s", text)
+    # Novel and relit views against truth/ (true materials and a recovered texture): PSNR shown and sane.
+    psnrs = [float(v) for v in re.findall(r"view PSNR against truth\s+([\d.]+) dB", text)]
+    assert len(psnrs) == 2 and all(p > 20 for p in psnrs), psnrs
+    out = capsys.readouterr().out
+    assert "[texture]" in out and "wrote " + str(root / "report.html") in out
+
+
+def test_partial_workspace_reports_what_ran_and_names_the_unreadable(tmp_path, capsys):
+    lab = build_lab(*SIZE)
+    write_lab(tmp_path, lab)
+    (tmp_path / "fit.json").write_text('{"method": "ftbo", "rms": [0.1,')  # cut off mid-write
+    long_warning = "word " * 80
+    (tmp_path / "textures").mkdir()
+    write_json(tmp_path / "textures" / "index.json", {"surfaces": [], "stats": {"note": long_warning.strip()}})
+    assert main(["report", str(tmp_path), "--no-render"]) == 0
+    page = parse(tmp_path / "report.html")
+    assert {"camera", "lights", "geometry", "texture", "unreadable"} <= set(page.ids)
+    assert "fit" not in page.ids and "views" not in page.ids and "captures" not in page.ids
+    assert "error-vs-time" not in page.ids  # no fit or solve recorded its error against time
+    assert str(tmp_path / "fit.json") in page.all_text and "JSONDecodeError" in page.all_text
+    captured = capsys.readouterr()
+    assert "fit.json is unreadable" in captured.err
+    assert long_warning.strip() in captured.out  # whole values, never cut
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert "fit" not in report and list(report["unreadable"]) == [str(tmp_path / "fit.json")]
+
+
+def test_empty_workspace_says_so(tmp_path, capsys):
+    assert main(["report", str(tmp_path)]) == 0
+    assert "no stage output" in parse(tmp_path / "report.html").all_text.lower()
+    assert "no stage output" in capsys.readouterr().out
