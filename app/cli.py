@@ -33,14 +33,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: What a command does with its WORKSPACE, checked before it starts (hardware.workspace.check_folder):
+#: "read" it must exist; "write" it must exist and be writable; "create" it may be made (its parent
+#: writable). Commands not listed check nothing here.
+_WORKSPACE = {"calibrate": "write", "capture": "create", "demo": "create", "fit": "write", "reconstruct": "write",
+              "render": "read", "report": "write", "texture": "write"}
+
+
+def check_inputs(args) -> None:
+    """Folders a command reads and writes, checked before any work (one line naming the path)."""
+    from pathlib import Path
+
+    from hardware.workspace import check_folder
+
+    mode = _WORKSPACE.get(args.command)
+    if mode == "write" and args.command == "calibrate" and args.what == "camera":
+        mode = "create"  # a first calibration may start the workspace
+    output = getattr(args, "output", None) if args.command == "render" else None
+    if mode == "read" and not output:
+        mode = "write"  # render's default output goes into the workspace
+    if mode and getattr(args, "workspace", None) is not None:
+        check_folder(args.workspace, write=mode != "read", create=mode == "create")
+    if output:
+        check_folder(Path(output).parent, write=True, create=True, what="output folder")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    import errno
+
     from hardware.workspace import WorkspaceError
 
     try:
+        check_inputs(args)
         return int(args._run(args) or 0)
     except WorkspaceError as exc:
         print(f"reflab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # what no check foresaw (disk full, a folder made read-only meanwhile): one line
+        if exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT):
+            raise
+        print(f"reflab {args.command}: error: {exc.filename or ''}: {exc.strerror}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"reflab {args.command}: interrupted", file=sys.stderr)

@@ -116,6 +116,18 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+def calibrated_size(workspace) -> tuple[int, int] | None:
+    """(width, height) of the workspace's camera.json, or None when there is none yet."""
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    if not ws.camera.exists():
+        return None
+    obj = read_json(ws.camera)
+    size = obj.get("width"), obj.get("height")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size):
+        raise WorkspaceError(ws.camera, "width/height", "positive integers", got=list(size))
+    return size
+
+
 class CaptureSession:
     """Run a plan, writing each image and the manifest after every shot.
 
@@ -140,11 +152,15 @@ class CaptureSession:
         ``progress(done, total, record)`` after every shot.
     control : Control, optional
     log : callable, optional
+    size : (width, height), optional
+        The image size every shot must have; by default camera.json's when it exists (except for
+        the calibration kind, which may calibrate a new size). A shot of another size stops the
+        session before it is written.
     """
 
     def __init__(self, workspace, kind: str, plan: list[Shot], controller, camera, *, exposure: float | None = None,
                  settle_s: float = 0.0, resume: bool = False, overwrite: bool = False, progress=None,
-                 control: Control | None = None, log=None):
+                 control: Control | None = None, log=None, size: tuple[int, int] | None = None):
         if kind not in FOLDERS:
             raise ValueError(f"capture kind must be one of {sorted(FOLDERS)}, got {kind!r}")
         if resume and overwrite:
@@ -163,6 +179,9 @@ class CaptureSession:
         self.control = control or Control()
         self.log = log or (lambda msg: None)
         self.manifest: dict = {}
+        self.size = tuple(size) if size is not None else None
+        if self.size is None and kind != "calibration":
+            self.size = calibrated_size(self.workspace)
 
     # ------------------------------------------------------------------ manifest
     def _plan_json(self) -> list[dict]:
@@ -217,6 +236,10 @@ class CaptureSession:
         from hardware.grbl import GrblError
 
         kept = self._load_previous()
+        existing = self.workspace.input_image
+        if self.kind == "input" and existing.exists() and not (self.overwrite or self.resume):
+            raise WorkspaceError(existing, expected="no input photograph yet: pass --overwrite to replace it, or move "
+                                                    "it away", got="an existing file")
         self.folder.mkdir(parents=True, exist_ok=True)
         ctl = self.controller
         self.manifest = {
@@ -277,6 +300,11 @@ class CaptureSession:
             from hardware.cameras import CameraError
 
             raise CameraError(f"the camera returned {int((~np.isfinite(image)).sum())} NaN/inf values for {shot.file}")
+        if self.size is not None and (image.shape[1], image.shape[0]) != self.size:
+            from hardware.cameras import CameraError
+
+            raise CameraError(f"the camera gives {image.shape[1]}x{image.shape[0]} images, camera.json is calibrated "
+                              f"for {self.size[0]}x{self.size[1]}: set the camera to that size or calibrate again")
         write_image(self.folder / shot.file, image)
         return {"file": shot.file, "role": shot.role, "angle": shot.angle, "angle_reported": ctl.angle,
                 "lamps": list(shot.lamps), "time": _now(), "exposure": self.exposure,
@@ -291,7 +319,8 @@ class CaptureSession:
         shots = {s.role: s for s in self.plan}
         lit = read_image(self.folder / shots["input"].file)
         if "ambient" in shots:
-            lit = np.maximum(lit - read_image(self.folder / shots["ambient"].file), 0.0)
+            # Noise around black goes negative: data for the fit (INTERFACES.md, Images), not clipped.
+            lit = lit - read_image(self.folder / shots["ambient"].file)
         ext = Path(shots["input"].file).suffix
         target = self.workspace.root / f"input{ext}"
         write_image(target, lit)

@@ -79,6 +79,45 @@ class Workspace:
         return path
 
 
+def check_writable(folder) -> Path:
+    """Stop (WorkspaceError naming ``folder`` and what to do) unless a file can be created there.
+
+    Tried, not guessed: ``os.access`` misses read-only bind mounts in some kernels and every
+    permission for root. Call it before a stage starts, so that it fails before computing.
+    """
+    folder = Path(folder)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".reflab-write-probe.", dir=folder)
+    except OSError as exc:
+        raise WorkspaceError(folder, expected="a folder this user can write (remount it read-write, fix its "
+                                              "permissions, or copy the workspace somewhere writable)",
+                             got=exc.strerror or str(exc)) from None
+    os.close(fd)
+    os.unlink(probe)
+    return folder
+
+
+def check_folder(path, *, write: bool = False, create: bool = False, what: str = "workspace folder") -> Path:
+    """Check a folder a stage reads (and writes) before the stage starts.
+
+    ``create``: the folder may not exist yet (then its nearest existing parent must be writable).
+    A missing folder is reported as such, not as the first file the stage would have looked for.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise WorkspaceError(path, expected=f"a {what}", got="a file")
+    if not path.exists():
+        if not create:
+            raise WorkspaceError(path, expected=f"an existing {what} (check the path)", got="no such folder")
+        check_writable(next(p for p in path.absolute().parents if p.is_dir()))
+        return path
+    if not os.access(path, os.R_OK | os.X_OK):
+        raise WorkspaceError(path, expected=f"a readable {what} (fix its permissions)", got="no read permission")
+    if write:
+        check_writable(path)
+    return path
+
+
 @contextlib.contextmanager
 def atomic_write(path, mode: str = "wb") -> Iterator[Any]:
     """Open a temporary file beside ``path``; rename it over ``path`` only on success."""

@@ -180,7 +180,12 @@ def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, pru
             return trees
     trees = build_trees(scene, camera, lights, depth, prune_tol=prune_tol, task=task)
     trees.stats["cache"] = "built"
-    trees.save(path)
+    try:
+        trees.save(path)
+    except OSError as exc:  # a read-only workspace still renders (reflab render -o elsewhere)
+        if log is not None:
+            log(f"trees: built in {trees.stats['build_s']:.2f} s ({len(trees)} nodes), not cached ({exc.strerror})")
+        return trees
     _prune_cache(path.parent, keep=CACHE_KEEP)
     if log is not None:
         log(f"trees: built in {trees.stats['build_s']:.2f} s ({len(trees)} nodes), cached as {path.name}")

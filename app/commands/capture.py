@@ -37,9 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trigger", help="folder camera: command that takes a shot (e.g. 'gphoto2 --trigger-capture')")
     parser.add_argument("--camera-timeout", type=float, default=60.0, help="folder camera: seconds to wait for a file")
     sim = parser.add_argument_group("simulated camera (--camera sim)")
-    sim.add_argument("--size", type=image_size, default=(320, 240),
-                     help="image size WxH (default 320x240; a sweep for `reflab reconstruct` needs 480x360 or more, "
-                          "and every capture of a workspace the same size)")
+    sim.add_argument("--size", type=image_size, default=None,
+                     help="image size WxH (default: camera.json's, else 320x240; a sweep for `reflab reconstruct` "
+                          "needs 480x360 or more, and every capture of a workspace the same size)")
     sim.add_argument("--depth", type=int, default=3, help="ray depth of the simulated camera (default 3)")
     sim.add_argument("--centre", type=float_list, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
     sim.add_argument("--room-light", type=float, default=0.0, help="ambient radiance added to every pixel")
@@ -94,6 +94,15 @@ def run(args) -> int:
     from hardware.grbl import GrblAlarm, GrblController, GrblError
     from hardware.workspace import WorkspaceError
 
+    from hardware.capture import calibrated_size
+
+    calibrated = calibrated_size(args.workspace)
+    if args.camera == "sim" and args.size is None:
+        args.size = calibrated or (320, 240)
+    elif args.camera == "sim" and calibrated and tuple(args.size) != calibrated and args.kind != "calibration":
+        raise WorkspaceError(args.workspace / "camera.json", "width/height",
+                             f"captures of the calibrated size {calibrated[0]}x{calibrated[1]} (leave --size out, "
+                             "or calibrate again at the new size)", got=f"--size {args.size[0]}x{args.size[1]}")
     config_path = args.config or (args.workspace / "hardware.json" if (args.workspace / "hardware.json").exists() else None)
     config = load_config(config_path)
     plan = _plan(args, len(config.lamps))
