@@ -55,6 +55,10 @@ SCAN_POINTS = 8
 #: below 2 is a lobe flat enough to pass for diffuse light: ks would trade with kd and fit noise.
 SCAN_RANGE = {"ns": (1.0, 16.0), "alpha": (-8.0, 0.0)}
 SCAN_SWEEPS = 2
+#: F-TBO stops once the undamped Gauss–Newton step on θ predicts a relative decrease of the error
+#: below this: Levenberg–Marquardt otherwise creeps along a flat valley for dozens of iterations,
+#: each gaining 1e-9 of the error (measured on the textured demo).
+STOP_GAIN = 1e-8
 #: A scan candidate must lower the squared error by this many times the image noise variance (per
 #: band): far beyond what fitting noise with a band's linear parameters gains (≈ 1 each).
 SCAN_GAIN = 25.0
@@ -462,6 +466,9 @@ def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True)
             break
         S = _theta_curvature(pb, cur, free, A, grad) * np.outer(srch.dtheta_du(cur.theta)[q], srch.dtheta_du(cur.theta)[q])
         S = 2.0 * S / pb.norm
+        if _predicted_gain(S, g, u, lo, hi) <= STOP_GAIN * E:
+            message = "converged: the Gauss-Newton step predicts no further gain"
+            break
         improved = False
         for _ in range(12):  # damping increases until a step lowers ε
             step = -np.linalg.solve(S + lam * np.diag(np.maximum(np.diag(S), 1e-300)), g)
@@ -482,6 +489,16 @@ def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True)
             message = "converged: step or error change below tolerance"
             break
     return cur, it, message
+
+
+def _predicted_gain(S, g, u, lo, hi) -> float:
+    """Decrease of ε that the undamped Gauss–Newton step on θ (kept within the bounds) predicts."""
+    w, V = np.linalg.eigh(S)
+    keep = w > max(w.max(), 0.0) * 1e-12
+    if not keep.any():
+        return np.inf
+    d = np.clip(u - (V[:, keep] / w[keep]) @ (V[:, keep].T @ g), lo, hi) - u
+    return float(-(g @ d + 0.5 * d @ S @ d))
 
 
 def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
