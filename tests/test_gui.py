@@ -194,3 +194,19 @@ def test_cancelling_the_fit_writes_no_fit_json(qtbot, lab_workspace):
     assert window.findChild(QLabel, "status_fit").text().startswith("cancelled")
     assert not (lab_workspace / "fit.json").exists()
     assert run(qtbot, window, "fit")[0] == "done" and (lab_workspace / "fit.json").exists()
+
+
+def test_hardware_page_jogs_the_turntable_and_switches_lamps_on_the_board(qtbot, tmp_path):
+    window = open_window(qtbot, tmp_path)
+    assert run(qtbot, window, "devices")[0] == "done"
+    board, axis = window.rig.sim, window.rig.config.axis
+    with qtbot.waitSignal(window.hardware_done, timeout=30_000) as blocker:
+        qtbot.mouseClick(window.findChild(QPushButton, "jog_p90"), Qt.MouseButton.LeftButton)
+    assert blocker.args[0] and "turntable 90.0°" in blocker.args[1]
+    assert board.turntable(axis) == pytest.approx(90.0, abs=0.01)  # the simulated board's axis moved
+    with qtbot.waitSignal(window.hardware_done, timeout=30_000):
+        window.findChild(QWidget, "lamp_1").click()  # the box is wider than its label: click() hits the label
+    assert window.rig.config.lamp_states(board.lamp_outputs()) == [False, True]
+    assert window.findChild(QLabel, "hw_status").text().endswith(f"on {window.rig.controller.port})")
+    qtbot.mouseClick(window.findChild(QPushButton, "hw_disconnect"), Qt.MouseButton.LeftButton)
+    assert not window.rig.connected and not window.findChild(QPushButton, "jog_p90").isEnabled()

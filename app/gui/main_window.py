@@ -40,6 +40,7 @@ class MainWindow(QMainWindow):
     """
 
     step_finished = Signal(str, str)
+    hardware_done = Signal(bool, str)  # a jog or lamp switch ended: (ok, status line or message)
     log_line = Signal(str)
 
     def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=(320, 240),
@@ -170,13 +171,14 @@ class MainWindow(QMainWindow):
             return False
         step = stages.STEPS[stages.NAMES.index(name)]
         page = self.pages[name]
+        page.before_run()
         ctx = stages.Context(self.workspace, self.rig, page.options(), log=self.log_line.emit)
         worker = Worker(lambda task: step.run(ctx, task), name)
         ctx.image = worker.image.emit
         ctx.report = worker.progress.emit
         worker.progress.connect(self._progress)
         worker.image.connect(lambda img: self.pages[name].preview.set_image(img))
-        worker.succeeded.connect(lambda summary: self._ended(name, "done", str(summary)))
+        worker.succeeded.connect(lambda box: self._ended(name, "done", str(box.value)))
         worker.failed.connect(lambda msg, details: self._ended(name, "failed", msg))
         worker.cancelled.connect(lambda msg: self._ended(name, "cancelled", "stopped; Run again resumes"))
         worker.thread.finished.connect(lambda: self._thread_done(name))
@@ -241,8 +243,8 @@ class MainWindow(QMainWindow):
         self.background(lambda task: fn(*args), self._hardware_done, "hardware")
 
     def _hardware_done(self, ok: bool, result) -> None:
-        devices = self.pages["devices"]
-        devices.show_connection(str(result) if ok else f"failed: {result}")
+        self.pages["devices"].show_connection(str(result) if ok else f"failed: {result}")
+        self.hardware_done.emit(ok, str(result))
 
     def disconnect_rig(self) -> None:
         if self.running is not None:
@@ -256,12 +258,16 @@ class MainWindow(QMainWindow):
         """Run ``fn(task)`` off the UI thread; ``done(ok, result_or_message)`` on the UI thread."""
         worker = Worker(fn, name)
         worker.log.connect(self.log)
-        worker.succeeded.connect(lambda result: done(True, result))
+        worker.succeeded.connect(lambda box: done(True, box.value))
         worker.failed.connect(lambda msg, details: done(False, msg))
         worker.cancelled.connect(lambda msg: done(False, msg))
-        worker.thread.finished.connect(lambda: self._background.remove(worker) if worker in self._background else None)
+        self._reap()
         self._background.append(worker)
         return worker.start()
+
+    def _reap(self) -> None:
+        """Drop the background workers whose thread has ended (never inside their own signals)."""
+        self._background = [w for w in self._background if not w.thread.isFinished()]
 
     # ------------------------------------------------------------------ live camera view
     def _tick_preview(self) -> None:

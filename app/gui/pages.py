@@ -86,7 +86,10 @@ class StepPage(QWidget):
         split = QSplitter(Qt.Orientation.Horizontal)
         box = QGroupBox("Camera (live)")
         bl = QVBoxLayout(box)
-        self.preview = ImageView(placeholder="connect the rig to see the camera")
+        self.preview = ImageView(placeholder="not connected" if self.preview_stretch == 0 else
+                                 "connect the rig (Devices) to see the camera")
+        self.preview.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.preview.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.preview.setObjectName(f"preview_{step.name}")
         bl.addWidget(self.preview)
         split.addWidget(box)
@@ -107,6 +110,9 @@ class StepPage(QWidget):
 
     def refresh(self) -> None:
         """Show the step's result from the workspace's files."""
+
+    def before_run(self) -> None:
+        """Called just before the step starts."""
 
     # -- helpers ----------------------------------------------------------------------
     @property
@@ -167,16 +173,10 @@ class DevicesPage(StepPage):
         self.hw_status = text_label("not connected", "hw_status")
         lay.addWidget(QLabel(f"Board: <b>{self.window.port}</b> &nbsp; Camera: <b>{self.window.camera}</b>"))
         lay.addWidget(self.hw_status)
-        buttons = QHBoxLayout()
-        self.connect_button = QPushButton("Connect")
-        self.connect_button.setObjectName("hw_connect")
-        self.connect_button.clicked.connect(lambda: self.window.run_step("devices"))
         self.disconnect_button = QPushButton("Disconnect")
         self.disconnect_button.setObjectName("hw_disconnect")
         self.disconnect_button.clicked.connect(self.window.disconnect_rig)
-        buttons.addWidget(self.connect_button)
-        buttons.addWidget(self.disconnect_button)
-        lay.addLayout(buttons)
+        lay.addWidget(self.disconnect_button)
         jog = QGroupBox("Turntable")
         jl = QGridLayout(jog)
         for i, deg in enumerate((-90, -10, -1, 1, 10, 90)):
@@ -212,7 +212,6 @@ class DevicesPage(StepPage):
         self.hw_status.setText(status or ("connected" if rig.connected else "not connected"))
         for w in self.hw_widgets:
             w.setEnabled(rig.connected)
-        self.connect_button.setEnabled(not rig.connected)
         if rig.connected:
             for box, on in zip(self.lamp_boxes, rig.controller.lamps):
                 box.setChecked(on)
@@ -646,11 +645,11 @@ class FitPage(StepPage):
         self.curve = Curve("seconds", "RMS error")
         self.curve.setObjectName("fit_curve")
         self.tab(self.curve, "Error against time")
-        self.live: list = []
+        self.previous: list = []
 
-    def live_point(self, seconds: float, rms: float) -> None:
-        self.live.append((seconds, rms))
-        self.curve.set_series([("this run", "#2050a0", self.live)])
+    def before_run(self) -> None:
+        """Keep the earlier fit's curve to draw beside the new one."""
+        self.previous = fit_trace(read_json(self.ws.fit)) if self.ws.fit.exists() else []
 
     def refresh(self):
         while self.materials_layout.count():
@@ -674,10 +673,10 @@ class FitPage(StepPage):
         for text in fit.get("warnings", []):
             self.materials_layout.addWidget(text_label(f"⚠ {text}"))
         self.materials_layout.addWidget(_table("fit_table", ["surface", "parameter", "value", "σ"], rows, bad))
-        series = [(f"{band} band", colour, trace) for band, colour, trace in zip("RGB", ("#d02020", "#20a020", "#2040d0"),
-                                                                                 fit_trace(fit))]
-        if self.live:
-            series.append(("this run", "#2050a0", self.live))
+        colours = ("#d02020", "#20a020", "#2040d0")
+        series = [(f"{band} band", colour, trace) for band, colour, trace in zip("RGB", colours, fit_trace(fit))]
+        series += [(f"{band}, earlier fit", QColor(colour).lighter(170), trace)
+                   for band, colour, trace in zip("RGB", colours, self.previous)]
         self.curve.set_series(series)
 
 
@@ -733,16 +732,17 @@ class ResultsPage(StepPage):
         w = QWidget()
         lay = QGridLayout(w)
         self.views = {}
-        for i, (key, title) in enumerate((("input", "photograph"), ("render", "model re-rendered"),
-                                          ("difference", "|difference| ×4"))):
+        for (key, title), (r, c) in zip((("input", "photograph"), ("render", "model re-rendered"),
+                                         ("difference", "|model − photograph| × 4")), ((0, 0), (0, 1), (1, 0))):
             view = ImageView()
             view.setObjectName(f"results_{key}")
             box = QGroupBox(title)
             QVBoxLayout(box).addWidget(view)
-            lay.addWidget(box, 0, i)
+            lay.addWidget(box, r, c)
             self.views[key] = view
         self.summary = text_label("", "results_summary")
-        lay.addWidget(self.summary, 1, 0, 1, 3)
+        self.summary.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
+        lay.addWidget(self.summary, 1, 1)
         self.tab(w, "Model against photograph")
         nv = QWidget()
         nl = QHBoxLayout(nv)

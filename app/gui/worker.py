@@ -25,6 +25,16 @@ def one_line(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
+class Box:
+    """A result carried by a queued signal: PySide6 mis-counts references to a bare ``None`` sent
+    through ``Signal(object)`` across threads (the interpreter aborts in ``none_dealloc``)."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+
 class _Thread(QThread):
     def __init__(self, target):
         super().__init__()
@@ -40,7 +50,7 @@ class Worker(QObject):
     progress = Signal(float, float, str)
     log = Signal(str)
     image = Signal(object)  # a frame the stage just took (numpy array), for the live preview
-    succeeded = Signal(object)
+    succeeded = Signal(object)  # a Box holding fn's return value
     failed = Signal(str, str)  # one-line message, details
     cancelled = Signal(str)
     finished = Signal()
@@ -93,6 +103,6 @@ class Worker(QObject):
             if self.task.cancelled:
                 self.cancelled.emit("cancelled")
             else:
-                self.succeeded.emit(result)
+                self.succeeded.emit(Box(result))
         finally:
             self.finished.emit()
