@@ -59,6 +59,7 @@ class Workspace:
     textures = property(lambda self: self.root / "textures")
     captures = property(lambda self: self.root / "captures")
     cache = property(lambda self: self.root / "cache")
+    logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
 
     def trees_cache(self, key: str) -> Path:
         """Cached pixel-intensity trees named by their inputs' hash (inverse.trees.trees_for_workspace)."""

@@ -333,7 +333,8 @@ def _reference_angle(ws) -> float:
 
 
 def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing: float = 0.015,
-                      turntable_centre: str | None = None, overlap: int = 5, rigid_turntable: bool = True) -> dict:
+                      turntable_centre: str | None = None, overlap: int = 5, rigid_turntable: bool = True,
+                      log=None) -> dict:
     """Structure from motion over ``captures/turntable``, registered into the world frame.
 
     Writes ``sfm.json`` (per-shot world poses and every report) and ``sparse.ply`` (the sparse
@@ -356,6 +357,8 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
         Refine the poses as one turntable axis and one angle per shot
         (:func:`reconstruction.turntable.refine`); False keeps COLMAP's free poses (a turntable
         that wobbles).
+    log : callable, optional
+        Progress lines; COLMAP's own log goes to ``WORKSPACE/logs/colmap.log``.
 
     Returns
     -------
@@ -392,7 +395,8 @@ def reconstruct_sweep(ws, camera: Camera, *, target: str | None = None, spacing:
     commanded = None if centre is None or angles is None else [
         turntable_poses(camera, angles - angles[reference], centre, sign) for sign in (1.0, -1.0)]
     sfm = run_sfm(images, names, camera, overlap=overlap, closed=angles is None or np.ptp(angles) + np.min(
-        np.abs(np.diff(np.r_[angles, angles[0] + 360.0]))) >= 359.0, commanded=commanded)
+        np.abs(np.diff(np.r_[angles, angles[0] + 360.0]))) >= 359.0, commanded=commanded,
+                  log_file=ws.logs / "colmap.log", progress=log)
     if not sfm.registered[reference]:
         raise WorkspaceError(paths[reference], expected="the shot taken from the input view registered by structure "
                                                         "from motion", got="not registered")

@@ -12,6 +12,9 @@ COLMAP puts the centre of the top-left pixel at (0.5, 0.5); camera.json (OpenCV)
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -243,7 +246,7 @@ def filter_matches(database, files: list, camera: Camera, commanded: list, tol_p
 
 def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask: bool = True,
             overlap: int = 5, closed: bool = True, min_registered: float = 0.9, max_features: int = 4000,
-            workdir=None, seed: int = 0, commanded=None) -> SfMResult:
+            workdir=None, seed: int = 0, commanded=None, log_file=None, progress=None) -> SfMResult:
     """Recover the pose of every shot of a turntable sweep.
 
     Parameters
@@ -275,6 +278,11 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
         Candidate poses the turntable's commands put the shots at (:func:`turntable_poses`, both
         turning directions): matches off their epipolar geometry are dropped before mapping
         (:func:`filter_matches`).
+    log_file : path-like, optional
+        Where COLMAP's own log goes (appended; its hundreds of lines per run would flood a
+        terminal); None leaves it on stderr.
+    progress : callable, optional
+        Called with one line per COLMAP step (features, matching, mapping).
 
     Returns
     -------
@@ -292,13 +300,41 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="reflab-sfm-") as tmp:
             return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
-                        Path(tmp), seed, commanded)
+                        Path(tmp), seed, commanded, log_file, progress)
     return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
-                Path(workdir), seed, commanded)
+                Path(workdir), seed, commanded, log_file, progress)
+
+
+@contextlib.contextmanager
+def colmap_log(path):
+    """Send file descriptor 2 (where COLMAP's glog writes, from every thread) to ``path``, appended.
+
+    ``pycolmap.logging`` settings alone leave errors on stderr and name the files by date; a
+    redirect gives one known file. Python's own stderr is flushed on both sides of the switch.
+    """
+    if path is None:
+        yield
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(path, "ab") as f:
+            f.write(f"--- reflab: COLMAP run at {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode())
+            f.flush()
+            os.dup2(f.fileno(), 2)
+            try:
+                yield
+            finally:
+                sys.stderr.flush()
+                os.dup2(saved, 2)
+    finally:
+        os.close(saved)
 
 
 def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features, work: Path, seed,
-         commanded):
+         commanded, log_file=None, progress=None):
     import cv2
     import pycolmap
 
@@ -332,20 +368,27 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = int(max_features)
     extraction.use_gpu = False
+    say = progress or (lambda line: None)
+    where = f" (COLMAP's log: {log_file})" if log_file is not None else ""
+    say(f"structure from motion: SIFT features of {n} shots{where}")
     t = time.perf_counter()
-    pycolmap.extract_features(db, img_dir, image_names=files, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=extraction,
-                              device=pycolmap.Device.cpu)
+    with colmap_log(log_file):
+        pycolmap.extract_features(db, img_dir, image_names=files, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)
     times["features_s"] = time.perf_counter() - t
 
     pairs_file = work / "pairs.txt"
     pairs_file.write_text("".join(f"{files[i]} {files[j]}\n" for i, j in loop_pairs(n, overlap, closed)))
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
+    say(f"structure from motion: matching {len(loop_pairs(n, overlap, closed))} pairs of shots "
+        f"({times['features_s']:.1f} s so far on features)")
     t = time.perf_counter()
-    pycolmap.match_image_pairs(db, matching_options=matching,
-                               pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_file),
-                               device=pycolmap.Device.cpu)
+    with colmap_log(log_file):
+        pycolmap.match_image_pairs(db, matching_options=matching,
+                                   pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_file),
+                                   device=pycolmap.Device.cpu)
     times["matching_s"] = time.perf_counter() - t
     filtered = None
     if commanded is not None:
@@ -361,9 +404,11 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     options.mapper.abs_pose_refine_extra_params = False
     options.random_seed = int(seed)
     options.multiple_models = False
+    say(f"structure from motion: incremental mapping ({times['matching_s']:.1f} s on matching)")
     t = time.perf_counter()
     (work / "sparse").mkdir(exist_ok=True)
-    models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=options)
+    with colmap_log(log_file):
+        models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=options)
     times["mapping_s"] = time.perf_counter() - t
     times["total_s"] = time.perf_counter() - t0
     result = _result(models, names, files, camera, min_registered, times)

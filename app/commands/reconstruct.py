@@ -75,7 +75,7 @@ def run(args) -> int:
 
             result = reconstruct_sweep(ws, camera, target=args.target, spacing=args.spacing,
                                        turntable_centre=args.turntable_centre, overlap=args.overlap,
-                                       rigid_turntable=not args.free_poses)
+                                       rigid_turntable=not args.free_poses, log=lambda line: print(line, flush=True))
             r = result["report"]
             print(f"structure from motion: {r['sfm']['registered']}/{r['sfm']['images']} shots registered, "
                   f"reprojection {r['sfm']['reprojection_px']:.3f} px, {r['sfm']['points']} points, "
