@@ -225,3 +225,22 @@ def test_empty_workspace_says_so(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 0
     assert "no stage output" in parse(tmp_path / "report.html").all_text.lower()
     assert "no stage output" in capsys.readouterr().out
+
+
+def test_report_json_holds_the_files_numbers(tmp_path):
+    lab = build_lab(*SIZE)
+    write_lab(tmp_path, lab)
+    write_json(tmp_path / "fit.json", {"method": "ftbo", "depth": 3, "time_s": 1.5, "rms": [0.01, 0.02, 0.03],
+                                       "trace": [[0.1, [0.1, 0.1, 0.1]], [1.5, [0.01, 0.02, 0.03]]],
+                                       "surfaces": [{"name": lab.scene[0].name, "undetermined": ["ns"]}]})
+    assert main(["report", str(tmp_path), "--no-render"]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert [s["name"] for s in report["scene"]] == lab.scene.names
+    np.testing.assert_allclose([l["position"] for l in report["lights"]], lab.lights.positions)
+    assert report["fit"]["undetermined"] == {lab.scene[0].name: ["ns"]} and report["fit"]["trace_points"] == 2
+    assert parse(tmp_path / "report.html").ids.get("error-vs-time") == "figure"
+
+
+def test_report_names_a_missing_workspace(tmp_path, capsys):
+    assert main(["report", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err

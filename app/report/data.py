@@ -89,14 +89,17 @@ class Sources:
         """truth/<name> (INTERFACES.md, "The simulated lab's truth"), None when there is none."""
         return self.json(f"truth/{name}")
 
-    def truth_materials(self) -> dict[str, dict]:
-        """True material per surface name: truth/scene.json, else the older truth.json beside the workspace's files."""
-        obj = self.truth("scene.json") or self.json("truth.json") or {}
+    def truth_materials(self) -> tuple[dict[str, dict], str]:
+        """True material per surface name and the file they came from: truth/scene.json, else the older
+        truth.json beside the workspace's files; ({}, "") without either."""
+        obj, source = self.truth("scene.json"), "truth/scene.json"
+        if obj is None:
+            obj, source = self.json("truth.json") or {}, "truth.json"
         out = {}
         for s in obj.get("surfaces", []) if isinstance(obj.get("surfaces"), list) else []:
             if isinstance(s, dict) and isinstance(s.get("material"), dict):
                 out[str(s.get("name"))] = s["material"]
-        return out
+        return out, source if out else ""
 
 
 def summarise(src: Sources) -> dict:

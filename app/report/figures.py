@@ -26,29 +26,26 @@ def png_uri(rgb8: np.ndarray) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
 
 
-def display(img: np.ndarray, exposure: float | None = None, max_width: int | None = None) -> np.ndarray:
-    """8-bit sRGB of a linear image (hardware.images.to_display), shrunk to ``max_width`` by area averaging."""
+def thumb(rgb8: np.ndarray, width: int = 360, height: int = 200) -> str:
+    """An 8-bit picture fitted into ``width`` × ``height`` as a PNG data URI: shrunk by area averaging
+    when larger, enlarged by a whole factor (pixels kept square and sharp) when smaller."""
+    a = np.asarray(rgb8)
+    h, w = a.shape[:2]
+    step = int(np.ceil(max(h / height, w / width, 1.0)))
+    if step > 1:
+        hh, ww = h // step * step, w // step * step
+        a = a[:hh, :ww].reshape(hh // step, step, ww // step, step, *a.shape[2:]).mean(axis=(1, 3)).round().astype(np.uint8)
+    else:
+        k = max(1, min(height // max(h, 1), width // max(w, 1)))
+        a = np.repeat(np.repeat(a, k, axis=0), k, axis=1)
+    return png_uri(a)
+
+
+def display(img: np.ndarray, exposure: float | None = None) -> np.ndarray:
+    """8-bit sRGB of a linear image (hardware.images.to_display; exposure: the 99.5th percentile at 1 by default)."""
     from hardware.images import to_display
 
-    img = np.asarray(img, dtype=np.float64)
-    if max_width and img.shape[1] > max_width:
-        step = int(np.ceil(img.shape[1] / max_width))
-        h, w = img.shape[0] // step * step, img.shape[1] // step * step
-        img = img[:h, :w].reshape(h // step, step, w // step, step, -1).mean(axis=(1, 3))
-    return to_display(img, exposure)
-
-
-def heat(values: np.ndarray, vmax: float | None = None, cmap: str = "inferno") -> np.ndarray:
-    """An 8-bit RGB heat map of a 2-D array (0 → dark, ``vmax`` → bright; NaN grey)."""
-    from matplotlib import colormaps
-
-    v = np.asarray(values, dtype=np.float64)
-    finite = np.isfinite(v)
-    if vmax is None:
-        vmax = float(np.percentile(v[finite], 99.5)) if finite.any() else 1.0
-    rgb = colormaps[cmap](np.clip(np.nan_to_num(v) / max(vmax, 1e-300), 0, 1))[:, :, :3]
-    rgb[~finite] = 0.5
-    return (rgb * 255 + 0.5).astype(np.uint8)
+    return to_display(np.asarray(img, dtype=np.float64), exposure)
 
 
 def figure_uri(fig) -> str:

@@ -142,7 +142,7 @@ def captures_section(src: Sources, thumbs: int = 6) -> Section | None:
             lamps = s.get("lamps")
             on = "" if not isinstance(lamps, list) else " lamps " + (",".join(str(k) for k, v in enumerate(lamps) if v) or "off")
             angle = f" {num(s.get('angle'), 4)}°" if isinstance(s.get("angle"), (int, float)) else ""
-            items.append((F.png_uri(F.display(img, max_width=200)), f"{s['file']}{angle}{on}"))
+            items.append((F.thumb(F.display(img), 200, 150), f"{s['file']}{angle}{on}"))
         sec.images(items, f"captures/{folder}: {len(pick)} of {len(shots)} shots")
     return sec
 
@@ -201,6 +201,13 @@ def camera_section(src: Sources) -> Section | None:
             ("Tsai", ", ".join(f"{k} {num(v, 6)}" for k, v in cam.get("tsai", {}).items()) if isinstance(cam.get("tsai"), dict) else None),
             ("reference view (input pose)", cal.get("reference_image")),
             ("calibration time", f"{num(cal.get('time_s'), 3)} s" if cal.get("time_s") is not None else None)])
+    if not cal:
+        sec.note("camera.json has no calibration block (written by hand or by another tool): no uncertainties, "
+                 "per-view errors or residuals to show.")
+    rejected = [v for v in cal.get("rejected") or [] if isinstance(v, dict)]
+    if rejected:
+        sec.note("views left out (reprojecting far worse than the others): "
+                 + ", ".join(f"{v.get('image')} ({num(v.get('rms_px'), 3)} px)" for v in rejected), "warn")
     views = [v for v in cal.get("views") or [] if isinstance(v, dict)]
     if views:
         labels = [str(v.get("image", i)).rsplit("/", 1)[-1] for i, v in enumerate(views)]
@@ -276,6 +283,8 @@ def lights_section(src: Sources) -> Section | None:
         rows.append(row)
     head = ["lamp", "position (m)", "σ x, y, z (mm)", "intensity", "mark σ (px)", "outlier marks"]
     sec.table(head + (["truth (m)", "error (mm)", "error / |σ|"] if true_items else []), rows)
+    if not any(isinstance(l.get("calibration"), dict) for l in items):
+        sec.note("lights.json has no calibration blocks (written by hand or by another tool): no mark residuals.")
     marks = src.marks
     if marks and isinstance(marks.get("marks"), list):
         fig = _marks_figure(src, marks, items)
@@ -515,7 +524,7 @@ def _top_view(src: Sources, meshes, true_meshes, points, sfm) -> str:
         pad = 0.08 * max(float(np.max(hi - lo)), 0.05)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("x (m)", fontsize=8)
     ax.set_ylabel("y (m)", fontsize=8)
     ax.tick_params(labelsize=7)
@@ -547,7 +556,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
             ("iterations / evaluations", f"{fit.get('iterations')} / {fit.get('evaluations')}" if "iterations" in fit else None),
             ("fit time", f"{num(fit.get('time_s'), 3)} s" if fit.get("time_s") is not None else None),
             ("set-up", ", ".join(f"{k} {num(v, 3)} s" for k, v in fit["setup_s"].items()) if isinstance(fit.get("setup_s"), dict) else None)])
-    truth = src.truth_materials()
+    truth, truth_file = src.truth_materials()
     items = [s for s in fit.get("surfaces") or [] if isinstance(s, dict)]
     keys = [k for k in MATERIAL_KEYS if any(isinstance(s.get("material"), dict) and s["material"].get(k) is not None
                                              for s in items)]
@@ -577,7 +586,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
         rows.append(row)
     sec.table(["surface", "BRDF"] + list(keys), rows,
               "value ± σ (one standard deviation, per band R, G, B where there are three); undetermined: the image "
-              "does not constrain it, left at its initial value" + ("; truth: truth/scene.json." if truth else "."))
+              "does not constrain it, left at its initial value" + (f"; truth: {truth_file}." if truth else "."))
     if model and model.get("image") is not None:
         _model_images(sec, src, fit, model)
     elif model and model.get("error"):
@@ -588,7 +597,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
 def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     photo, img = model["photo"], model["image"]
     if photo is None or photo.shape != img.shape:
-        sec.images([(F.png_uri(F.display(img, max_width=480)), "re-rendered model")])
+        sec.images([(F.thumb(F.display(img), 480, 360), "re-rendered model")])
         return
     from inverse.fitting import DIAG_FLOOR, DIAG_SIGMAS
 
@@ -601,12 +610,16 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     overlay = F.display(photo, exposure).copy()
     overlay[bad] = [255, 0, 255]
     what = "fitted materials with the recovered texture" if model.get("textured") else "fitted materials, homogeneous kd"
-    w = 360
-    sec.images([(F.png_uri(F.display(photo, exposure, max_width=w)), "input photograph"),
-                (F.png_uri(F.display(img, exposure, max_width=w)), f"re-rendered model ({what}), same exposure")])
+    sec.images([(F.thumb(F.display(photo, exposure), 480, 360), "input photograph"),
+                (F.thumb(F.display(img, exposure), 480, 360), f"re-rendered model ({what}), same exposure")])
     sec.images([(F.heat_with_bar(diff, "|model − input|, largest band", "linear radiance"), "difference", True),
-                (F.png_uri(overlay), f"unexplained pixels (magenta): {int(bad.sum())} of {bad.size}, residual above "
-                                     f"{DIAG_SIGMAS:g} σ + {DIAG_FLOOR:g} × peak")])
+                (F.thumb(overlay, 480, 360), f"unexplained pixels (magenta): {int(bad.sum())} of {bad.size}, residual "
+                                             f"above {DIAG_SIGMAS:g} σ + {DIAG_FLOOR:g} × peak in some band")])
+    share = float(np.sum((img - photo)[bad] ** 2) / max(np.sum((img - photo) ** 2), 1e-300))
+    sec.note(f"Unexplained pixels: the fit's test (docs/fit.md) on this re-render, with σ = fit.json's image noise "
+             f"{num(noise.tolist() if noise is not None else None, 3)}; they hold {100 * share:.0f}% of the squared "
+             "residual. Unlike the fit's own diagnosis, no allowance is made for texture: the re-render "
+             + ("includes the recovered texture." if model.get("textured") else "uses homogeneous albedo, so texture shows."))
     rms = np.sqrt(np.mean((img - photo) ** 2, axis=(0, 1)))
     sec.kv([("model vs input RMS per band", num(rms.tolist())),
             ("relative RMS", f"{num(100 * float(np.sqrt(np.mean((img - photo) ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300)), 3)} %"),
@@ -646,10 +659,10 @@ def texture_section(src: Sources) -> Section | None:
         flip = e.get("kind") == "planar"  # rows run along +v: flipped, +v points up as seen from above
         orient = (lambda a: a[::-1]) if flip else (lambda a: a)
         if kd is not None:
-            items.append((F.png_uri(orient(F.display(kd, 1.0, max_width=320))), "albedo kd (sRGB, 1 = white)"))
+            items.append((F.thumb(orient(F.display(kd, 1.0)), 320, 240), "albedo kd (sRGB, 1 = white)"))
         if mask is not None:
             known = mask[:, :, 0] > 0.5
-            items.append((F.png_uri(orient(np.where(known, 230, 40).astype(np.uint8))), "determined texels (light)"))
+            items.append((F.thumb(orient(np.where(known, 230, 40).astype(np.uint8)), 320, 240), "determined texels (light)"))
         if diag is not None:
             flags = np.nan_to_num(diag[:, :, 2]).astype(np.uint8)
             rgb = np.full(flags.shape + (3,), 235, np.uint8)
@@ -658,7 +671,7 @@ def texture_section(src: Sources) -> Section | None:
             rgb[(flags & 1) > 0] = [220, 30, 30]
             rgb[(flags & 2) > 0] = [30, 90, 220]
             rgb[(flags & 4) > 0] = [230, 180, 0]
-            items.append((F.png_uri(orient(rgb)), "red: amplified > 10×, blue: saturated, yellow: clipped, grey: unknown"))
+            items.append((F.thumb(orient(rgb), 320, 240), "red: amplified > 10×, blue: saturated, yellow: clipped, grey: unknown"))
         size = f"{e.get('width')}×{e.get('height')} texels of {num(1e3 * e['texel_size'], 3)} mm" if isinstance(e.get("texel_size"), (int, float)) else ""
         sec.images(items, f"{name}: {e.get('kind', '')} {size}, {e.get('texels_known')} known, {e.get('texels_amplified')} amplified")
     return sec
@@ -679,9 +692,9 @@ def views_section(src: Sources, views: dict) -> Section | None:
             continue
         img, truth = v["image"], v.get("truth")
         exposure = 1.0 / max(float(np.percentile(truth if truth is not None else img, 99.5)), 1e-12)
-        items = [(F.png_uri(F.display(img, exposure, max_width=360)), f"{label}: recovered model ({v['how']})")]
+        items = [(F.thumb(F.display(img, exposure), 480, 360), f"{label}: recovered model ({v['how']})")]
         if truth is not None and truth.shape == img.shape:
-            items.append((F.png_uri(F.display(truth, exposure, max_width=360)), f"{label}: truth ({v['truth_file']})"))
+            items.append((F.thumb(F.display(truth, exposure), 480, 360), f"{label}: truth ({v['truth_file']})"))
             items.append((F.heat_with_bar(np.abs(img - truth).max(axis=2), "|model − truth|", "linear radiance"), "difference", True))
             sec.images(items)
             sec.kv([(f"{label} PSNR against truth", f"{num(psnr(img, truth), 4)} dB"),
@@ -701,10 +714,15 @@ def error_section(src: Sources) -> Section | None:
         return None if a is None else float(np.mean(a))
 
     if fit and isinstance(fit.get("trace"), list):
-        pts = [(p[0], band_mean(p[1])) for p in fit["trace"] if isinstance(p, (list, tuple)) and len(p) >= 2]
-        pts = [(t, e) for t, e in pts if isinstance(t, (int, float)) and e is not None]
-        if pts:
-            photometric.append({"label": f"fit ({str(fit.get('method', '')).upper()}, trace)", "points": pts})
+        # [seconds, rms per band] or [seconds, rms, phase name]: one series per phase where named.
+        raw = [(p[0], band_mean(p[1]), p[2] if len(p) > 2 and isinstance(p[2], str) else None)
+               for p in fit["trace"] if isinstance(p, (list, tuple)) and len(p) >= 2]
+        raw = [r for r in raw if isinstance(r[0], (int, float)) and r[1] is not None]
+        pts = [(t, e) for t, e, _ in raw]
+        method = str(fit.get("method", "")).upper()
+        for phase in dict.fromkeys(ph for _, _, ph in raw):
+            sel = [(t, e) for t, e, ph in raw if ph == phase]
+            photometric.append({"label": f"fit ({method}{', ' + phase if phase else ''})", "points": sel})
         rounds = (fit.get("texture_rounds") or {}).get("rounds") if isinstance(fit.get("texture_rounds"), dict) else None
         if isinstance(rounds, list) and rounds and pts:
             t_end = pts[-1][0]
@@ -716,7 +734,9 @@ def error_section(src: Sources) -> Section | None:
                     if band_mean(r.get("rms")) is not None:
                         marks.append((t, band_mean(r.get("rms"))))
             if marks:
-                photometric.append({"label": "fit, end of each texture round", "points": marks, "style": "s"})
+                photometric.append({"label": "fit, end of each texture round", "points": marks, "style": "s",
+                                    "phase": (t_end - sum((r.get("texture_s") or 0) + (r.get("fit_s") or 0)
+                                                          for r in rounds if isinstance(r, dict)), "texture rounds start")})
     if idx and isinstance(idx.get("stats"), dict):
         st = idx["stats"]
         trace = st.get("trace")
@@ -746,9 +766,16 @@ def error_section(src: Sources) -> Section | None:
         return None
     sec = Section("error", "Error against run time", "Every fit and solve: its error against the seconds it ran "
                                                       "(each from its own start).")
-    sec.figure(_error_plot(photometric, geometric), "Left: photometric fits, RMS residual in linear radiance (mean of "
-               "the bands; fit: over pixels, texture: over its equations). Right: geometric solves, RMS reprojection "
-               "error in pixels.", id="error-vs-time")
+    parts = []
+    if photometric:
+        parts.append("photometric fits: RMS residual in linear radiance (mean of the bands; fit: over pixels, "
+                     "texture: over its equations)")
+    if geometric:
+        parts.append("geometric solves: RMS reprojection error in pixels")
+    if len(parts) == 2:
+        parts = ["Left: " + parts[0], "right: " + parts[1]]
+    sec.figure(_error_plot(photometric, geometric), "; ".join(parts)[0].upper() + "; ".join(parts)[1:] + ".",
+               id="error-vs-time")
     return sec
 
 
@@ -763,6 +790,10 @@ def _error_plot(photometric, geometric) -> str:
             style = s.get("style")
             ax.plot(t, e, (style or ".") + ("" if style else "-"), color=F.COLOURS[i % len(F.COLOURS)],
                     ms=6 if style else 3, lw=1, label=s["label"])
+            if s.get("phase"):
+                ax.axvline(max(s["phase"][0], 1e-3), color="0.4", ls=":", lw=1)
+                ax.annotate(s["phase"][1], (max(s["phase"][0], 1e-3), 0.5), xycoords=("data", "axes fraction"),
+                            rotation=90, fontsize=7, color="0.3", ha="right", va="center")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("run time (s)", fontsize=8)
