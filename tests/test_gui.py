@@ -100,6 +100,30 @@ def test_sweep_cancel_then_resume_keeps_the_finished_shots(qtbot, tmp_path):
     assert angles == pytest.approx([0, 60, 120, 180, 240, 300])
     assert window.findChild(QWidget, "steps").item(NAMES.index("sweep")).text().startswith("✓")
 
+    # mark two corners of a transparent sheet on two shots each; reconstruct's reader takes the file
+    from reconstruction.surfaces import load_marks
+
+    window.go_to("sweep")
+    shots, view = window.findChild(QWidget, "sweep_shots"), window.findChild(QWidget, "sweep_view")
+    window.findChild(QWidget, "corner_surface").setCurrentText("sheet")
+    window.findChild(QWidget, "corner_kind").setCurrentIndex(1)
+    window.findChild(QWidget, "corner_ior").setValue(1.46)
+    window.findChild(QWidget, "corner_thickness").setValue(0.003)
+    clicks = {(0, 0): (30.0, 20.0), (0, 1): (31.0, 22.0), (1, 0): (50.0, 21.0), (1, 1): (52.0, 23.0)}
+    for (corner, shot), (u, v) in clicks.items():
+        window.findChild(QWidget, "corner_label").setCurrentIndex(corner)
+        shots.setCurrentRow(shot)
+        at = view.mapFromScene(u + 0.5, v + 0.5)
+        qtbot.mouseClick(view.viewport(), Qt.MouseButton.LeftButton, pos=QPoint(at.x(), at.y()))
+    qtbot.mouseClick(window.findChild(QPushButton, "save_corner_marks"), Qt.MouseButton.LeftButton)
+    (spec,) = load_marks(tmp_path / "marks.json")
+    assert (spec["name"], spec["ior"], spec["textured"], spec["size"][1]) == ("sheet", 1.46, False, 0.003)
+    scale = 1.0 / view.transform().m11()
+    for k, (label, marks) in enumerate(spec["corners"]):
+        assert list(label) == [[-1, -1, 1], [1, -1, 1]][k]
+        for shot in (0, 1):
+            assert np.allclose(marks[f"captures/turntable/{shot:04d}.exr"], clicks[(k, shot)], atol=scale)
+
 
 def test_failed_step_shows_the_stage_message_in_the_page(qtbot, tmp_path):
     window = open_window(qtbot, tmp_path)

@@ -427,7 +427,8 @@ class SweepPage(StepPage):
         self.surfaces: dict = {}
 
     def refresh(self):
-        self.surfaces = {s["name"]: s for s in stages.read_marks_file(self.window.workspace).get("surfaces", [])}
+        self.surfaces = {s["name"]: s for s in stages.read_marks_file(self.window.workspace).get("surfaces", [])
+                         if "corners" in s}
         for name in self.surfaces:
             if self.surface.findText(name) < 0:
                 self.surface.addItem(name)
@@ -449,7 +450,8 @@ class SweepPage(StepPage):
     def _load_surface(self):
         spec = self.surfaces.get(self.surface.currentText().strip())
         if spec:
-            self.kind.setCurrentIndex(1 if spec.get("ior") else (2 if spec.get("brdf") == "lambert" else 0))
+            self.kind.setCurrentIndex(1 if spec.get("ior") else 2 if spec.get("matte") or spec.get("brdf") == "lambert"
+                                      else 0 if spec.get("mirror", not spec.get("textured")) else 3)
             self.ior.setValue(spec.get("ior") or 1.5)
             self.textured.setChecked(bool(spec.get("textured")))
             self.thickness.setValue((spec.get("size") or [None, None, None])[1] or 0.0)
@@ -497,15 +499,25 @@ class SweepPage(StepPage):
 
     def save_marks(self):
         spec = self._spec()
-        kind = self.kind.currentIndex()
+        kind = self.kind.currentIndex()  # mirror, transparent, matte, glossy
+        for key in ("mirror", "matte", "untextured"):
+            spec.pop(key, None)
         spec["ior"] = float(self.ior.value()) if kind == 1 else None
         spec["brdf"] = "lambert" if kind == 2 else "phong"
-        spec["textured"] = bool(self.textured.isChecked())
+        spec["textured"] = bool(self.textured.isChecked()) and kind in (2, 3)
         spec["size"] = [None, float(self.thickness.value()) or None, None]
+        # what the user knows, in marks.json's plain words (reconstruction/marks.py), beside brdf/textured
+        if kind == 0:
+            spec["mirror"] = True
+        elif kind == 2:
+            spec["matte"] = True
+        if not spec["textured"] and kind != 0 and spec["ior"] is None:
+            spec["untextured"] = True
         usable = [s for s in self.surfaces.values() if any(len(c["marks"]) >= 2 for c in s["corners"])]
         for s in usable:
             s["corners"] = [c for c in s["corners"] if len(c["marks"]) >= 2]
-        stages.update_marks_file(self.window.workspace, surfaces=usable)
+        others = [s for s in stages.read_marks_file(self.window.workspace).get("surfaces", []) if "corners" not in s]
+        stages.update_marks_file(self.window.workspace, surfaces=usable + others)
         self.window.log(f"saved corners of {len(usable)} surface(s) to {self.window.workspace / 'marks.json'}"
                         + ("" if usable else " (a corner needs marks on two or more shots)"))
 
