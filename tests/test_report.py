@@ -155,9 +155,11 @@ def lab_workspace(tmp_path_factory):
         material = s.material.to_json()
         if s.name == "tile":
             material["ns"] = 50.0  # truth 60
-        surfaces.append({"name": s.name, "material": material, "sigma": {"ns": 2.0}, "undetermined": []})
+        surfaces.append({"name": s.name, "material": material, "sigma": {"ns": 2.0}, "undetermined": [],
+                         "at_bound": {"ks[0]": "upper"} if s.name == "box" else {}})
     write_json(root / "fit.json", {"method": "ftbo", "depth": 2, "time_s": 1.5, "rms": [0.01, 0.02, 0.03],
                                    "status": "ok", "noise": [0.001, 0.001, 0.001],
+                                   "rejected": {"count": 2, "pixels": [[1, 1], [2, 1]], "threshold_sigmas": 8.0},
                                    "trace": [[0.1, [0.1, 0.1, 0.1]], [0.8, [0.02, 0.03, 0.03]], [1.5, [0.01, 0.02, 0.03]]],
                                    "surfaces": surfaces})
     assert main(["texture", str(root)]) == 0
@@ -194,6 +196,8 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     assert re.search(r"tile\s+\S+\s+phong\s+opaque\s+yes\s+\d+\s+[\d.]+\s+[\d.]+\s+0\.000\s+0\.000\s", text)
     # The fit's tile ns is 10 below the truth, with its sigma.
     assert re.search(r"\b50 ± 2\s+truth 60, error -10\s", text)
+    assert re.search(r"\[0\.25, 0\.25, 0\.25\]\s+at its bound: ks\[0\] upper", text)
+    assert re.search(r"outlier pixels left out of the fit\s+2 \(residual above 8 σ", text)
     # Novel and relit views against truth/ (true materials and a recovered texture): PSNR shown and sane.
     psnrs = [float(v) for v in re.findall(r"view PSNR against truth\s+([\d.]+) dB", text)]
     assert len(psnrs) == 2 and all(p > 20 for p in psnrs), psnrs

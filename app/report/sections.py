@@ -551,8 +551,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
             ("image", f"{image.get('file')} {image.get('width')} × {image.get('height')}, {image.get('saturated_pixels')} saturated pixels masked"
              if image else None),
             ("RMS residual per band", num(fit.get("rms"))), ("image noise σ per band", num(fit.get("noise"))),
-            ("robust σ per band", num(fit.get("robust_sigma")) if fit.get("robust_sigma") is not None else None),
-            ("rejected pixels", fit.get("rejected_pixels")),
+            ("outlier pixels left out of the fit", _rejected_text(fit.get("rejected"))),
             ("iterations / evaluations", f"{fit.get('iterations')} / {fit.get('evaluations')}" if "iterations" in fit else None),
             ("fit time", f"{num(fit.get('time_s'), 3)} s" if fit.get("time_s") is not None else None),
             ("set-up", ", ".join(f"{k} {num(v, 3)} s" for k, v in fit["setup_s"].items()) if isinstance(fit.get("setup_s"), dict) else None)])
@@ -565,7 +564,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
         name, mat = str(s.get("name")), s.get("material") if isinstance(s.get("material"), dict) else {}
         sig = s.get("sigma") if isinstance(s.get("sigma"), dict) else {}
         und = [str(u) for u in s.get("undetermined") or []]
-        bounds = s.get("at_bound") or s.get("bounds") or []
+        bounds = s.get("at_bound") if isinstance(s.get("at_bound"), dict) else {}  # {"ks[0]": "upper"}
         true = truth.get(name, {})
         row = [name, mat.get("brdf", "–")]
         for key in keys:
@@ -576,8 +575,9 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
             held = [u for u in und if u == key or u.startswith(key + "[")]
             if held:
                 lines.append("undetermined" + ("" if held == [key] else " " + ", ".join(held)))
-            if isinstance(bounds, (list, dict)) and key in bounds:
-                lines.append("at a bound")
+            on = [f"{k} {side}" for k, side in bounds.items() if k == key or str(k).startswith(key + "[")]
+            if on:
+                lines.append("at its bound: " + ", ".join(on))
             if true.get(key) is not None and key != "ior":
                 a, b = _floats(mat[key]), _floats(true[key])
                 err = (a - b).tolist() if a is not None and b is not None and a.shape == b.shape else None
@@ -592,6 +592,13 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
     elif model and model.get("error"):
         sec.note(f"re-render of the model failed: {model['error']}", "bad")
     return sec
+
+
+def _rejected_text(rejected) -> str | None:
+    if not isinstance(rejected, dict) or not rejected.get("count"):
+        return None
+    return (f"{rejected['count']} (residual above {num(rejected.get('threshold_sigmas'))} σ; cyan in the map below)"
+            if rejected.get("threshold_sigmas") is not None else str(rejected["count"]))
 
 
 def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
@@ -609,12 +616,18 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     bad = np.any(np.abs(img - photo) > tol, axis=2)
     overlay = F.display(photo, exposure).copy()
     overlay[bad] = [255, 0, 255]
+    rejected = _floats((fit.get("rejected") or {}).get("pixels")) if isinstance(fit.get("rejected"), dict) else None
+    if rejected is not None and rejected.ndim == 2 and rejected.shape[1] == 2:
+        x, y = rejected[:, 0].astype(int), rejected[:, 1].astype(int)
+        inside = (x >= 0) & (x < overlay.shape[1]) & (y >= 0) & (y < overlay.shape[0])
+        overlay[y[inside], x[inside]] = [0, 255, 255]
     what = "fitted materials with the recovered texture" if model.get("textured") else "fitted materials, homogeneous kd"
     sec.images([(F.thumb(F.display(photo, exposure), 480, 360), "input photograph"),
                 (F.thumb(F.display(img, exposure), 480, 360), f"re-rendered model ({what}), same exposure")])
     sec.images([(F.heat_with_bar(diff, "|model − input|, largest band", "linear radiance"), "difference", True),
                 (F.thumb(overlay, 480, 360), f"unexplained pixels (magenta): {int(bad.sum())} of {bad.size}, residual "
-                                             f"above {DIAG_SIGMAS:g} σ + {DIAG_FLOOR:g} × peak in some band")])
+                                             f"above {DIAG_SIGMAS:g} σ + {DIAG_FLOOR:g} × peak in some band"
+                                             + ("; outliers the fit left out in cyan" if rejected is not None else ""))])
     share = float(np.sum((img - photo)[bad] ** 2) / max(np.sum((img - photo) ** 2), 1e-300))
     sec.note(f"Unexplained pixels: the fit's test (docs/fit.md) on this re-render, with σ = fit.json's image noise "
              f"{num(noise.tolist() if noise is not None else None, 3)}; they hold {100 * share:.0f}% of the squared "
