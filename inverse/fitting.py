@@ -248,6 +248,9 @@ class Problem:
         self.onehot = np.zeros((fac.n_columns, fac.layout.n_x))
         self.onehot[np.arange(fac.n_columns), fac.col_x] = 1.0
         self.evaluations = 0
+        #: Seconds per phase of :func:`fit` (fit.json ``phases_s``) and the scan's evaluations.
+        self.phases = {"structure": 0.0, "scan": 0.0, "refinement": 0.0, "uncertainty": 0.0}
+        self.scan_evaluations = 0
         #: perf_counter() time after which the methods stop (None: no wall-clock budget).
         self.deadline = None
         #: The stage's :class:`hardware.task.Task` (progress, pause, cancel, deadline).
@@ -512,6 +515,7 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
     """
     srch = pb.search
     gain_min = SCAN_GAIN * float(np.sum(pb.noise**2)) / pb.norm
+    t_scan, n_scan = time.perf_counter(), pb.evaluations
     for _ in range(SCAN_SWEEPS):
         moved = False
         for k, qk in enumerate(q):  # coordinate-wise: one θ at a time, the others at their best so far
@@ -530,6 +534,8 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
                 trace.append(_trace_point(t0, pb.rms(state[5])))
         if not moved:
             break
+    pb.phases["scan"] += time.perf_counter() - t_scan
+    pb.scan_evaluations += pb.evaluations - n_scan
     return u, state
 
 
@@ -895,16 +901,19 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     init.theta = srch.to_theta(srch.to_u(init.theta))
     p = init.copy()
     free = _structural_free(pb, p)
+    pb.phases["structure"] = time.perf_counter() - t0
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
     max_rounds = 3 + fac.layout.n_theta if max_rounds is None else max_rounds
     for rounds in range(1, max_rounds + 1):
+        t_method = time.perf_counter()
         if method == "ftbo":
             # The global scan picks the basins once; later rounds only hold parameters.
             p, nit, message = _ftbo(pb, p, free, t0, trace, scan=scan and rounds == 1, **kw)
         else:
             p, nit, message = _nftbo(pb, p, free, t0, trace, **kw)
+        pb.phases["refinement"] += time.perf_counter() - t_method
         iterations += nit
         A = fac.matrices(p.theta)
         res = pb.residual(A, fac.y(p.x, p.s))
@@ -929,17 +938,20 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
             sig = uncertainty(pb, p, free, res)
-    elapsed = time.perf_counter() - t0
     rms = pb.rms(res)
     trace.append(_trace_point(t0, rms))
     status, warnings = diagnose(pb, p, A, res, textured, names)
+    elapsed = time.perf_counter() - t0
+    pb.phases["refinement"] -= pb.phases["scan"]
+    pb.phases["uncertainty"] = elapsed - sum(pb.phases.values())  # with the holding rounds and the diagnosis
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
     return FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace,
                      _undetermined(fac, free, materials), rounds, pb.evaluations, iterations, message,
                      {"used_pixels": int(fac.n_rows), "free_parameters": free.count(),
-                      "noise": [float(v) for v in pb.noise], "status": status, "warnings": warnings})
+                      "noise": [float(v) for v in pb.noise], "status": status, "warnings": warnings,
+                      "phases_s": {k: round(v, 6) for k, v in pb.phases.items()}, "scan_evaluations": pb.scan_evaluations})
 
 
 def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple[str, list]:
@@ -1125,7 +1137,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                              got="no pixel sees a lit surface")
     result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
                  textured=[s.textured for s in scene], names=scene.names, task=task)
-    rounds = None
+    rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
     if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
         from inverse.texture_fit import MIN_SHARE, fit_with_texture
@@ -1141,6 +1153,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                        "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
              "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
              "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
+    # Where the time went: trees, factorization, then the homogeneous fit's phases, then the texture rounds.
+    extra["phases_s"] = {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6), **homogeneous_phases,
+                         "texture_rounds": round(sum(r["texture_s"] + r["fit_s"] for r in rounds["rounds"]), 6) if rounds else 0.0}
+    extra["scan_evaluations"] = scan_evaluations
     if rounds is not None:
         extra["texture_rounds"] = rounds
     report = fit_json(result, fac, scene, depth, extra)
