@@ -12,27 +12,7 @@ import pytest
 
 from app.cli import main
 from hardware.images import write_image
-from hardware.workspace import write_json
-
-
-@pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    from hardware.sim.lab import build_lab, write_lab
-    from inverse.rendering import render
-    from inverse.trees import build_trees
-
-    root = tmp_path_factory.mktemp("noisyws")
-    lab = build_lab(64, 48, textured=False)
-    write_lab(root, lab)
-    truth = [s.material for s in lab.scene]
-    img = render(build_trees(lab.scene, lab.camera, lab.lights, depth=3), truth, lab.lights.intensities)
-    scene = json.loads((root / "scene.json").read_text())
-    for item, m in zip(scene["surfaces"], truth):
-        item["material"] = {"brdf": m.brdf, "ior": m.ior, **({"r": 0.0} if m.brdf == "lambert" else {})}
-    write_json(root / "scene.json", scene)
-    for stale in ("fit.json", "textures"):
-        assert not (root / stale).exists()
-    return root, img, truth
+from test_fit_cli import workspace  # noqa: F401 - the same 64x48 lab workspace (a fixture)
 
 
 def _noisy(img, seed=0):
