@@ -248,3 +248,28 @@ def test_report_json_holds_the_files_numbers(tmp_path):
 def test_report_names_a_missing_workspace(tmp_path, capsys):
     assert main(["report", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_fields_of_unexpected_shape_spoil_only_their_section(tmp_path, capsys):
+    """Files from another version (or edited by hand) with fields of other shapes: every section
+    still appears, the ones that cannot be drawn say why, and the command succeeds."""
+    (tmp_path / "captures" / "input").mkdir(parents=True)
+    (tmp_path / "textures").mkdir()
+    files = {"camera.json": {"width": "x", "K": "nope", "calibration": {"views": [1, {"image": 3}], "sigma": [1],
+                                                                        "residuals_px": [[1, 2]], "grid": [1]}},
+             "lights.json": {"lights": [{"position": "a"}, 5, {"position": [1, 2, 3], "sigma_position": [[1]]}]},
+             "marks.json": {"marks": [{"base": 1}, 7], "rod_height": "x"},
+             "sfm.json": {"sfm": [], "turntable": {"angle_error_deg": [None, "a"], "angles_deg": [1]}, "poses": {"a": 5}},
+             "scene.json": {"surfaces": [5, {"name": "x", "mesh": "nope.ply", "material": 3}]},
+             "fit.json": {"method": 5, "trace": [[1], "x", [None, 2], [1, "a"]], "surfaces": {"a": 1},
+                          "rejected": {"count": 3, "pixels": "x"}, "texture_rounds": {"rounds": [5, {"rms": "x"}]}},
+             "textures/index.json": {"surfaces": [5, {"surface": "x", "files": {"kd": "missing.exr"}}],
+                                     "stats": {"trace": [[1, 2]], "residual_rms": "a"}},
+             "captures/input/manifest.json": {"shots": [5, {"file": "nope.exr", "size": "x"}], "plan": 3}}
+    for name, obj in files.items():
+        write_json(tmp_path / name, obj)
+    assert main(["report", str(tmp_path)]) == 0
+    page = parse(tmp_path / "report.html")
+    assert {"captures", "camera", "lights", "geometry", "fit", "texture"} <= set(page.ids)
+    assert str(tmp_path / "nope.ply") in page.all_text  # named, as scene.json names it
+    assert "[fit]" in capsys.readouterr().out

@@ -6,7 +6,6 @@ embedded PNG data URI, the style sheet is inline, and nothing is fetched from an
 from __future__ import annotations
 
 import datetime
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -34,71 +33,64 @@ def render_model(src: Sources, depth: int) -> dict | None:
             "trees_s": info.get("trees_s"), "render_s": info.get("render_s")}
 
 
-def _turned(cam: dict, degrees: float) -> dict:
-    """camera.json turned about the vertical axis through the ground point on its optical axis."""
+def _turned(cam, degrees: float):
+    """A Camera turned about the vertical axis through the ground point on its optical axis."""
     import numpy as np
 
-    R, t = np.asarray(cam["R"], float), np.asarray(cam["t"], float)
-    C, forward = -R.T @ t, R[2]
+    from calibration.camera import Camera
+
+    C, forward = cam.center, cam.R[2]
     s = -C[2] / forward[2] if abs(forward[2]) > 1e-9 and -C[2] / forward[2] > 0 else 1.0
     pivot = C + s * forward
     a = np.radians(degrees)
     Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
-    R2 = R @ Rz.T
-    C2 = pivot + Rz @ (C - pivot)
-    return dict(cam, R=R2.tolist(), t=(-R2 @ C2).tolist())
+    R = cam.R @ Rz.T
+    return Camera(cam.width, cam.height, cam.K, cam.dist, R, -R @ (pivot + Rz @ (C - pivot)))
 
 
-def _scaled(cam: dict, width: int) -> dict:
-    from calibration.camera import Camera
-
-    c = Camera.from_json(cam)
-    if c.width <= width:
-        return cam
-    s = c.scaled(width, max(1, round(c.height * width / c.width)))
-    return dict(cam, width=s.width, height=s.height, K=s.K.tolist())
+def _small(cam, width: int = VIEW_WIDTH):
+    return cam if cam.width <= width else cam.scaled(width, max(1, round(cam.height * width / cam.width)))
 
 
 def render_views(src: Sources, depth: int) -> dict:
-    """A novel and a relit view of the recovered model: truth/'s camera and lamps when present, else made up."""
+    """A novel and a relit view of the recovered model: truth/'s camera and lamps when present, else made up.
+
+    Returns {"novel"|"relit": {"image", "truth", "truth_file", "how"} or {"error"}}; {} when there
+    is no recovered model (no fit.json or textures/).
+    """
     import numpy as np
 
     from app.commands.render import render_workspace
+    from calibration.camera import Camera
+    from calibration.lights import Lights, PointLight
 
     if src.scene is None or src.camera is None or src.lights is None or (src.fit is None and src.textures is None):
         return {}
     out = {}
     with tempfile.TemporaryDirectory(prefix="reflab-report-") as tmp:
-        jobs = {}
-        novel_cam = src.truth("novel_camera.json")
-        if novel_cam is not None:
-            jobs["novel"] = dict(camera=novel_cam, lights=None, truth="truth/novel.exr", how="truth/novel_camera.json")
-        else:
-            jobs["novel"] = dict(camera=_scaled(_turned(src.camera, NOVEL_TURN_DEG), VIEW_WIDTH), lights=None, truth=None,
-                                 how=f"input camera turned {NOVEL_TURN_DEG:g}° about the vertical")
-        relit = src.truth("relit_lights.json")
-        if relit is not None:
-            jobs["relit"] = dict(camera=None, lights=relit, truth="truth/relit.exr", how="truth/relit_lights.json")
-        else:
-            lamps = json.loads(json.dumps(src.lights))
-            for l in lamps.get("lights", []):
-                x, y, z = l["position"]
-                l["position"] = [-y, x, z]  # each lamp turned 90° about the world's vertical axis
-            jobs["relit"] = dict(camera=_scaled(src.camera, VIEW_WIDTH), lights=lamps, truth=None,
-                                 how="lamps turned 90° about the vertical")
-        for key, job in jobs.items():
-            paths = {}
-            for what in ("camera", "lights"):
-                if job[what] is not None:
-                    paths[what] = Path(tmp) / f"{key}_{what}.json"
-                    paths[what].write_text(json.dumps(job[what]))
+        for key in ("novel", "relit"):
+            truth_file = f"truth/{key}.exr"
             try:
-                image, _ = render_workspace(src.root, paths.get("camera"), paths.get("lights"), depth=depth)
-            except Exception as err:  # noqa: BLE001
+                cam, lights, how = None, None, f"truth/{key}_camera.json" if key == "novel" else "truth/relit_lights.json"
+                if key == "novel":
+                    cam = src.path("truth/novel_camera.json")
+                    if not cam.is_file():
+                        cam = _small(_turned(Camera.load(src.ws.camera), NOVEL_TURN_DEG)).save(Path(tmp) / "novel.json")
+                        how, truth_file = f"input camera turned {NOVEL_TURN_DEG:g}° about the vertical", None
+                else:
+                    lights = src.path("truth/relit_lights.json")
+                    if not lights.is_file():
+                        turned = [PointLight([-l.position[1], l.position[0], l.position[2]], l.intensity)
+                                  for l in Lights.load(src.ws.lights)]
+                        lights = Lights(turned).save(Path(tmp) / "relit.json")
+                        cam = _small(Camera.load(src.ws.camera)).save(Path(tmp) / "relit_camera.json")
+                        how, truth_file = "lamps turned 90° about the vertical", None
+                image, _ = render_workspace(src.root, cam, lights, depth=depth)
+            except Exception as err:  # noqa: BLE001 - the report shows what failed and goes on
                 out[key] = {"error": f"could not render ({type(err).__name__}: {err})"}
                 continue
-            truth = src.image(job["truth"]) if job["truth"] else None
-            out[key] = {"image": np.asarray(image), "truth": truth, "truth_file": job["truth"], "how": job["how"]}
+            truth = src.image(truth_file) if truth_file else None
+            out[key] = {"image": np.asarray(image), "truth": truth, "truth_file": truth_file, "how": how}
     return out
 
 
@@ -120,9 +112,20 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     depth = int((src.fit or {}).get("depth") or 3) if isinstance((src.fit or {}).get("depth"), int) else 3
     model = render_model(src, depth) if render and src.fit is not None else None
     views = render_views(src, depth) if render else {}
-    sections = [s for s in (S.captures_section(src), S.camera_section(src), S.lights_section(src),
-                            S.geometry_section(src), S.fit_section(src, model), S.texture_section(src),
-                            S.views_section(src, views), S.error_section(src)) if s is not None]
+    parts = [("captures", "Captures", S.captures_section, ()), ("camera", "Camera", S.camera_section, ()),
+             ("lights", "Lights", S.lights_section, ()), ("geometry", "Geometry", S.geometry_section, ()),
+             ("fit", "Fit", S.fit_section, (model,)), ("texture", "Texture", S.texture_section, ()),
+             ("views", "Novel and relit views", S.views_section, (views,)),
+             ("error", "Error against run time", S.error_section, ())]
+    sections = []
+    for sid, title, make, extra in parts:
+        try:
+            section = make(src, *extra)
+        except Exception as err:  # noqa: BLE001 - a field of an unexpected shape spoils its section, not the report
+            section = S.Section(sid, title)
+            section.note(f"this section could not be drawn from the workspace's files: {type(err).__name__}: {err}", "bad")
+        if section is not None:
+            sections.append(section)
     summary = summarise(src)
     html = _template().render(
         workspace=str(src.root.resolve()), generated=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),

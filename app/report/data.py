@@ -102,41 +102,51 @@ class Sources:
         return out, source if out else ""
 
 
+def as_list(x) -> list:
+    """``x`` when it is a list, else [] (a field of another shape reads as empty)."""
+    return x if isinstance(x, list) else []
+
+
+def as_dict(x) -> dict:
+    """``x`` when it is a dict, else {}."""
+    return x if isinstance(x, dict) else {}
+
+
 def summarise(src: Sources) -> dict:
     """A JSON-ready summary of what each stage left (the terminal text and report.json)."""
     out = {}
     manifests = src.manifests()
     if manifests:
-        out["captures"] = {k: {"status": m.get("status"), "shots": len(m.get("shots") or []),
-                               "planned": len(m.get("plan") or []), "started": m.get("started"),
+        out["captures"] = {k: {"status": m.get("status"), "shots": len(as_list(m.get("shots"))),
+                               "planned": len(as_list(m.get("plan"))), "started": m.get("started"),
                                "updated": m.get("updated"), "error": m.get("error")}
                            for k, m in manifests.items()}
     cam = src.camera
     if cam:
-        cal = cam.get("calibration") or {}
+        cal = as_dict(cam.get("calibration"))
         out["camera"] = {"size": [cam.get("width"), cam.get("height")], "K": cam.get("K"), "dist": cam.get("dist"),
                          "rms_px": cal.get("rms_px"), "sigma": cal.get("sigma"), "time_s": cal.get("time_s")}
     lights = src.lights
     if lights:
         out["lights"] = [{"position": l.get("position"), "intensity": l.get("intensity"),
                           "sigma_position": l.get("sigma_position")}
-                         for l in lights.get("lights", []) if isinstance(l, dict)]
+                         for l in as_list(lights.get("lights")) if isinstance(l, dict)]
     sfm = src.sfm
     if sfm:
         out["reconstruction"] = {k: sfm.get(k) for k in ("sfm", "rigid_turntable", "turntable", "reference", "time_s")
                                  if k in sfm}
     scene = src.scene
     if scene:
-        out["scene"] = [{"name": s.get("name"), "brdf": (s.get("material") or {}).get("brdf"),
-                         "ior": (s.get("material") or {}).get("ior"), "textured": s.get("textured", True)}
-                        for s in scene.get("surfaces", []) if isinstance(s, dict)]
+        out["scene"] = [{"name": s.get("name"), "brdf": as_dict(s.get("material")).get("brdf"),
+                         "ior": as_dict(s.get("material")).get("ior"), "textured": s.get("textured", True)}
+                        for s in as_list(scene.get("surfaces")) if isinstance(s, dict)]
     fit = src.fit
     if fit:
         out["fit"] = {"method": fit.get("method"), "depth": fit.get("depth"), "time_s": fit.get("time_s"),
-                      "rms": fit.get("rms"), "trace_points": len(fit.get("trace") or []),
+                      "rms": fit.get("rms"), "trace_points": len(as_list(fit.get("trace"))),
                       "status": fit.get("status"), "warnings": fit.get("warnings"),
-                      "texture_rounds": len((fit.get("texture_rounds") or {}).get("rounds", [])),
-                      "undetermined": {s.get("name"): s.get("undetermined", []) for s in fit.get("surfaces", [])
+                      "texture_rounds": len(as_list(as_dict(fit.get("texture_rounds")).get("rounds"))),
+                      "undetermined": {s.get("name"): s.get("undetermined", []) for s in as_list(fit.get("surfaces"))
                                        if isinstance(s, dict)}}
     tex = src.textures
     if tex:
@@ -165,7 +175,9 @@ def summary_text(summary: dict) -> str:
         lines.append(f"[{stage}]")
         if isinstance(info, list):
             for item in info:
-                lines.append("  " + ", ".join(f"{k} {_fmt(v)}" for k, v in item.items() if v is not None))
+                lines.append("  " + ", ".join(f"{k} {_fmt(v)}" for k, v in as_dict(item).items() if v is not None))
+        elif not isinstance(info, dict):
+            lines.append(f"  {_fmt(info)}")
         else:
             for k, v in info.items():
                 if v is not None:

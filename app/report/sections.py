@@ -121,7 +121,7 @@ def captures_section(src: Sources, thumbs: int = 6) -> Section | None:
         exposures = sorted({s.get("exposure") for s in shots if s.get("exposure") is not None})
         sizes = sorted({"x".join(map(str, s.get("size"))) for s in shots if isinstance(s.get("size"), list)})
         cam = m.get("camera") if isinstance(m.get("camera"), dict) else {}
-        rows.append([folder, m.get("kind", folder), m.get("status", "–"), f"{len(shots)} of {len(m.get('plan') or shots)}",
+        rows.append([folder, m.get("kind", folder), m.get("status", "–"), f"{len(shots)} of {len(m['plan']) if isinstance(m.get('plan'), list) else '?'}",
                      m.get("started", "–"), m.get("updated", "–"),
                      ", ".join(num(e) for e in exposures) or "camera's own", ", ".join(sizes) or "–",
                      cam.get("type", "–")])
@@ -395,9 +395,9 @@ def geometry_section(src: Sources) -> Section | None:
         errs = tt.get("angle_error_deg")
         if isinstance(errs, list) and errs and isinstance(tt.get("angles_deg"), list):
             fig, (ax,) = F.new_figure(6.0, 2.4)
-            ang = np.asarray(tt["angles_deg"], dtype=float)
-            err = np.array([np.nan if e is None else e for e in errs], dtype=float)
-            ax.plot(ang[: len(err)], err, "o-", ms=3)
+            ang = np.array([a if isinstance(a, (int, float)) else np.nan for a in tt["angles_deg"]], dtype=float)
+            err = np.array([e if isinstance(e, (int, float)) else np.nan for e in errs], dtype=float)[: len(ang)]
+            ax.plot(ang[: len(err)], err, "o-", ms=3)  # NaN: a gap (shot not registered)
             ax.axhline(0, color="k", lw=0.5)
             ax.set_xlabel("commanded angle (°)", fontsize=8)
             ax.set_ylabel("recovered − commanded (°)", fontsize=8)
