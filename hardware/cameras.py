@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from hardware.workspace import IMAGE_SUFFIXES
+
 #: Files a tethered camera may write that :func:`hardware.images.read_image` reads as linear.
-FOLDER_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
+FOLDER_SUFFIXES = IMAGE_SUFFIXES
 
 
 class CameraError(RuntimeError):

@@ -11,24 +11,24 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import Workspace, WorkspaceError, read_json, write_json
+from hardware.task import Cancelled, Task
+from hardware.workspace import CAPTURE_FOLDERS, Workspace, WorkspaceError, read_json, write_json
 
 #: Session kind -> folder under WORKSPACE/captures (INTERFACES.md).
-FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
+FOLDERS = CAPTURE_FOLDERS
 
 
 class CaptureError(RuntimeError):
     """A session stopped on a fault; the finished shots are kept and ``resume`` continues."""
 
 
-class CaptureCancelled(CaptureError):
+class CaptureCancelled(CaptureError, Cancelled):
     """The user cancelled; the finished shots are kept and ``resume`` continues."""
 
 
@@ -75,41 +75,13 @@ def plan_input(n_lamps: int, angle: float = 0.0, ambient: bool = False, ext: str
     return shots
 
 
-class Control:
-    """Pause, resume and cancel a running session from another thread (the GUI, a signal handler).
-
-    A pause takes effect between shots, and during a turntable move as a feed hold.
-    """
-
-    def __init__(self):
-        self._run = threading.Event()
-        self._run.set()
-        self._cancel = threading.Event()
-
-    def pause(self) -> None:
-        self._run.clear()
-
-    def resume(self) -> None:
-        self._run.set()
-
-    def cancel(self) -> None:
-        self._cancel.set()
-        self._run.set()
-
-    @property
-    def paused(self) -> bool:
-        return not self._run.is_set()
-
-    @property
-    def cancelled(self) -> bool:
-        return self._cancel.is_set()
+class Control(Task):
+    """Pause, resume and cancel of a running session: the one task object of every stage
+    (:class:`hardware.task.Task`), with ``wait``, its old name for :meth:`Task.check`. A pause
+    takes effect between shots, and during a turntable move as a feed hold."""
 
     def wait(self) -> None:
-        """Block while paused; raise :class:`CaptureCancelled` once cancelled."""
-        while not self._run.wait(0.05):
-            pass
-        if self.cancelled:
-            raise CaptureCancelled("cancelled")
+        self.check()
 
 
 def _now() -> str:
@@ -150,7 +122,8 @@ class CaptureSession:
         Start again over a previous session of this kind (its images are removed first).
     progress : callable, optional
         ``progress(done, total, record)`` after every shot.
-    control : Control, optional
+    control : hardware.task.Task, optional
+        Pause, resume, cancel; told ``step(done, total, file)`` after every shot.
     log : callable, optional
     size : (width, height), optional
         The image size every shot must have; by default camera.json's when it exists (except for
@@ -160,7 +133,7 @@ class CaptureSession:
 
     def __init__(self, workspace, kind: str, plan: list[Shot], controller, camera, *, exposure: float | None = None,
                  settle_s: float = 0.0, resume: bool = False, overwrite: bool = False, progress=None,
-                 control: Control | None = None, log=None, size: tuple[int, int] | None = None):
+                 control: Task | None = None, log=None, size: tuple[int, int] | None = None):
         if kind not in FOLDERS:
             raise ValueError(f"capture kind must be one of {sorted(FOLDERS)}, got {kind!r}")
         if resume and overwrite:
@@ -170,13 +143,15 @@ class CaptureSession:
             raise ValueError("a plan needs at least one shot and distinct file names")
         self.workspace = Workspace(workspace)
         self.kind, self.plan = kind, plan
-        self.folder = self.workspace.captures / FOLDERS[kind]
-        self.manifest_path = self.folder / "manifest.json"
+        self.folder = self.workspace.captures_of(kind)
+        self.manifest_path = self.workspace.manifest(kind)
         self.controller, self.camera = controller, camera
         self.exposure, self.settle_s = exposure, float(settle_s)
         self.resume, self.overwrite = resume, overwrite
         self.progress = progress or (lambda done, total, record: None)
-        self.control = control or Control()
+        self.control = control or Task()
+        # A Control subclass may override wait (its old name); a plain Task checks.
+        self._wait = getattr(self.control, "wait", self.control.check)
         self.log = log or (lambda msg: None)
         self.manifest: dict = {}
         self.size = tuple(size) if size is not None else None
@@ -230,7 +205,8 @@ class CaptureSession:
         CaptureError
             On a device or camera fault, with the fault's message; the manifest says ``stopped``.
         CaptureCancelled
-            On ``control.cancel()`` or Ctrl-C; the manifest says ``cancelled``.
+            On ``control.cancel()`` or Ctrl-C; the manifest says ``cancelled``. It is a
+            :class:`hardware.task.Cancelled`.
         """
         from hardware.cameras import CameraError
         from hardware.grbl import GrblError
@@ -255,13 +231,14 @@ class CaptureSession:
         self._write_manifest("running")
         try:
             for shot in todo:
-                self.control.wait()
+                self._wait()
                 record = self._take(shot)
                 self.manifest["shots"].append(record)
                 self._write_manifest("running")
                 self.progress(len(self.manifest["shots"]), len(self.plan), record)
+                self.control.step(len(self.manifest["shots"]), len(self.plan), f"{self.kind}: {record['file']}")
             self._finish()
-        except (CaptureCancelled, KeyboardInterrupt):
+        except (Cancelled, KeyboardInterrupt):
             self._write_manifest("cancelled", "cancelled by the user")
             raise CaptureCancelled(self._stopped_message("cancelled by the user")) from None
         except (GrblError, CameraError, OSError) as exc:
@@ -293,7 +270,7 @@ class CaptureSession:
         ctl.set_lamps(shot.lamps)
         if changed and self.settle_s > 0:
             time.sleep(self.settle_s)
-        self.control.wait()
+        self._wait()
         t0 = time.monotonic()
         image = self.camera.capture(self.exposure)
         if not np.all(np.isfinite(image)):
@@ -322,7 +299,84 @@ class CaptureSession:
             # Noise around black goes negative: data for the fit (INTERFACES.md, Images), not clipped.
             lit = lit - read_image(self.folder / shots["ambient"].file)
         ext = Path(shots["input"].file).suffix
-        target = self.workspace.root / f"input{ext}"
+        target = self.workspace.root / f"input{ext}"  # Workspace.input_image finds it
         write_image(target, lit)
         self.manifest["input"] = {"file": target.name, "ambient_subtracted": "ambient" in shots}
         self.log(f"wrote {target}")
+
+
+# ---------------------------------------------------------------------- the capture stage
+@dataclass
+class CaptureOptions:
+    """Options of :func:`run_capture`.
+
+    ``controller`` (a connected :class:`hardware.grbl.GrblController`) and ``camera`` (an object
+    with ``capture(exposure)`` and ``describe()``) are the opened devices: the caller opens them
+    (``app/devices.py`` for hardware or the simulated lab) and closes them. ``angles`` are the
+    turntable angles of calibration/lights shots; ``count`` and ``start`` the sweep's (``start``
+    is the input's angle); ``ambient`` adds a lamps-off frame to the input; ``format`` is the
+    image files' suffix. ``on_shot(done, total, record)`` is told every shot, ``log(message)``
+    what happened. ``size`` (width, height) every shot must have: by default camera.json's
+    (except for the calibration kind).
+    """
+
+    workspace: Path
+    kind: str
+    controller: object = None
+    camera: object = None
+    angles: list = field(default_factory=lambda: [0.0])
+    count: int = 36
+    start: float = 0.0
+    ambient: bool = False
+    format: str = "exr"
+    exposure: float | None = None
+    settle: float = 0.0
+    resume: bool = False
+    overwrite: bool = False
+    on_shot: object = None
+    log: object = None
+    size: tuple | None = None
+
+
+@dataclass
+class CaptureResult:
+    """What :func:`run_capture` wrote: ``manifest`` (as in manifest.json) and its path."""
+
+    manifest_path: Path
+    manifest: dict
+
+    @property
+    def shots(self) -> list:
+        return list(self.manifest["shots"])
+
+
+def plan(kind: str, n_lamps: int, options: CaptureOptions) -> list[Shot]:
+    """The shots of one capture kind (:data:`FOLDERS`)."""
+    o = options
+    if kind == "calibration":
+        return plan_calibration(n_lamps, o.angles, o.format)
+    if kind == "lights":
+        return plan_lights(n_lamps, o.angles, o.format)
+    if kind == "sweep":
+        return plan_sweep(n_lamps, o.count, o.start, o.format)
+    if kind == "input":
+        return plan_input(n_lamps, o.start, o.ambient, o.format)
+    raise ValueError(f"capture kind must be one of {sorted(FOLDERS)}, got {kind!r}")
+
+
+def run_capture(options: CaptureOptions, task: Task | None = None) -> CaptureResult:
+    """Take every shot of ``options.kind`` not yet taken (see :class:`CaptureSession`).
+
+    Raises :class:`CaptureCancelled` (a :class:`hardware.task.Cancelled`) when ``task`` is
+    cancelled, :class:`CaptureError` on a device fault; either way the finished shots are kept
+    and ``resume=True`` takes the others.
+    """
+    o = options
+    if o.controller is None or o.camera is None:
+        raise ValueError("run_capture needs opened devices: options.controller and options.camera")
+    shots = plan(o.kind, len(o.controller.config.lamps), o)
+    session = CaptureSession(o.workspace, o.kind, shots, o.controller, o.camera, exposure=o.exposure,
+                             settle_s=o.settle, resume=o.resume, overwrite=o.overwrite, progress=o.on_shot,
+                             control=task, log=o.log, size=o.size)
+    manifest = session.run()
+    return CaptureResult(session.manifest_path, manifest)

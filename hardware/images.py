@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError, atomic_path
+from hardware.workspace import IMAGE_SUFFIXES, WorkspaceError, atomic_path
 
 
 def _cv2():
@@ -39,7 +39,7 @@ def _write_exr(path: Path, img: np.ndarray) -> None:
 
 
 #: Files the geometric stages read (any image a camera writes).
-CAMERA_SUFFIXES = (".exr", ".png", ".tif", ".tiff", ".jpg", ".jpeg")
+CAMERA_SUFFIXES = IMAGE_SUFFIXES + (".jpg", ".jpeg")
 
 
 def image_files(folder) -> list[Path]:

@@ -45,8 +45,15 @@ class WorkspaceError(ValueError):
         super().__init__(msg)
 
 
+#: Linear image files (the input photograph, captures), in order of preference.
+IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
+
+#: Capture kind -> folder under WORKSPACE/captures (INTERFACES.md).
+CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
+
+
 class Workspace:
-    """Paths of one scene's workspace (INTERFACES.md)."""
+    """Paths of one scene's workspace: every file name of INTERFACES.md and docs/formats.md."""
 
     def __init__(self, root):
         self.root = Path(root)
@@ -58,8 +65,28 @@ class Workspace:
     fit = property(lambda self: self.root / "fit.json")
     textures = property(lambda self: self.root / "textures")
     captures = property(lambda self: self.root / "captures")
+    marks = property(lambda self: self.root / "marks.json")
+    sfm = property(lambda self: self.root / "sfm.json")
+    sparse = property(lambda self: self.root / "sparse.ply")
+    hardware = property(lambda self: self.root / "hardware.json")
+    truth = property(lambda self: self.root / "truth")
+    report = property(lambda self: self.root / "report.html")
     cache = property(lambda self: self.root / "cache")
     logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
+
+    def captures_of(self, kind: str) -> Path:
+        """``captures/<folder>`` of a capture kind (calibration, lights, sweep, input)."""
+        if kind not in CAPTURE_FOLDERS:
+            raise ValueError(f"capture kind must be one of {sorted(CAPTURE_FOLDERS)}, got {kind!r}")
+        return self.captures / CAPTURE_FOLDERS[kind]
+
+    def manifest(self, kind: str) -> Path:
+        """``captures/<folder>/manifest.json`` of a capture kind."""
+        return self.captures_of(kind) / "manifest.json"
+
+    def render(self, aov: str | None = None) -> Path:
+        """The default output of ``reflab render`` (render.exr, or albedo.exr for the albedo AOV)."""
+        return self.root / ("albedo.exr" if aov == "albedo" else "render.exr")
 
     def trees_cache(self, key: str) -> Path:
         """Cached pixel-intensity trees named by their inputs' hash (inverse.trees.trees_for_workspace)."""
@@ -68,9 +95,9 @@ class Workspace:
     @property
     def input_image(self) -> Path:
         """The input photograph: input.exr, else a 16-bit PNG/TIFF named input.*."""
-        for name in ("input.exr", "input.png", "input.tif", "input.tiff"):
-            if (self.root / name).exists():
-                return self.root / name
+        for suffix in IMAGE_SUFFIXES:
+            if (self.root / f"input{suffix}").exists():
+                return self.root / f"input{suffix}"
         return self.root / "input.exr"
 
     def require(self, path: Path, made_by: str) -> Path:

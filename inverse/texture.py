@@ -306,14 +306,15 @@ def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------------- the solver
-def _cg(apply, b, x, free, sizes, stop, max_iter) -> tuple[np.ndarray, int]:
+def _cg(apply, b, x, free, sizes, stop, max_iter, check=None) -> tuple[np.ndarray, int]:
     """Conjugate gradient on N x = b over the free unknowns, one independent solve per component.
 
     ``apply(p)`` computes N p; the unknowns are ordered by connected component, ``sizes`` giving
     each component's count. Every component gets its own step sizes and its own stopping test
     (squared residual ≤ ``stop[component]``), exactly as if it were solved alone, while one set
     of sparse products per iteration serves them all. ``free`` (0/1 per unknown, or None for
-    all free): fixed unknowns keep their value. Returns (x, iterations of the slowest component).
+    all free): fixed unknowns keep their value. ``check()``, when given, is called every
+    iteration (a task's cancellation). Returns (x, iterations of the slowest component).
     """
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     seg = lambda v: np.add.reduceat(v, starts, dtype=np.float64)  # noqa: E731 -- per-component sums
@@ -326,6 +327,8 @@ def _cg(apply, b, x, free, sizes, stop, max_iter) -> tuple[np.ndarray, int]:
     p = r * each(active)
     it = 0
     while it < max_iter and active.any():
+        if check is not None:
+            check()
         q = apply(p)
         if free is not None:
             q *= free
@@ -390,7 +393,7 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([label, label + len(sizes), label + 2 * len(sizes)]), np.tile(sizes, 3)
 
 
-def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, dict]:
+def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np.ndarray, dict]:
     """Solve the bounded, regularised system by connected components; returns (z per column, stats).
 
     Minimises ``|E z − rhs|² + Σ w_j (z_j − kd_j)² + Σ μ_ab (z_a − z_b)²`` within the bounds by
@@ -398,7 +401,8 @@ def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, d
     smoothness Laplacian plus the prior's diagonal), never formed: each iteration is ``Eᵀ(E p)
     + L p``. Jacobi scaling (unit diagonal), a warm start from each texel's ratio of observed to
     predicted radiance, per-component step sizes and stopping; then up to four active-set rounds
-    (violators fixed at their bound, the rest re-solved warm) and a final projection.
+    (violators fixed at their bound, the rest re-solved warm) and a final projection. ``task``
+    (:class:`hardware.task.Task`, optional) is checked every CG iteration.
     """
     import scipy.sparse as sp
 
@@ -452,7 +456,10 @@ def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, d
     free = None
     iters = rounds = 0
     for rounds in range(5):
-        y, it = _cg(apply, b.astype(F), y.astype(F), None if free is None else free.astype(F), sizes, stop, options.max_iter)
+        if task is not None:
+            task.step(rounds, 5, f"texture: conjugate gradient, active-set round {rounds + 1}")
+        y, it = _cg(apply, b.astype(F), y.astype(F), None if free is None else free.astype(F), sizes, stop,
+                    options.max_iter, None if task is None else task.check)
         y = y.astype(np.float64)
         iters += it
         z = y * scale
@@ -469,7 +476,7 @@ def solve(system: _System, maps, options: TextureOptions) -> tuple[np.ndarray, d
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None,
-                    exclude=None) -> TextureResult:
+                    exclude=None, task=None) -> TextureResult:
     """Recover the diffuse texture of every textured surface the trees reach.
 
     Parameters
@@ -487,6 +494,8 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     options : TextureOptions, optional
     exclude : (H, W) or (H*W,) bool array_like, optional
         Pixels to leave out (their texels are then known only from other pixels, or not at all).
+    task : hardware.task.Task, optional
+        Progress and cancellation, checked every conjugate-gradient iteration.
 
     Returns
     -------
@@ -504,7 +513,7 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     t_maps = time.perf_counter()
     system = build_system(trees, materials, intensities, image, maps, options, exclude)
     t_sys = time.perf_counter()
-    z, stats = solve(system, maps, options)
+    z, stats = solve(system, maps, options, task)
 
     resid = system.E @ z - system.rhs if len(z) else np.zeros(0)
     count = np.bincount(system.row_band, minlength=3)

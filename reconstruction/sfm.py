@@ -16,6 +16,7 @@ import contextlib
 import os
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
 
 #: A pixel whose display value varies less than this over the whole sweep does not turn.
@@ -246,7 +248,7 @@ def filter_matches(database, files: list, camera: Camera, commanded: list, tol_p
 
 def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask: bool = True,
             overlap: int = 5, closed: bool = True, min_registered: float = 0.9, max_features: int = 4000,
-            workdir=None, seed: int = 0, commanded=None, log_file=None, progress=None) -> SfMResult:
+            workdir=None, seed: int = 0, commanded=None, log_file=None, progress=None, task=None) -> SfMResult:
     """Recover the pose of every shot of a turntable sweep.
 
     Parameters
@@ -283,6 +285,9 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
         terminal); None leaves it on stderr.
     progress : callable, optional
         Called with one line per COLMAP step (features, matching, mapping).
+    task : hardware.task.Task, optional
+        Progress and cancellation: stepped between COLMAP's phases, and COLMAP itself stops
+        within a moment of a cancel (its cancellation token).
 
     Returns
     -------
@@ -300,9 +305,34 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="reflab-sfm-") as tmp:
             return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
-                        Path(tmp), seed, commanded, log_file, progress)
+                        Path(tmp), seed, commanded, log_file, progress, ensure(task))
     return _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features,
-                Path(workdir), seed, commanded, log_file, progress)
+                Path(workdir), seed, commanded, log_file, progress, ensure(task))
+
+
+@contextlib.contextmanager
+def _colmap_token(task: Task):
+    """A pycolmap CancellationToken cancelled (by a watcher thread) once ``task`` is; the task is
+    checked again when COLMAP returns, so a cancelled phase raises :class:`hardware.task.Cancelled`."""
+    import pycolmap
+
+    token = pycolmap.CancellationToken()
+    done = threading.Event()
+
+    def watch():
+        while not done.wait(0.05):
+            if task.cancelled:
+                token.cancel()
+                return
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    try:
+        yield token
+    finally:
+        done.set()
+        thread.join()
+    task.check()
 
 
 @contextlib.contextmanager
@@ -334,7 +364,7 @@ def colmap_log(path):
 
 
 def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registered, max_features, work: Path, seed,
-         commanded, log_file=None, progress=None):
+         commanded, log_file=None, progress=None, task: Task | None = None):
     import cv2
     import pycolmap
 
@@ -372,10 +402,12 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     where = f" (COLMAP's log: {log_file})" if log_file is not None else ""
     say(f"structure from motion: SIFT features of {n} shots{where}")
     t = time.perf_counter()
-    with colmap_log(log_file):
+    task = ensure(task)
+    task.step(0, 3, "structure from motion: features")
+    with colmap_log(log_file), _colmap_token(task) as token:
         pycolmap.extract_features(db, img_dir, image_names=files, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction,
-                                  device=pycolmap.Device.cpu)
+                                  device=pycolmap.Device.cpu, cancellation_token=token)
     times["features_s"] = time.perf_counter() - t
 
     pairs_file = work / "pairs.txt"
@@ -385,10 +417,11 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     say(f"structure from motion: matching {len(loop_pairs(n, overlap, closed))} pairs of shots "
         f"({times['features_s']:.1f} s so far on features)")
     t = time.perf_counter()
-    with colmap_log(log_file):
+    task.step(1, 3, "structure from motion: matching")
+    with colmap_log(log_file), _colmap_token(task) as token:
         pycolmap.match_image_pairs(db, matching_options=matching,
                                    pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_file),
-                                   device=pycolmap.Device.cpu)
+                                   device=pycolmap.Device.cpu, cancellation_token=token)
     times["matching_s"] = time.perf_counter() - t
     filtered = None
     if commanded is not None:
@@ -407,8 +440,10 @@ def _run(images, names, camera, masks, auto_mask, overlap, closed, min_registere
     say(f"structure from motion: incremental mapping ({times['matching_s']:.1f} s on matching)")
     t = time.perf_counter()
     (work / "sparse").mkdir(exist_ok=True)
-    with colmap_log(log_file):
-        models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=options)
+    task.step(2, 3, "structure from motion: mapping")
+    with colmap_log(log_file), _colmap_token(task) as token:
+        models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=options,
+                                              cancellation_token=token)
     times["mapping_s"] = time.perf_counter() - t
     times["total_s"] = time.perf_counter() - t0
     result = _result(models, names, files, camera, min_registered, times)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.commands.render import render_workspace
+from inverse.stages import render_workspace
 from calibration.camera import Camera
 from calibration.lights import Lights, PointLight
 from hardware.images import write_image

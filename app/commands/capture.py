@@ -48,86 +48,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "procedural lab, too poorly textured for structure from motion)")
 
 
-def _plan(args, n_lamps: int):
-    from hardware import capture as cap
-
-    if args.kind == "calibration":
-        return cap.plan_calibration(n_lamps, args.angles, args.format)
-    if args.kind == "lights":
-        return cap.plan_lights(n_lamps, args.angles, args.format)
-    if args.kind == "sweep":
-        return cap.plan_sweep(n_lamps, args.count, args.start, args.format)
-    return cap.plan_input(n_lamps, args.start, args.ambient, args.format)
-
-
-def _camera(args, config, ctl, sim):
-    from hardware.cameras import open_camera
-    from hardware.sim.camera import SimulatedCamera, lab_renderer
-
-    if args.camera != "sim":
-        if args.camera.startswith("folder:"):
-            trigger = args.trigger.split() if args.trigger else None
-            return open_camera(args.camera, trigger=trigger, timeout_s=args.camera_timeout)
-        return open_camera(args.camera)
-    from hardware.sim.lab import build_lab
-
-    if not 0.0 <= args.grain < 1.0:
-        raise SystemExit(f"reflab capture: error: --grain must be in [0, 1), got {args.grain}")
-    lab = build_lab(*args.size, grain=args.grain)
-    if len(config.lamps) != len(lab.lights):
-        raise SystemExit(f"reflab capture: error: the simulated lab has {len(lab.lights)} lamps but the configuration "
-                         f"maps {len(config.lamps)} ({config.lamps})")
-    if len(args.centre) != 2:
-        raise SystemExit(f"reflab capture: error: --centre takes x,y, got {args.centre}")
-    if sim is not None:  # the simulated board's axis and outputs: the rig as it really is
-        state = lambda: (sim.turntable(config.axis), config.lamp_states(sim.lamp_outputs()))  # noqa: E731
-    else:
-        state = lambda: (ctl.angle, ctl.lamps)  # noqa: E731
-    return SimulatedCamera(lab_renderer(lab, depth=args.depth, centre=args.centre), state, ambient=args.room_light,
-                           lab={"grain": args.grain, "fixed": ["ground"], "centre": list(args.centre)})
-
-
 def run(args) -> int:
-    from app.commands.hardware import load_config, open_port
+    from app.devices import Rig, SimOptions, load_config
     from hardware.cameras import CameraError
-    from hardware.capture import CaptureCancelled, CaptureError, CaptureSession
-    from hardware.grbl import GrblAlarm, GrblController, GrblError
-    from hardware.workspace import WorkspaceError
+    from hardware.capture import CaptureCancelled, CaptureError, CaptureOptions, calibrated_size, run_capture
+    from hardware.grbl import GrblError
+    from hardware.workspace import Workspace, WorkspaceError
 
-    from hardware.capture import calibrated_size
+    ws = Workspace(args.workspace)
+    config = load_config(args.config or (ws.hardware if ws.hardware.exists() else None))
 
-    calibrated = calibrated_size(args.workspace)
+    def on_shot(done, total, rec):
+        lamps = "".join("1" if x else "0" for x in rec["lamps"])
+        print(f"[{done}/{total}] {rec['file']}  angle {rec['angle']:.3f}  lamps {lamps}", flush=True)
+
+    calibrated = calibrated_size(ws)
     if args.camera == "sim" and args.size is None:
         args.size = calibrated or (320, 240)
     elif args.camera == "sim" and calibrated and tuple(args.size) != calibrated and args.kind != "calibration":
-        raise WorkspaceError(args.workspace / "camera.json", "width/height",
+        raise WorkspaceError(ws.camera, "width/height",
                              f"captures of the calibrated size {calibrated[0]}x{calibrated[1]} (leave --size out, "
                              "or calibrate again at the new size)", got=f"--size {args.size[0]}x{args.size[1]}")
-    config_path = args.config or (args.workspace / "hardware.json" if (args.workspace / "hardware.json").exists() else None)
-    config = load_config(config_path)
-    plan = _plan(args, len(config.lamps))
-    port, sim = open_port(args.port, config)
-    ctl = GrblController(port, config, log=print)
-    camera = None
     try:
-        try:
-            ctl.connect()
-        except GrblAlarm:
-            if not args.unlock:
-                raise
-            ctl.unlock()
-            print(f"{port}: unlocked")
-        camera = _camera(args, config, ctl, sim)
-
-        def progress(done, total, rec):
-            lamps = "".join("1" if x else "0" for x in rec["lamps"])
-            print(f"[{done}/{total}] {rec['file']}  angle {rec['angle']:.3f}  lamps {lamps}", flush=True)
-
-        session = CaptureSession(args.workspace, args.kind, plan, ctl, camera, exposure=args.exposure,
-                                 settle_s=args.settle, resume=args.resume, overwrite=args.overwrite,
-                                 progress=progress, log=print)
-        manifest = session.run()
-        print(f"wrote {len(manifest['shots'])} images and {session.manifest_path}")
+        sim = SimOptions(args.size, args.depth, args.centre, args.room_light, args.grain)
+        with Rig(args.port, args.camera, config=config, unlock=args.unlock, sim=sim, trigger=args.trigger,
+                 camera_timeout=args.camera_timeout) as rig:
+            result = run_capture(CaptureOptions(
+                args.workspace, args.kind, rig.controller, rig.camera, args.angles, args.count, args.start,
+                args.ambient, args.format, args.exposure, args.settle, args.resume, args.overwrite, on_shot, print))
+        print(f"wrote {len(result.shots)} images and {result.manifest_path}")
         return 0
     except CaptureCancelled as exc:
         print(f"reflab capture: {exc}", file=sys.stderr)
@@ -137,9 +86,3 @@ def run(args) -> int:
     except (CaptureError, GrblError, CameraError, ValueError) as exc:
         print(f"reflab capture: error: {exc}", file=sys.stderr)
         return 1
-    finally:
-        ctl.close()
-        if camera is not None:
-            camera.close()
-        if sim is not None:
-            sim.stop()

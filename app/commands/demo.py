@@ -67,7 +67,7 @@ def _compare_materials(workspace: Path) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from app.commands.render import render_workspace
+    from inverse.stages import render_workspace
     from hardware.images import write_image, write_preview
     from hardware.sim.reference import render_reference
     from hardware.sim.lab import build_lab, write_lab

@@ -46,16 +46,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from inverse.fitting import fit_workspace
+    from inverse.stages import FitOptions, fit
 
-    def progress(rec):
+    def on_round(rec):
         rms = ", ".join(f"{v:.3g}" for v in rec["rms"])
         print(f"reflab fit: texture round {rec['round']}: texture from all but {rec['pixels_left_out']} pixels "
               f"({rec['texture_s']:.1f} s), refit RMS per band [{rms}] ({rec['fit_s']:.1f} s)", flush=True)
 
-    report, result = fit_workspace(args.workspace, args.method, args.depth, saturation=args.saturation,
-                                   maxiter=args.max_iterations, max_seconds=args.max_seconds,
-                                   texture_rounds=args.texture_rounds, progress=progress)
+    r = fit(FitOptions(args.workspace, args.method, args.depth, args.saturation, args.max_iterations,
+                       args.max_seconds, args.texture_rounds), on_round=on_round)
+    report, result = r.report, r.fit
     img, cols = report["image"], report["columns"]
     seconds = report["setup_s"]["trees"]
     print(f"reflab fit: trees: {'reused cache' if report['trees']['cache'] == 'reused' else 'built'} in {seconds:.2f} s")
@@ -68,7 +68,7 @@ def run(args) -> int:
     for item in report["surfaces"]:
         und = ", ".join(item["undetermined"]) or "none"
         print(f"  {item['name']}: {_material_text(item['material'])}; undetermined: {und}")
-    print(f"reflab fit: wrote {Path(args.workspace) / 'fit.json'}")
+    print(f"reflab fit: wrote {r.path}")
     status = report["status"]
     for text in report["warnings"]:
         print(f"reflab fit: warning: {text}", file=sys.stderr)

@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from app.devices import load_config, open_port  # noqa: F401  (light; app/gui imports load_config from here)
+
 HELP = "turntable and lamps over serial (GRBL 1.1): status | rotate DEG | lamp N on|off | unlock"
 
 
@@ -25,24 +27,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions.add_parser("unlock", help="leave an ALARM state: soft reset, then $X")
 
 
-def load_config(path):
-    """The hardware configuration at ``path``, or the defaults when it is None."""
-    from hardware.grbl import GrblConfig
-
-    return GrblConfig.load(path) if path else GrblConfig()
-
-
-def open_port(port: str, config, log=print):
-    """(port name, simulated board or None) for ``--port``; 'sim' starts a simulated board."""
-    if port != "sim":
-        return port, None
-    from hardware.sim.device import SimulatedGrbl
-
-    sim = SimulatedGrbl(time_scale=20.0).start()
-    log(f"simulated GRBL board on {sim.port}")
-    return sim.port, sim
-
-
 def describe(ctl) -> str:
     lamps = ", ".join(f"{k} {'on' if on else 'off'}" for k, on in enumerate(ctl.lamps))
     state = ctl.status().state
@@ -53,7 +37,7 @@ def run(args) -> int:
     from hardware.grbl import GrblAlarm, GrblController, GrblError
 
     config = load_config(args.config)
-    port, sim = open_port(args.port, config)
+    port, sim = open_port(args.port)
     ctl = GrblController(port, config, log=print)
     try:
         try:

@@ -43,72 +43,70 @@ def _pairs(items, option):
     return out
 
 
-def run(args) -> int:
-    import time
+def options(args):
+    """The stage's options from the command's arguments (ValueError naming the bad flag)."""
     from pathlib import Path
 
-    from calibration.camera import Camera
-    from hardware.workspace import Workspace, WorkspaceError
-    from reconstruction import surfaces as surf
-    from reconstruction.scene import Scene
+    from calibration.circles import parse_grid
+    from reconstruction.stages import ReconstructOptions
 
-    t0 = time.perf_counter()
-    ws = Workspace(args.workspace)
-    meshes = _pairs(args.mesh, "--mesh")
-    iors = {k: float(v) for k, v in _pairs(args.ior, "--ior").items()}
+    meshes = {k: Path(v) for k, v in _pairs(args.mesh, "--mesh").items()}
+    try:
+        iors = {k: float(v) for k, v in _pairs(args.ior, "--ior").items()}
+    except ValueError as exc:
+        raise ValueError(f"--ior: {exc}") from None
     unknown = set(iors) - set(meshes)
     if unknown:
         raise ValueError(f"--ior: no --mesh named {sorted(unknown)[0]!r}")
-    existing = Scene.load(ws.scene) if ws.scene.exists() and not args.force else None
-    if existing is not None and not meshes and not args.marks:
-        print(f"{ws.scene} exists: nothing to reconstruct (--marks or --mesh add surfaces, --force redoes it)")
+    centre = None
+    if args.turntable_centre is not None:
+        try:
+            centre = tuple(float(v) for v in args.turntable_centre.split(","))
+        except ValueError:
+            centre = ()
+        if len(centre) != 2:
+            raise ValueError(f"--turntable-centre: expected X,Y in metres, got {args.turntable_centre!r}")
+    return ReconstructOptions(args.workspace, meshes, iors, args.marks and Path(args.marks),
+                              parse_grid(args.target) if args.target else None, args.spacing, centre, args.overlap,
+                              not args.free_poses, not args.no_fit, args.force)
+
+
+def run(args) -> int:
+    from reconstruction.stages import reconstruct
+
+    try:
+        opts = options(args)
+    except ValueError as exc:
+        print(f"reflab reconstruct: error: {exc}", file=sys.stderr)
+        return 2
+    result = reconstruct(opts, log=lambda line: print(line, flush=True))
+    if result.skipped:
+        print(f"{result.scene_path} exists: nothing to reconstruct (--marks or --mesh add surfaces, --force redoes it)")
         return 0
+    r = result.sfm
+    if r is not None:
+        print(f"structure from motion: {r['sfm']['registered']}/{r['sfm']['images']} shots registered, "
+              f"reprojection {r['sfm']['reprojection_px']:.3f} px, {r['sfm']['points']} points, "
+              f"{r['sfm']['time_s']['total_s']:.1f} s")
+        rt = r.get("rigid_turntable")
+        if rt is not None and "rms_px" in rt:
+            print(f"rigid turntable: reprojection {rt['rms_px']:.3f} px RMS on one axis against "
+                  f"{rt['rms_px_free']:.3f} px with free poses, {rt['time_s']:.1f} s")
+        if rt is not None and not rt["used"]:
+            print(f"warning: {rt['warning']}", file=sys.stderr)
+        if "turntable" in r:
+            tt = r["turntable"]
+            print(f"turntable: axis tilt {tt['axis_tilt_deg']:.3f} deg, angle error max "
+                  f"{tt['max_angle_error_deg']:.3f} deg, rms {tt['rms_angle_error_deg']:.3f} deg")
+        print(f"registration ({r['registration']['method']}): input view {r['reference']['centre_mm']:.2f} mm, "
+              f"{r['reference']['rotation_deg']:.3f} deg from camera.json")
+        from hardware.workspace import Workspace
 
-    modelled = [surf.import_mesh(name, Path(path), iors.get(name)) for name, path in meshes.items()]
-    sfm_file = ws.root / "sfm.json"
-    need_sfm = bool(args.marks) or (existing is None and not meshes)
-    if need_sfm:
-        camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
-        fresh = args.force or not sfm_file.exists()
-        if fresh:
-            from reconstruction.registration import reconstruct_sweep
-
-            result = reconstruct_sweep(ws, camera, target=args.target, spacing=args.spacing,
-                                       turntable_centre=args.turntable_centre, overlap=args.overlap,
-                                       rigid_turntable=not args.free_poses, log=lambda line: print(line, flush=True))
-            r = result["report"]
-            print(f"structure from motion: {r['sfm']['registered']}/{r['sfm']['images']} shots registered, "
-                  f"reprojection {r['sfm']['reprojection_px']:.3f} px, {r['sfm']['points']} points, "
-                  f"{r['sfm']['time_s']['total_s']:.1f} s")
-            if "rigid_turntable" in r:
-                rt = r["rigid_turntable"]
-                if "rms_px" in rt:
-                    print(f"rigid turntable: reprojection {rt['rms_px']:.3f} px RMS on one axis against "
-                          f"{rt['rms_px_free']:.3f} px with free poses, {rt['time_s']:.1f} s")
-                if not rt["used"]:
-                    print(f"warning: {rt['warning']}", file=sys.stderr)
-            if "turntable" in r:
-                tt = r["turntable"]
-                print(f"turntable: axis tilt {tt['axis_tilt_deg']:.3f} deg, angle error max "
-                      f"{tt['max_angle_error_deg']:.3f} deg, rms {tt['rms_angle_error_deg']:.3f} deg")
-            print(f"registration ({r['registration']['method']}): input view {r['reference']['centre_mm']:.2f} mm, "
-                  f"{r['reference']['rotation_deg']:.3f} deg from camera.json")
-            print(f"wrote {sfm_file} and {ws.root / 'sparse.ply'}")
-        from reconstruction.registration import load_views
-
-        views, points = load_views(ws, camera)
-        if fresh and not args.no_fit and not meshes:
-            fitted = surf.fit_scene_points(points, camera=camera)
-            modelled = fitted + modelled
-        if args.marks:
-            for spec in surf.load_marks(args.marks):
-                modelled.append(surf.box_from_marks(spec, views))
-    if not modelled:
-        raise WorkspaceError(ws.scene, expected="at least one surface (fitted, marked or imported)", got="none")
-    scene = surf.write_scene(ws.root, modelled, existing)
-    for m in modelled:
+        ws = Workspace(args.workspace)
+        print(f"wrote {ws.sfm} and {ws.sparse}")
+    for m in result.modelled:
         detail = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in m.info.items()
                            if isinstance(v, (int, float)))
         print(f"surface {m.name}: {m.source}{'; ' + detail if detail else ''} -> meshes/{m.name}.ply")
-    print(f"wrote {ws.scene} ({len(scene)} surfaces) in {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {result.scene_path} ({len(result.scene)} surfaces) in {result.time_s:.1f} s")
     return 0

@@ -35,48 +35,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from hardware.images import check_radiance, read_image
-    from hardware.workspace import Workspace, WorkspaceError, read_json
-    from inverse.texture import TextureOptions, load_materials, recover_texture, write_textures
-    from inverse.trees import trees_for_workspace
-    from reconstruction.scene import Scene
+    from inverse.stages import TextureOptions, texture
 
-    ws = Workspace(args.workspace)
-    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
-    lights = Lights.load(ws.require(ws.lights, "reflab calibrate lights"))
-    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
-    image_path = ws.require(ws.input_image, "reflab capture input")
-    image = read_image(image_path)
-    if image.shape[:2] != (camera.height, camera.width):
-        raise WorkspaceError(image_path, expected=f"a {camera.width}x{camera.height} image like camera.json",
-                             got=f"{image.shape[1]}x{image.shape[0]}")
-    check_radiance(image, image_path)
-    materials, source = load_materials(ws, scene)
-    depth = args.depth
-    if depth is None:
-        depth = int(read_json(ws.fit).get("depth", 3)) if ws.fit.exists() else 3
-    options = TextureOptions(texel_scale=args.texel_scale, texel_size=args.texel_size, prior=args.prior,
-                             smoothness=args.smoothness, saturation=args.saturation, bounds=(0.0, args.max_albedo))
-    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=lambda line: print(f"reflab texture: {line}"))
-    result = recover_texture(scene, trees, materials, lights.intensities, image, options)
-    extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
-             "options": {"texel_scale": options.texel_scale, "texel_size": options.texel_size, "prior": options.prior,
-                         "smoothness": options.smoothness, "saturation": options.saturation,
-                         "bounds": list(options.bounds), "min_coverage": options.min_coverage,
-                         "amplification_limit": options.amplification_limit}}
-    written = write_textures(ws, scene, result, extra)
-    st = result.stats
-    trees_note = "from the cache" if trees.stats["cache"] == "reused" else f"{trees.stats['build_s']:.2f} s"
+    r = texture(TextureOptions(args.workspace, args.depth, args.texel_scale, args.texel_size, args.prior,
+                               args.smoothness, args.saturation, args.max_albedo),
+                log=lambda line: print(f"reflab texture: {line}"))
+    result, st = r.result, r.result.stats
+    trees_note = "from the cache" if r.trees["cache"] == "reused" else f"{r.trees['build_s']:.2f} s"
     rms = ", ".join(f"{v:.3g}" for v in st["residual_rms"])
-    print(f"reflab texture: materials from {source}; {st['rows']} equations, {st['unknowns']} unknowns, "
+    print(f"reflab texture: materials from {r.materials_source}; {st['rows']} equations, {st['unknowns']} unknowns, "
           f"{st['components']} components")
     print(f"reflab texture: {st['iterations']} CG iterations, solve {st['solve_s']:.2f} s, total {st['total_s']:.2f} s "
           f"(+ trees {trees_note}); residual RMS per band [{rms}]")
     for s, m in result.maps.items():
         print(f"  {m.name}: {m.kind} {m.width}x{m.height} texels of {m.texel_size * 1000:.2f} mm, "
               f"{int(result.mask[s].sum())} known, {int(np.count_nonzero(result.flags[s] & 1))} amplified > "
-              f"{options.amplification_limit:g}x")
-    print(f"reflab texture: wrote {len(written)} files in {ws.textures}")
+              f"{r.solver.amplification_limit:g}x")
+    print(f"reflab texture: wrote {len(r.written)} files in {r.folder}")
     return 0

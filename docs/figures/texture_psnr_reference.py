@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from app.cli import main  # noqa: E402
-from app.commands.render import render_workspace  # noqa: E402
+from inverse.stages import render_workspace  # noqa: E402
 from calibration.camera import Camera  # noqa: E402
 from calibration.lights import Lights, PointLight  # noqa: E402
 from hardware.images import write_image  # noqa: E402

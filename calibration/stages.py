@@ -1,0 +1,253 @@
+"""The calibration stages as library functions: options in, a typed result out, a Task for progress.
+
+:func:`calibrate_camera` writes camera.json from views of the circle target (Tsai);
+:func:`calibrate_lights` writes lights.json (and marks.json when it detects marks) from rod
+shadows. The CLI (``reflab calibrate``), the GUI and the demo call these; each checks its
+:class:`hardware.task.Task` between images and writes its file only once everything succeeded.
+Bad arguments raise ``ValueError`` naming the option (the option field's name), bad files
+:class:`hardware.workspace.WorkspaceError`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hardware.task import Task, ensure
+
+
+@dataclass
+class CameraOptions:
+    """Options of :func:`calibrate_camera`.
+
+    ``grid`` is ``"COLSxROWS"`` or ``(cols, rows)``; ``images`` default to
+    ``captures/calibration/*``; ``reference`` indexes the image taken from the input view's pose.
+    """
+
+    workspace: Path
+    grid: str | tuple = "11x8"
+    spacing: float = 0.015
+    images: list | None = None
+    radius: float | None = None
+    reference: int = 0
+    pixel_size: float = 0.005
+    bias_correction: bool = True
+
+
+@dataclass
+class CameraResult:
+    """What :func:`calibrate_camera` wrote and how well the camera fits."""
+
+    path: Path
+    camera: object  # calibration.camera.Camera
+    calibration: object  # calibration.tsai.CalibrationResult
+    images: list  # every image considered
+    used: list  # indices into images of the views with a detected grid (calibration.views index this)
+    skipped: list = field(default_factory=list)  # (path, reason) of unreadable images or without a grid
+    unreadable: list = field(default_factory=list)  # (path, message) of images that could not be read
+
+    @property
+    def views(self) -> list:
+        """(path, rms px, worst px) of every view the calibration kept."""
+        res = self.calibration
+        return [(self.images[self.used[j]], float(r), float(w)) for j, r, w in zip(res.views, res.rms, res.worst)]
+
+    @property
+    def rejected(self) -> list:
+        """(path, rms px) of the views left out for reprojecting far worse than the others."""
+        return [(self.images[self.used[j]], float(r)) for j, r in self.calibration.rejected.items()]
+
+    @property
+    def rms_px(self) -> float:
+        return float(self.calibration.rms_all)
+
+
+@dataclass
+class LightsOptions:
+    """Options of :func:`calibrate_lights`.
+
+    With ``images`` it detects the rod's foot and shadow tip in each (lamp ``light``), merges them
+    into marks.json and uses every mark there; with ``marks`` it reads that file instead; with
+    neither it uses the workspace's marks.json. Intensity comes from ``sheet`` images (one per lamp,
+    of a sheet of Lambertian ``sheet_reflectance``), else ``intensity`` (data sheet), else the
+    previous lights.json, else 1.
+    """
+
+    workspace: Path
+    images: list | None = None
+    rod_height: float | None = None
+    marks: Path | None = None
+    light: int = 0
+    mark_sigma: float | None = None
+    intensity: list | None = None
+    sheet: list | None = None
+    sheet_reflectance: float | None = None
+    sheet_region: tuple | None = None
+
+
+@dataclass
+class LampReport:
+    """One located lamp."""
+
+    index: int
+    position: np.ndarray
+    sigma_mm: np.ndarray
+    intensity: np.ndarray
+    intensity_known: bool
+    outliers: list
+
+
+@dataclass
+class LightsResult:
+    """What :func:`calibrate_lights` wrote."""
+
+    path: Path
+    lights: object  # calibration.lights.Lights
+    lamps: list  # LampReport per lamp
+    marks_path: Path | None = None  # marks.json when this run wrote it
+    detected: list = field(default_factory=list)  # (image name, light, base, tip) of marks detected now
+
+
+def calibrate_camera(options: CameraOptions, task: Task | None = None) -> CameraResult:
+    """Calibrate the camera from views of the circle target and write camera.json."""
+    from calibration.circles import detect_grid, parse_grid
+    from calibration.target import target_points
+    from calibration.tsai import CalibrationError, calibrate
+    from hardware.images import image_files, read_image
+    from hardware.workspace import Workspace, WorkspaceError
+
+    task = ensure(task)
+    o = options
+    ws = Workspace(o.workspace)
+    cols, rows = parse_grid(o.grid) if isinstance(o.grid, str) else (int(o.grid[0]), int(o.grid[1]))
+    if not o.spacing > 0:
+        raise ValueError(f"--spacing must be a positive number of metres, got {o.spacing}")
+    paths = [Path(p) for p in o.images] if o.images else image_files(ws.captures_of("calibration"))
+    if not paths:
+        raise ValueError(f"no target images given and none in {ws.captures_of('calibration')}")
+    if not 0 <= o.reference < len(paths):
+        raise ValueError(f"--reference {o.reference} is not an image index (0..{len(paths) - 1})")
+    used, obs, areas, blobs, reasons, skipped, unreadable = [], [], [], [], "", [], []
+    size = None
+    for i, path in enumerate(paths):
+        task.step(i, len(paths) + 1, f"detecting the target in {path.name}")
+        try:  # any image a camera writes (8-bit JPEG too); one unreadable photo is not fatal
+            img = read_image(path, linear=False)
+        except WorkspaceError as exc:
+            if i == o.reference:
+                raise
+            unreadable.append((path, str(exc)))
+            continue
+        shape = (img.shape[1], img.shape[0])
+        if size is None:
+            size = shape
+        elif shape != size:
+            raise ValueError(f"{path}: image is {shape[0]}x{shape[1]}, the others {size[0]}x{size[1]}")
+        det = detect_grid(img, cols, rows)
+        blobs.append(det.n_blobs)
+        if not det.found:
+            reasons += det.reason
+            skipped.append((path, f"grid {cols}x{rows} not found: {det.reason}"))
+            continue
+        used.append(i)
+        obs.append(det.centres)
+        areas.append(det.areas)
+    if not blobs:
+        raise ValueError(f"none of the {len(paths)} target images could be read")
+    if not used and (np.median(blobs) != cols * rows or "grid size" in reasons):
+        raise ValueError(f"grid {cols}x{rows} ({cols * rows} circles) found in none of {len(paths)} images; "
+                         f"they show about {int(np.median(blobs))} dark blobs: check --grid (COLSxROWS)")
+    if o.reference not in used:
+        raise ValueError(f"the reference image {paths[o.reference]} has no detectable grid; "
+                         "its pose is the one camera.json needs")
+    task.step(len(paths), len(paths) + 1, "calibrating")
+    try:
+        res = calibrate(obs, target_points(cols, rows, o.spacing), size, radius=o.radius,
+                        pixel_size=o.pixel_size, reference=used.index(o.reference),
+                        bias_correction=o.bias_correction, areas=areas)
+    except CalibrationError as exc:
+        if exc.view is None:
+            raise
+        raise ValueError(f"{paths[used[exc.view]]}: {exc}") from None
+    task.check()
+    cam = res.camera
+    cam.extra["calibration"] = dict(res.report([str(paths[i]) for i in used]), grid=[cols, rows],
+                                    spacing=o.spacing, reference_image=str(paths[o.reference]),
+                                    skipped=[str(p) for i, p in enumerate(paths) if i not in used])
+    out = cam.save(ws.camera)
+    task.step(1, 1, f"wrote {out}")
+    return CameraResult(out, cam, res, paths, used, skipped, unreadable)
+
+
+def calibrate_lights(options: LightsOptions, task: Task | None = None) -> LightsResult:
+    """Locate every lamp from rod shadows (and its intensity) and write lights.json."""
+    from calibration.camera import Camera
+    from calibration.lamps import Mark, detect_rod_marks, lamp_intensity, locate_lamps, read_marks, write_marks
+    from calibration.lights import Lights, PointLight
+    from hardware.images import read_image
+    from hardware.workspace import Workspace
+
+    task = ensure(task)
+    o = options
+    ws = Workspace(o.workspace)
+    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
+    images = [Path(p) for p in o.images or []]
+    marks_path = Path(o.marks) if o.marks else ws.marks
+    height, marks = read_marks(marks_path) if (o.marks or (marks_path.exists() and not images)) else (None, [])
+    detected = []
+    if images:
+        if o.marks:
+            raise ValueError("give either images to detect marks in or --marks, not both")
+        if marks_path.exists():
+            height, marks = read_marks(marks_path)
+        for i, path in enumerate(images):
+            task.step(i, len(images) + 1, f"detecting the rod in {path.name}")
+            try:
+                base, tip = detect_rod_marks(read_image(path, linear=False))
+            except ValueError as exc:
+                raise ValueError(f"{path}: {exc}; mark it by hand in marks.json") from None
+            name = str(path.relative_to(ws.root)) if path.is_relative_to(ws.root) else str(path)
+            marks = [m for m in marks if m.image != name] + [Mark(name, o.light, base, tip)]
+            detected.append((name, o.light, base, tip))
+    if o.rod_height is not None:
+        height = o.rod_height
+    if height is None or not height > 0:
+        raise ValueError(f"--rod-height must be a positive number of metres (got {height})")
+    if not marks:
+        raise ValueError(f"no marks: give rod images or --marks (nothing in {marks_path})")
+    # Written before locating, so that a user can correct a bad mark there and rerun with marks.
+    written_marks = write_marks(marks_path, height, marks) if images else None
+    if o.sheet and o.sheet_reflectance is None:
+        raise ValueError("--sheet needs --sheet-reflectance")
+    if o.intensity and len(o.intensity) not in (1, 3):
+        raise ValueError(f"--intensity takes 1 or 3 values, got {len(o.intensity)}")
+    task.step(len(images), len(images) + 1, "locating the lamps")
+    fits = locate_lamps(camera, marks, height, mark_sigma=o.mark_sigma)
+    if [f.light for f in fits] != list(range(len(fits))):
+        raise ValueError(f"lamp indices in the marks are {[f.light for f in fits]}; expected 0..{len(fits) - 1}")
+    if o.sheet and len(o.sheet) != len(fits):
+        raise ValueError(f"--sheet: {len(o.sheet)} images for {len(fits)} lamps")
+    old = Lights.load(ws.lights) if ws.lights.exists() else None
+    lights, reports = [], []
+    for k, fit in enumerate(fits):
+        task.check()
+        extra = {"calibration": fit.report()}
+        known = True
+        if o.sheet:
+            inten, spread = lamp_intensity(read_image(o.sheet[k]), camera, fit.position,
+                                           o.sheet_reflectance / np.pi, region=o.sheet_region)
+            extra["calibration"]["intensity_spread"] = spread
+        elif o.intensity:
+            inten = np.broadcast_to(np.asarray(o.intensity, float), (3,)).copy()
+        elif old is not None and k < len(old):
+            inten = old[k].intensity
+        else:
+            inten, known = np.ones(3), False
+        lights.append(PointLight(fit.position, inten, fit.covariance, extra))
+        reports.append(LampReport(k, fit.position, np.sqrt(np.diag(fit.covariance)) * 1000, np.asarray(inten),
+                                  known, list(fit.outliers or [])))
+    task.check()
+    out = Lights(lights).save(ws.lights)
+    task.step(1, 1, f"wrote {out}")
+    return LightsResult(out, Lights(lights), reports, written_marks, detected)

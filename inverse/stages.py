@@ -1,0 +1,256 @@
+"""The inverse stages as library functions: options in, a typed result out, a Task for progress.
+
+- :func:`fit` writes fit.json (non-Lambertian parameters of every surface; :mod:`inverse.fitting`);
+- :func:`texture` writes textures/ (per-texel diffuse albedo; :mod:`inverse.texture`);
+- :func:`render` renders the workspace's model (fit.json + textures/ when present, else
+  scene.json) to an image; :func:`render_workspace` is the same without writing.
+
+The CLI (``reflab fit | texture | render``), the GUI and the demo call these. Each checks its
+:class:`hardware.task.Task` inside its long loops (tree levels, fit iterations, texture CG) and
+writes its files only after its last check: a cancelled stage leaves nothing half-written.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hardware.task import Task, ensure
+
+
+# ---------------------------------------------------------------------- fit
+@dataclass
+class FitOptions:
+    """Options of :func:`fit` (``reflab fit``'s flags; docs/fit.md)."""
+
+    workspace: Path
+    method: str = "ftbo"
+    depth: int = 3
+    saturation: float | None = None
+    max_iterations: int | None = None
+    max_seconds: float | None = None
+    texture_rounds: int = 2
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit` wrote: fit.json's ``report``, the numeric fit (``inverse.fitting.FitResult``)."""
+
+    path: Path
+    report: dict
+    fit: object
+
+    @property
+    def status(self) -> str:
+        """fit.json's status: "ok", "not converged", "texture pending" or "poor fit"."""
+        return self.report["status"]
+
+    @property
+    def warnings(self) -> list:
+        return list(self.report.get("warnings", []))
+
+
+def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitResult:
+    """Fit the non-Lambertian parameters of every surface and write fit.json.
+
+    ``on_round(record)`` is called after each texture round (docs/fit.md). The task is stepped
+    per outer iteration; its deadline, when it has one, stops the fit like ``max_seconds``.
+    """
+    from hardware.workspace import Workspace
+    from inverse.fitting import fit_workspace
+
+    task = ensure(task)
+    o = options
+    report, result = fit_workspace(o.workspace, o.method, o.depth, saturation=o.saturation,
+                                   maxiter=o.max_iterations, max_seconds=o.max_seconds,
+                                   texture_rounds=o.texture_rounds, progress=on_round, task=task)
+    return FitResult(Workspace(o.workspace).fit, report, result)
+
+
+# ---------------------------------------------------------------------- texture
+@dataclass
+class TextureOptions:
+    """Options of :func:`texture` (``reflab texture``'s flags; docs/texture.md).
+
+    ``depth`` defaults to fit.json's, else 3. The solver's own knobs (tolerance, iteration cap,
+    coverage) keep :class:`inverse.texture.TextureOptions`' defaults.
+    """
+
+    workspace: Path
+    depth: int | None = None
+    texel_scale: float = 1.0
+    texel_size: float | None = None
+    prior: float = 1e-3
+    smoothness: float = 0.01
+    saturation: float | None = None
+    max_albedo: float = 1.0
+
+
+@dataclass
+class TextureResult:
+    """What :func:`texture` wrote (``written``: every file in textures/) and the solve
+    (``result``: :class:`inverse.texture.TextureResult`)."""
+
+    folder: Path
+    written: list
+    result: object
+    materials_source: str
+    depth: int
+    solver: object  # the inverse.texture.TextureOptions used
+    trees: dict = field(default_factory=dict)  # the trees' stats (``cache``: "reused" or "built", ``build_s``)
+
+
+def _inputs(ws, camera=None, lights=None):
+    """(Camera, Lights, Scene) of the workspace, or from other camera/lights files."""
+    from calibration.camera import Camera
+    from calibration.lights import Lights
+    from reconstruction.scene import Scene
+
+    camera = Camera.load(camera or ws.require(ws.camera, "reflab calibrate camera"))
+    lights = Lights.load(lights or ws.require(ws.lights, "reflab calibrate lights"))
+    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
+    return camera, lights, scene
+
+
+def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> TextureResult:
+    """Recover the diffuse texture of every surface point the input sees and write textures/.
+
+    ``log`` is told whether the trees were built or reused from the workspace's cache.
+    """
+    from hardware.images import check_radiance, read_image
+    from hardware.workspace import Workspace, WorkspaceError, read_json
+    from inverse import texture as tex
+    from inverse.trees import trees_for_workspace
+
+    task = ensure(task)
+    o = options
+    ws = Workspace(o.workspace)
+    camera, lights, scene = _inputs(ws)
+    image_path = ws.require(ws.input_image, "reflab capture input")
+    image = read_image(image_path)
+    if image.shape[:2] != (camera.height, camera.width):
+        raise WorkspaceError(image_path, expected=f"a {camera.width}x{camera.height} image like camera.json",
+                             got=f"{image.shape[1]}x{image.shape[0]}")
+    check_radiance(image, image_path)
+    materials, source = tex.load_materials(ws, scene)
+    depth = o.depth
+    if depth is None:
+        depth = int(read_json(ws.fit).get("depth", 3)) if ws.fit.exists() else 3
+    solver = tex.TextureOptions(texel_scale=o.texel_scale, texel_size=o.texel_size, prior=o.prior,
+                                smoothness=o.smoothness, saturation=o.saturation, bounds=(0.0, o.max_albedo))
+    solver.validate()
+    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=log, task=task)
+    result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, task=task)
+    extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
+             "options": {"texel_scale": solver.texel_scale, "texel_size": solver.texel_size, "prior": solver.prior,
+                         "smoothness": solver.smoothness, "saturation": solver.saturation,
+                         "bounds": list(solver.bounds), "min_coverage": solver.min_coverage,
+                         "amplification_limit": solver.amplification_limit}}
+    task.check()
+    written = tex.write_textures(ws, scene, result, extra)
+    task.step(1, 1, f"wrote {len(written)} files in {ws.textures}")
+    return TextureResult(ws.textures, written, result, source, depth, solver, trees.stats)
+
+
+# ---------------------------------------------------------------------- render
+@dataclass
+class RenderOptions:
+    """Options of :func:`render`: another ``camera``/``lights`` file gives a novel view or a
+    relighting; ``aov="albedo"`` renders kd of the surface seen at each pixel; ``output``
+    defaults to WORKSPACE/render.exr (albedo.exr for the AOV)."""
+
+    workspace: Path
+    output: Path | None = None
+    camera: Path | None = None
+    lights: Path | None = None
+    aov: str | None = None
+    depth: int = 3
+
+
+@dataclass
+class RenderResult:
+    """What :func:`render` wrote: the image, its 8-bit preview, and :func:`render_workspace`'s info."""
+
+    path: Path
+    preview: Path
+    image: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3,
+                     task: Task | None = None, log=None) -> tuple:
+    """Render the model of ``workspace`` (see the module's description); writes nothing.
+
+    Parameters
+    ----------
+    workspace : path-like
+    camera, lights : path-like, optional
+        Other camera.json / lights.json files (novel view, relighting).
+    aov : {None, "albedo"}
+        None: linear radiance; "albedo": kd of the surface seen at each pixel, NaN where unknown.
+    depth : int
+        Maximum internal nodes per path.
+    task : Task, optional
+    log : callable, optional
+        Told whether the trees were built or reused from the workspace's cache.
+
+    Returns
+    -------
+    image : (H, W, 3) float64 ndarray
+    info : dict
+        ``materials`` (source file), ``texture_nodes`` (nodes with recovered albedo, or None),
+        ``unknown_albedo`` (nodes whose albedo was unknown), ``unknown_pixels`` ((H, W) bool: a
+        node of the pixel's tree had unknown albedo, so the homogeneous kd stood in), ``trees_s``,
+        ``render_s``, ``trees``.
+    """
+    from hardware.workspace import Workspace
+    from inverse.rendering import render as render_trees, render_albedo
+    from inverse.texture import albedo_nodes, load_materials
+    from inverse.trees import trees_for_workspace
+
+    task = ensure(task)
+    ws = Workspace(workspace)
+    cam, lig, scene = _inputs(ws, camera, lights)
+    materials, source = load_materials(ws, scene)
+
+    t0 = time.perf_counter()
+    trees = trees_for_workspace(ws, scene, cam, lig, depth=depth, log=log, task=task)
+    t1 = time.perf_counter()
+    kd_nodes = albedo_nodes(ws, scene, trees) if ws.textures.is_dir() else None
+    info = {"materials": source, "texture_nodes": None, "unknown_albedo": 0,
+            "unknown_pixels": np.zeros((cam.height, cam.width), dtype=bool)}
+    if kd_nodes is not None:
+        unknown = ~np.all(np.isfinite(kd_nodes), axis=1)
+        info["texture_nodes"] = int(np.count_nonzero(~unknown))
+        info["unknown_albedo"] = int(np.count_nonzero(unknown))
+        info["unknown_pixels"] = (np.bincount(trees.pixel[unknown], minlength=cam.width * cam.height) > 0).reshape(cam.height, cam.width)
+    task.check()
+    if aov == "albedo":
+        image = render_albedo(trees, materials, kd_nodes)
+    else:
+        if kd_nodes is not None:
+            # Points the texture stage never saw keep the surface's homogeneous kd.
+            homogeneous = np.array([m["kd"] for m in materials])[trees.surface]
+            kd_nodes = np.where(np.isfinite(kd_nodes), kd_nodes, homogeneous)
+        image = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
+    info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees)
+    return image, info
+
+
+def render(options: RenderOptions, task: Task | None = None, *, log=None) -> RenderResult:
+    """Render the workspace's model and write the image and an 8-bit PNG preview beside it."""
+    from hardware.images import write_image, write_preview
+    from hardware.workspace import Workspace
+
+    task = ensure(task)
+    o = options
+    image, info = render_workspace(o.workspace, o.camera, o.lights, aov=o.aov, depth=o.depth, task=task, log=log)
+    out = Path(o.output) if o.output else Workspace(o.workspace).render(o.aov)
+    task.check()
+    write_image(out, image, allow_nan=o.aov == "albedo")
+    preview = out.with_suffix(".png") if out.suffix.lower() != ".png" else out.with_name(out.stem + "_preview.png")
+    preview = write_preview(preview, image, exposure=1.0 if o.aov == "albedo" else None)
+    task.step(1, 1, f"wrote {out}")
+    return RenderResult(out, preview, image, info)

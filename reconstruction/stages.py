@@ -1,0 +1,240 @@
+"""The reconstruct stage as a library function: options in, a typed result out, a Task for progress.
+
+:func:`reconstruct` runs, each part skipped when what it makes is already there: structure from
+motion over ``captures/turntable`` and registration into the world frame (:func:`reconstruct_sweep`:
+sfm.json, sparse.ply), surfaces fitted to the sparse points, boxes from marked corners, imported
+meshes; then writes scene.json and meshes/. docs/reconstruction.md describes the files.
+
+This module is the orchestration: it imports the numerics (sfm, turntable, registration,
+surfaces), none of which imports it, so reconstruction/ has no import cycle.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera
+from hardware.task import Task, ensure
+from hardware.workspace import Workspace, WorkspaceError
+
+
+@dataclass
+class ReconstructOptions:
+    """Options of :func:`reconstruct` (and of :func:`reconstruct_sweep`).
+
+    workspace : the workspace folder.
+    meshes : surface name -> PLY/OBJ file (metres, world frame) to import.
+    iors : surface name (of ``meshes``) -> refraction index (the mesh must then be closed).
+    marks : corners marked in the turntable shots (docs/reconstruction.md).
+    target : ``(cols, rows)`` (or ``"COLSxROWS"``) of the circle target lying on the turntable.
+    spacing : that target's circle spacing, metres.
+    turntable_centre : ``(x, y)`` where the turntable axis meets the ground (metres), used
+        without a target to fix the scale.
+    overlap : each shot is matched with the next ``overlap`` shots.
+    rigid_turntable : refine the poses as one axis and one angle per shot (False: free poses).
+    fit_surfaces : fit planes and boxes to the sparse points.
+    force : redo structure from motion and every surface.
+    """
+
+    workspace: Path
+    meshes: dict = field(default_factory=dict)
+    iors: dict = field(default_factory=dict)
+    marks: Path | None = None
+    target: tuple | str | None = None
+    spacing: float = 0.015
+    turntable_centre: tuple | None = None
+    overlap: int = 5
+    rigid_turntable: bool = True
+    fit_surfaces: bool = True
+    force: bool = False
+
+
+@dataclass
+class ReconstructResult:
+    """What :func:`reconstruct` did: ``sfm`` is sfm.json's report when structure from motion ran
+    now (else None), ``scene`` the written scene (None when nothing needed doing), ``modelled``
+    the surfaces made or imported now (``reconstruction.surfaces.Modelled``)."""
+
+    scene_path: Path
+    scene: object = None
+    modelled: list = field(default_factory=list)
+    sfm: dict | None = None
+    time_s: float = 0.0
+
+    @property
+    def skipped(self) -> bool:
+        return self.scene is None
+
+
+def _reference_angle(ws) -> float:
+    """Turntable angle of the input photograph (captures/input/manifest.json), else 0."""
+    from hardware.workspace import read_json
+
+    manifest = ws.manifest("input")
+    if manifest.exists():
+        for shot in read_json(manifest).get("shots") or []:
+            if isinstance(shot, dict) and shot.get("role") == "input" and isinstance(shot.get("angle"), (int, float)):
+                return float(shot["angle"])
+    return 0.0
+
+
+def _grid(target) -> tuple[int, int]:
+    from calibration.circles import parse_grid
+
+    return parse_grid(target) if isinstance(target, str) else (int(target[0]), int(target[1]))
+
+
+def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Task | None = None, *,
+                      log=None) -> dict:
+    """Structure from motion over ``captures/turntable``, registered into the world frame.
+
+    Writes ``sparse.ply`` (the sparse points seen in three or more shots with a reprojection
+    error under 1 px, world frame) and then ``sfm.json`` (per-shot world poses and every report).
+    Uses ``options.target``, ``spacing``, ``turntable_centre``, ``overlap`` and ``rigid_turntable``.
+    ``log`` gets one progress line per step; COLMAP's own log goes to ``WORKSPACE/logs/colmap.log``.
+
+    Returns
+    -------
+    dict
+        ``report`` (as written to sfm.json), ``R``, ``t`` (world-frame poses), ``points``, ``names``.
+    """
+    import open3d as o3d
+
+    from hardware.images import read_image
+    from hardware.workspace import atomic_path, write_json
+    from reconstruction.registration import reference_check, register_axis, register_target, turntable_check
+    from reconstruction.sfm import load_sweep, run_sfm, turntable_poses
+
+    task = ensure(task)
+    o = options
+    t0 = time.perf_counter()
+    ws = Workspace(ws.root if isinstance(ws, Workspace) else ws)
+    folder = ws.captures_of("sweep")
+    paths, angles = load_sweep(folder)
+    if o.target is None and o.turntable_centre is None:
+        raise WorkspaceError(folder, expected="a way to fix the reconstruction's scale: the circle target lying on "
+                                              "the turntable (target COLSxROWS) or where the turntable axis meets "
+                                              "the ground (turntable centre X,Y)", got="neither")
+    centre = None
+    if o.target is None:
+        centre = np.asarray(o.turntable_centre, dtype=float).ravel()
+        if centre.size != 2 or not np.all(np.isfinite(centre)):
+            raise ValueError(f"turntable centre: expected X,Y in metres, got {o.turntable_centre!r}")
+        centre = centre.tolist()
+    images = []
+    for i, p in enumerate(paths):
+        task.step(i, len(paths) + 3, f"reading {p.name}")
+        images.append(read_image(p, linear=False))  # geometry: any image a camera writes
+    names = [str(p.relative_to(ws.root)) for p in paths]
+    ref_angle = _reference_angle(ws)
+    reference = 0 if angles is None else int(np.argmin(np.abs((angles - ref_angle + 180.0) % 360.0 - 180.0)))
+    # With the axis known, the commanded angles give every shot's pose to within the rig's error:
+    # matches that contradict it (a turning mirror showing the still room) go before mapping.
+    commanded = None if centre is None or angles is None else [
+        turntable_poses(camera, angles - angles[reference], centre, sign) for sign in (1.0, -1.0)]
+    task.step(len(paths), len(paths) + 3, "structure from motion")
+    sfm = run_sfm(images, names, camera, overlap=o.overlap, closed=angles is None or np.ptp(angles) + np.min(
+        np.abs(np.diff(np.r_[angles, angles[0] + 360.0]))) >= 359.0, commanded=commanded,
+                  log_file=ws.logs / "colmap.log", progress=log, task=task)
+    if not sfm.registered[reference]:
+        raise WorkspaceError(paths[reference], expected="the shot taken from the input view registered by structure "
+                                                        "from motion", got="not registered")
+    task.step(len(paths) + 1, len(paths) + 3, "turntable axis")
+    rigid = None
+    if o.rigid_turntable and sfm.observations is not None and len(sfm.points):
+        from reconstruction.turntable import refine_if_rigid
+
+        rigid = refine_if_rigid(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
+        if rigid["report"]["used"]:
+            sfm.R, sfm.t, sfm.points, sfm.point_error = rigid["R"], rigid["t"], rigid["points"], rigid["point_error"]
+    task.step(len(paths) + 2, len(paths) + 3, "registration")
+    if o.target is not None:
+        sim, reg = register_target(images, sfm.R, sfm.t, camera, _grid(o.target), o.spacing, reference, str(folder))
+    else:
+        sim, reg = register_axis(sfm.R, sfm.t, camera, reference, centre)
+    reg["scale"] = sim.scale
+    Rw, tw = sim.poses(sfm.R, sfm.t)
+    # Points seen by few shots or reprojecting poorly sit mostly on occluding edges (mismatches).
+    good = (sfm.point_error < 1.0) & (np.array([len(tr) for tr in sfm.tracks], dtype=int) >= 3)
+    points = sim.points(sfm.points[good])
+    report = {"sfm": sfm.report, "registration": reg, "reference_shot": names[reference],
+              "reference": reference_check(Rw, tw, camera, reference)}
+    if rigid is not None:
+        report["rigid_turntable"] = rigid["report"]
+    if angles is not None:
+        report["turntable"] = turntable_check(Rw, angles, reference)
+        report["turntable"]["angles_deg"] = angles.tolist()
+    report["time_s"] = round(time.perf_counter() - t0, 3)
+    poses = {n: {"R": Rw[i], "t": tw[i]} for i, n in enumerate(names) if sfm.registered[i]}
+    task.check()
+    # sparse.ply first: sfm.json is what says structure from motion is done.
+    with atomic_path(ws.sparse) as tmp:
+        o3d.io.write_point_cloud(str(tmp), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
+    write_json(ws.sfm, dict(report, images=names, poses=poses))
+    return {"report": report, "R": Rw, "t": tw, "points": points, "names": names}
+
+
+def load_views(ws, camera: Camera):
+    """Registered shots (:class:`reconstruction.surfaces.Views`) and sparse points from sfm.json / sparse.ply."""
+    import open3d as o3d
+
+    from hardware.workspace import as_array, read_json
+    from reconstruction.surfaces import Views
+
+    ws = Workspace(ws.root if isinstance(ws, Workspace) else ws)
+    path = ws.sfm
+    obj = read_json(path)
+    poses = obj.get("poses")
+    if not isinstance(poses, dict) or not poses:
+        raise WorkspaceError(path, "poses", "registered shots (reconstruct again, forcing it)", got=poses)
+    out = {}
+    for name, p in poses.items():
+        out[name] = (as_array(p.get("R"), (3, 3), path, f"poses[{name!r}].R"),
+                     as_array(p.get("t"), (3,), path, f"poses[{name!r}].t"))
+    ply = ws.sparse
+    points = np.asarray(o3d.io.read_point_cloud(str(ply)).points) if ply.exists() else np.zeros((0, 3))
+    return Views(camera, out), points
+
+
+def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=None) -> ReconstructResult:
+    """Recover the scene's geometry and write scene.json + meshes/ (see the module's description).
+
+    An existing scene.json is left alone (``result.skipped``) unless ``marks`` or ``meshes`` add
+    to it, or ``force`` redoes it. ``log`` gets structure from motion's progress lines.
+    """
+    from reconstruction import surfaces as surf
+    from reconstruction.scene import Scene
+
+    task = ensure(task)
+    o = options
+    t0 = time.perf_counter()
+    ws = Workspace(o.workspace)
+    unknown = set(o.iors) - set(o.meshes)
+    if unknown:
+        raise ValueError(f"ior: no imported mesh named {sorted(unknown)[0]!r}")
+    existing = Scene.load(ws.scene) if ws.scene.exists() and not o.force else None
+    if existing is not None and not o.meshes and not o.marks:
+        return ReconstructResult(ws.scene)
+    modelled = [surf.import_mesh(name, Path(path), o.iors.get(name)) for name, path in o.meshes.items()]
+    sfm_report = None
+    need_sfm = bool(o.marks) or (existing is None and not o.meshes)
+    if need_sfm:
+        camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
+        fresh = o.force or not ws.sfm.exists()
+        if fresh:
+            sfm_report = reconstruct_sweep(ws, camera, o, task, log=log)["report"]
+        views, points = load_views(ws, camera)
+        task.check()
+        if fresh and o.fit_surfaces and not o.meshes:
+            modelled = surf.fit_scene_points(points, camera=camera) + modelled
+        if o.marks:
+            for spec in surf.load_marks(o.marks):
+                modelled.append(surf.box_from_marks(spec, views))
+    if not modelled:
+        raise WorkspaceError(ws.scene, expected="at least one surface (fitted, marked or imported)", got="none")
+    task.check()
+    scene = surf.write_scene(ws.root, modelled, existing)
+    return ReconstructResult(ws.scene, scene, modelled, sfm_report, time.perf_counter() - t0)
