@@ -159,6 +159,7 @@ def lab_workspace(tmp_path_factory):
                          "at_bound": {"ks[0]": "upper"} if s.name == "box" else {}})
     write_json(root / "fit.json", {"method": "ftbo", "depth": 2, "time_s": 1.5, "rms": [0.01, 0.02, 0.03],
                                    "status": "ok", "noise": [0.001, 0.001, 0.001],
+                                   "phases_s": {"trees": 0.1, "structure": 0.05, "scan": 0.4, "refinement": 0.8},
                                    "rejected": {"count": 2, "pixels": [[1, 1], [2, 1]], "threshold_sigmas": 8.0},
                                    "trace": [[0.1, [0.1, 0.1, 0.1]], [0.8, [0.02, 0.03, 0.03]], [1.5, [0.01, 0.02, 0.03]]],
                                    "surfaces": surfaces})
@@ -197,6 +198,7 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     # The fit's tile ns is 10 below the truth, with its sigma.
     assert re.search(r"\b50 ± 2\s+truth 60, error -10\s", text)
     assert re.search(r"\[0\.25, 0\.25, 0\.25\]\s+at its bound: ks\[0\] upper", text)
+    assert "Where the fit's time went" in text
     assert re.search(r"outlier pixels left out of the fit\s+2 \(residual above 8 σ", text)
     # Novel and relit views against truth/ (true materials and a recovered texture): PSNR shown and sane.
     psnrs = [float(v) for v in re.findall(r"view PSNR against truth\s+([\d.]+) dB", text)]

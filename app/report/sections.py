@@ -555,6 +555,11 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
             ("iterations / evaluations", f"{fit.get('iterations')} / {fit.get('evaluations')}" if "iterations" in fit else None),
             ("fit time", f"{num(fit.get('time_s'), 3)} s" if fit.get("time_s") is not None else None),
             ("set-up", ", ".join(f"{k} {num(v, 3)} s" for k, v in fit["setup_s"].items()) if isinstance(fit.get("setup_s"), dict) else None)])
+    phases = {k: v for k, v in (fit.get("phases_s") or {}).items() if isinstance(v, (int, float)) and v > 0} \
+        if isinstance(fit.get("phases_s"), dict) else {}
+    if phases:
+        sec.figure(_phases_figure(phases), "Where the fit's time went (fit.json phases_s), in the order they run; "
+                   "the error-vs-time plot below shows the error over the same seconds.")
     truth, truth_file = src.truth_materials()
     items = [s for s in fit.get("surfaces") or [] if isinstance(s, dict)]
     keys = [k for k in MATERIAL_KEYS if any(isinstance(s.get("material"), dict) and s["material"].get(k) is not None
@@ -592,6 +597,19 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
     elif model and model.get("error"):
         sec.note(f"re-render of the model failed: {model['error']}", "bad")
     return sec
+
+
+def _phases_figure(phases: dict) -> str:
+    fig, (ax,) = F.new_figure(6.0, 0.5 + 0.16 * len(phases))
+    left = 0.0
+    for i, (name, secs) in enumerate(phases.items()):
+        ax.barh(0, secs, left=left, color=F.COLOURS[i % len(F.COLOURS)], label=f"{name} {secs:.2g} s")
+        left += secs
+    ax.set_yticks([])
+    ax.set_xlabel("seconds", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    return F.figure_uri(fig)
 
 
 def _rejected_text(rejected) -> str | None:
