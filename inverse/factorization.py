@@ -141,6 +141,7 @@ class Factorization:
     def __init__(self, trees, models, intensities, mask=None, albedo=None):
         self.trees = trees
         self.models = list(models)
+        self._args = (intensities, mask, albedo)  # for :meth:`without`
         n_surf = len(self.models)
         self.width, self.height, self.depth = int(trees.width), int(trees.height), int(trees.depth)
         n_pix = self.width * self.height
@@ -227,6 +228,14 @@ class Factorization:
         self._static = {}
         self._last = {}  # surface -> (θ, entry values, their θ-derivatives or None): the last evaluation
         self._geometry = {}  # surface -> (normals, light directions, views) per (node, light)
+
+    def without(self, pixels) -> "Factorization":
+        """The same system with the flat pixel indices ``pixels`` left out too (rejected outliers)."""
+        intensities, mask, albedo = self._args
+        n_pix = self.width * self.height
+        keep = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix).copy()
+        keep[np.asarray(pixels, dtype=np.int64)] = False
+        return Factorization(self.trees, self.models, intensities, mask=keep, albedo=albedo)
 
     # ------------------------------------------------------------------ sizes
     @property
