@@ -234,3 +234,15 @@ def test_hardware_page_jogs_the_turntable_and_switches_lamps_on_the_board(qtbot,
     assert window.findChild(QLabel, "hw_status").text().endswith(f"on {window.rig.controller.port})")
     qtbot.mouseClick(window.findChild(QPushButton, "hw_disconnect"), Qt.MouseButton.LeftButton)
     assert not window.rig.connected and not window.findChild(QPushButton, "jog_p90").isEnabled()
+
+
+def test_the_qt_binding_keeps_its_references_to_none(qtbot):
+    """PySide6 6.12.0 on Python 3.11 dropped a reference to None per void call (pyproject pins < 6.12)."""
+    import sys
+
+    label = QLabel()
+    qtbot.addWidget(label)
+    before = sys.getrefcount(None)
+    for _ in range(2000):
+        label.setText("x")
+    assert sys.getrefcount(None) > before - 100

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtCore import Qt, QTimer, Signal, Slot
 from PySide6.QtGui import QColor, QFont
 from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem, QMainWindow, QMessageBox,
                                QPlainTextEdit, QProgressBar, QPushButton, QSplitter, QStackedWidget, QVBoxLayout,
@@ -174,14 +174,14 @@ class MainWindow(QMainWindow):
         page.before_run()
         ctx = stages.Context(self.workspace, self.rig, page.options(), log=self.log_line.emit)
         worker = Worker(lambda task: step.run(ctx, task), name)
-        ctx.image = worker.image.emit
-        ctx.report = worker.progress.emit
+        ctx.image = lambda img: worker.post("image", img)
+        ctx.report = lambda done, total, message: worker.post("progress", done, total, message)
         worker.progress.connect(self._progress)
         worker.image.connect(lambda img: self.pages[name].preview.set_image(img))
         worker.succeeded.connect(lambda box: self._ended(name, "done", str(box.value)))
         worker.failed.connect(lambda msg, details: self._ended(name, "failed", msg))
         worker.cancelled.connect(lambda msg: self._ended(name, "cancelled", "stopped; Run again resumes"))
-        worker.thread.finished.connect(lambda: self._thread_done(name))
+        worker.finished.connect(lambda: self._thread_done(name))
         self.worker, self.running = worker, name
         page.set_status("running…")
         self.progress.setValue(0)
@@ -217,6 +217,9 @@ class MainWindow(QMainWindow):
 
     def _thread_done(self, name: str) -> None:
         outcome = getattr(self, "_outcome", "failed")
+        self.worker.wait(10000)  # the stage has returned; let its thread end
+        self._reap()
+        self._background.append(self.worker)  # dropped once its thread is finished, never inside its signals
         self.worker, self.running = None, None
         self.progress.setRange(0, 1000)
         self.progress.setValue(1000 if outcome == "done" else 0)
@@ -288,7 +291,8 @@ class MainWindow(QMainWindow):
     def log(self, text: str) -> None:
         self.log_line.emit(str(text))
 
-    def _append_log(self, text: str) -> None:
+    @Slot(str)
+    def _append_log(self, text: str) -> None:  # also reached from worker threads (queued)
         self.log_pane.appendPlainText(text)
 
     def ask_close(self) -> bool:

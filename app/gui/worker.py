@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import traceback
 
-from PySide6.QtCore import QObject, QThread, Signal
+from PySide6.QtCore import QObject, Qt, QThread, Signal, Slot
 
 from hardware.task import Cancelled, Task
 
@@ -45,7 +45,15 @@ class _Thread(QThread):
 
 
 class Worker(QObject):
-    """Run ``fn(task)`` in a thread; ``fn`` returns a one-line summary (or any object)."""
+    """Run ``fn(task)`` in a thread; ``fn`` returns a one-line summary (or any object).
+
+    The thread emits only the private ``_event`` (queued to :meth:`_dispatch`, a ``@Slot`` of this
+    object, which lives in the UI thread); the public signals are emitted from there. PySide6
+    6.8+ crashes (refcount errors, PYSIDE-3124) when a signal emitted in another thread is
+    delivered to a lambda or an undecorated method, which is what the window connects.
+    """
+
+    _event = Signal(str, object)
 
     progress = Signal(float, float, str)
     log = Signal(str)
@@ -58,11 +66,19 @@ class Worker(QObject):
     def __init__(self, fn, name: str = ""):
         super().__init__()
         self.fn, self.name = fn, name
-        self.task = Task(progress=lambda done, total, msg: self.progress.emit(done, total, msg))
-        # The worker object stays in the UI thread, so every slot connected to its signals (lambdas
-        # included) runs there, queued; only _run executes in the thread.
+        self.task = Task(progress=lambda done, total, msg: self.post("progress", done, total, msg))
+        self._event.connect(self._dispatch, Qt.ConnectionType.QueuedConnection)
+        # This object stays in the UI thread; only _run executes in the thread.
         self.thread = _Thread(self._run)
         self.thread.setObjectName(f"worker_{name}")
+
+    def post(self, kind: str, *args) -> None:
+        """From the thread: emit the public signal ``kind`` with ``args``, in the UI thread."""
+        self._event.emit(kind, Box(args))
+
+    @Slot(str, object)
+    def _dispatch(self, kind: str, box) -> None:
+        getattr(self, kind).emit(*box.value)
 
     def start(self) -> "Worker":
         self.thread.start()
@@ -90,19 +106,19 @@ class Worker(QObject):
         try:
             result = self.fn(self.task)
         except (Cancelled, CaptureCancelled, KeyboardInterrupt) as exc:
-            self.log.emit(str(exc))
-            self.cancelled.emit(one_line(exc))
+            self.post("log", str(exc))
+            self.post("cancelled", one_line(exc))
         except expected as exc:  # the stage's own message names what to fix
-            self.log.emit(str(exc))
-            self.failed.emit(one_line(exc), str(exc))
+            self.post("log", str(exc))
+            self.post("failed", one_line(exc), str(exc))
         except Exception as exc:  # noqa: BLE001 -- any other error is shown in the page, not raised
             details = traceback.format_exc()
-            self.log.emit(details)
-            self.failed.emit(f"{type(exc).__name__}: {one_line(exc)}", details)
+            self.post("log", details)
+            self.post("failed", f"{type(exc).__name__}: {one_line(exc)}", details)
         else:
             if self.task.cancelled:
-                self.cancelled.emit("cancelled")
+                self.post("cancelled", "cancelled")
             else:
-                self.succeeded.emit(Box(result))
+                self.post("succeeded", Box(result))
         finally:
-            self.finished.emit()
+            self.post("finished")
