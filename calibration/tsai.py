@@ -182,6 +182,7 @@ class CalibrationResult:
     rejected: dict = field(default_factory=dict)
     residuals: np.ndarray | None = None
     observations: np.ndarray | None = None
+    warnings: list = field(default_factory=list)
 
     @property
     def rms_all(self) -> float:
@@ -201,6 +202,7 @@ class CalibrationResult:
             "views": [{"image": str(names[i]), "rms_px": float(r), "worst_px": float(w)}
                       for i, r, w in zip(views, self.rms, self.worst)],
             "rejected": [{"image": str(names[i]), "rms_px": r} for i, r in self.rejected.items()],
+            "warnings": list(self.warnings),
             "bias_correction": self.bias_correction, "circle_radius_m": self.radius,
             "opencv_crosscheck": self.crosscheck, "stages": self.stages, "time_s": self.time_s,
             # Per view, [u, v, du, dv] of each circle: measured centre and model minus measured
@@ -321,7 +323,7 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
               radius: float | None = None, pixel_size: float = 0.005, reference: int = 0,
               bias_correction: bool = True, areas: list[np.ndarray] | None = None,
               min_views: int = 3, min_spread_deg: float = 5.0, bad_view_ratio: float = 3.0,
-              bad_view_px: float = 0.5) -> CalibrationResult:
+              bad_view_px: float = 0.5, max_focal_sigma: float = 0.002) -> CalibrationResult:
     """Calibrate one camera from several views of a planar circle grid.
 
     Parameters
@@ -346,6 +348,9 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
         A view whose RMS reprojection error exceeds both ``bad_view_ratio`` × the median of the
         others and ``bad_view_px`` is left out (named in ``rejected``) and the rest recalibrated;
         when it is the reference view the calibration is refused.
+    max_focal_sigma : float
+        A one-sigma uncertainty of fx or fy above this fraction of it adds a warning (views too
+        alike: near-parallel target planes).
 
     Raises
     ------
@@ -430,6 +435,11 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     sigma = dict(zip(["fx", "fy", "cx", "cy", "k1", "k2"], sig_c.tolist()))
     sigma["tsai"] = dict(zip(["f", "kappa1", "Cx", "Cy", "sx"], sig_t.tolist()))
 
+    warnings = []
+    rel = max(sigma["fx"] / abs(fx), sigma["fy"] / abs(fy))
+    if rel > max_focal_sigma:
+        warnings.append(f"focal length poorly determined: one sigma is {100 * rel:.2f}% of it (views within "
+                        f"{spread:.0f} deg of each other); tilt the target more between views (20-45 deg)")
     R_ref, t_ref = poses[keep.index(reference)]
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     camera = Camera(W, H, K, np.array([k1, k2, 0, 0, 0.0]), R_ref, t_ref, tsai=tsai)
@@ -437,4 +447,4 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     crosscheck = _crosscheck(cv if cv is not None else _opencv_calibration(obs, points, (W, H)), camera)
     return CalibrationResult(camera, poses, np.sqrt(np.mean(err**2, axis=1)), err.max(axis=1), sigma,
                              crosscheck, rad, bias_correction, time.perf_counter() - t0, stages, keep, rejected,
-                             residuals=np.asarray(res_c), observations=np.asarray(obs))
+                             residuals=np.asarray(res_c), observations=np.asarray(obs), warnings=warnings)

@@ -76,6 +76,8 @@ def _camera(args) -> int:
     s = res.sigma
     for path, rms, worst in r.views:
         print(f"  {path}: rms {rms:.3f} px, worst {worst:.3f} px")
+    for text in res.warnings:
+        print(f"warning: {text}", file=sys.stderr)
     for path, rms in r.rejected:
         print(f"warning: left out {path}: it reprojects at {rms:.2f} px RMS, far worse than the other views "
               "(target moved, blur, wrong circle order?)", file=sys.stderr)
