@@ -115,10 +115,10 @@ def _sparse(root, lab):
 
 
 def _captures(root, photo):
-    for folder, kind in (("turntable", "sweep"), ("input", "input")):
+    for folder, kind in (("turntable", "sweep"), ("lights", "lights"), ("input", "input")):
         shots = []
-        for i in range(2 if kind == "sweep" else 1):
-            name = f"{i:04d}.exr" if kind == "sweep" else "input.exr"
+        for i in range(1 if kind == "input" else 2):
+            name = "input.exr" if kind == "input" else f"{i:04d}.exr"
             write_image(root / "captures" / folder / name, photo)
             shots.append({"file": name, "role": kind, "angle": 180.0 * i, "lamps": [True, True],
                           "time": f"2026-11-23T10:0{i}:00+00:00", "exposure": 0.5, "size": list(SIZE)})

@@ -224,7 +224,7 @@ def camera_section(src: Sources) -> Section | None:
     if truth:
         C, Ct = _pose_centre(cam), _pose_centre(truth)
         if C is not None and Ct is not None:
-            sec.kv([("input view centre error", f"{num(1e3 * float(np.linalg.norm(C - Ct)), 3)} mm"),
+            sec.kv([("input view centre error", f"{mm(1e3 * float(np.linalg.norm(C - Ct)))} mm"),
                     ("input view rotation error", f"{num(_rotation_deg(cam['R'], truth['R']), 3)}°")], "against truth/camera.json")
     return sec
 
@@ -288,8 +288,9 @@ def lights_section(src: Sources) -> Section | None:
     marks = src.marks
     if marks and isinstance(marks.get("marks"), list):
         fig = _marks_figure(src, marks, items)
-        sec.figure(fig, "Rod marks: the rod's foot (dot) and its shadow's tip (cross) in the camera image, one colour "
-                        "per lamp (left); each mark's reprojection error after the lamp fit (right).")
+        sec.figure(fig, "Rod marks: the rod's foot (dot) and its shadow's tip (cross) in the camera image (behind: the "
+                        "first marked image), one colour per lamp (left); each mark's reprojection error after the lamp "
+                        "fit (right).")
         sec.kv([("rod height", f"{num(marks.get('rod_height'))} m"), ("marks", len(marks["marks"]))])
     return sec
 
@@ -298,6 +299,11 @@ def _marks_figure(src: Sources, marks: dict, items: list) -> str | None:
     cam = src.camera or {}
     fig, (ax, bx) = F.new_figure(10.0, 3.8, ncols=2)
     ms = [m for m in marks["marks"] if isinstance(m, dict)]
+    backdrop = next((img for img in (src.image(m["image"]) for m in ms[:1] if isinstance(m.get("image"), str))
+                     if img is not None), None)
+    if backdrop is not None:
+        h, w = backdrop.shape[:2]
+        ax.imshow(F.display(backdrop), extent=(-0.5, w - 0.5, h - 0.5, -0.5), alpha=0.6)
     for m in ms:
         b, t = _floats(m.get("base")), _floats(m.get("tip"))
         if b is None or t is None:
