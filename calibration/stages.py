@@ -67,8 +67,9 @@ class CameraResult:
 class LightsOptions:
     """Options of :func:`calibrate_lights`.
 
-    With ``images`` it detects the rod's foot and shadow tip in each (lamp ``light``), merges them
-    into marks.json and uses every mark there; with ``marks`` it reads that file instead; with
+    With ``images`` it detects the rod's foot and shadow tip in each (lamp ``light``: one index
+    for every image, or a list with one per image), merges them into marks.json and uses every
+    mark there; with ``marks`` it reads that file instead; with
     neither it uses the workspace's marks.json. Intensity comes from ``sheet`` images (one per lamp,
     of a sheet of Lambertian ``sheet_reflectance``), else ``intensity`` (data sheet), else the
     previous lights.json, else 1.
@@ -78,7 +79,7 @@ class LightsOptions:
     images: list | None = None
     rod_height: float | None = None
     marks: Path | None = None
-    light: int = 0
+    light: int | list = 0
     mark_sigma: float | None = None
     intensity: list | None = None
     sheet: list | None = None
@@ -201,15 +202,18 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
             raise ValueError("give either images to detect marks in or --marks, not both")
         if marks_path.exists():
             height, marks = read_marks(marks_path)
-        for i, path in enumerate(images):
+        lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
+        if len(lamps) != len(images):
+            raise ValueError(f"light: {len(lamps)} lamp indices for {len(images)} images")
+        for i, (path, lamp) in enumerate(zip(images, lamps)):
             task.step(i, len(images) + 1, f"detecting the rod in {path.name}")
             try:
                 base, tip = detect_rod_marks(read_image(path, linear=False))
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc}; mark it by hand in marks.json") from None
             name = str(path.relative_to(ws.root)) if path.is_relative_to(ws.root) else str(path)
-            marks = [m for m in marks if m.image != name] + [Mark(name, o.light, base, tip)]
-            detected.append((name, o.light, base, tip))
+            marks = [m for m in marks if m.image != name] + [Mark(name, int(lamp), base, tip)]
+            detected.append((name, int(lamp), base, tip))
     if o.rod_height is not None:
         height = o.rod_height
     if height is None or not height > 0:

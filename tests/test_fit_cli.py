@@ -11,21 +11,12 @@ from hardware.workspace import write_json
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    from hardware.sim.lab import build_lab, write_lab
-    from inverse.rendering import render
-    from inverse.trees import build_trees
+    """The untextured 64x48 lab; scene.json holds only what a user knows before fitting."""
+    from conftest import lab_photo_workspace
 
     root = tmp_path_factory.mktemp("fitws")
-    lab = build_lab(64, 48, textured=False)
-    write_lab(root, lab)
-    truth = [s.material for s in lab.scene]
-    img = render(build_trees(lab.scene, lab.camera, lab.lights, depth=3), truth, lab.lights.intensities)
-    # What a user knows before fitting: brdf and ior (and that the paper ground does not mirror).
-    scene = json.loads((root / "scene.json").read_text())
-    for item, m in zip(scene["surfaces"], truth):
-        item["material"] = {"brdf": m.brdf, "ior": m.ior, **({"r": 0.0} if m.brdf == "lambert" else {})}
-    write_json(root / "scene.json", scene)
-    return root, img, truth
+    lab, img = lab_photo_workspace(root, textured=False, known_only=True)
+    return root, img, [s.material for s in lab.scene]
 
 
 def test_fit_writes_materials_sigmas_trace_and_columns(workspace):

@@ -1,0 +1,47 @@
+"""Shared fixtures: the simulated lab written as a workspace with its photograph.
+
+``lab_photo_workspace(root, width, height, ...)`` writes what several tests start from: the
+simulated lab's camera.json, lights.json, scene.json + meshes (with the true materials, or with
+only what a user knows before fitting) and input.exr rendered by the forward model with the
+lab's true textures. It returns the lab and the image.
+"""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+def lab_photo_workspace(root, width: int = 64, height: int = 48, *, textured: bool = True, known_only: bool = False,
+                        depth: int = 3):
+    """Write the lab and its photograph into ``root``; returns (lab, image).
+
+    ``known_only``: scene.json keeps only brdf and ior (and r = 0 for the Lambertian paper ground),
+    what a user knows before fitting.
+    """
+    from hardware.images import write_image
+    from hardware.sim.lab import build_lab, write_lab
+    from inverse.rendering import render
+    from inverse.trees import build_trees
+
+    lab = build_lab(width, height, textured=textured)
+    write_lab(root, lab)
+    truth = [s.material for s in lab.scene]
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=depth)
+    kd = lab.albedo_at(trees.surface, trees.point) if textured else None
+    image = render(trees, truth, lab.lights.intensities, kd_nodes=kd)
+    if known_only:
+        scene = json.loads((root / "scene.json").read_text())
+        for item, m in zip(scene["surfaces"], truth):
+            item["material"] = {"brdf": m.brdf, "ior": m.ior, **({"r": 0.0} if m.brdf == "lambert" else {})}
+        (root / "scene.json").write_text(json.dumps(scene))
+    write_image(root / "input.exr", image)
+    return lab, image
+
+
+@pytest.fixture()
+def lab_workspace(tmp_path):
+    """A 64x48 textured lab workspace with its photograph and the true materials: (root, lab, image)."""
+    root = tmp_path / "ws"
+    lab, image = lab_photo_workspace(root)
+    return root, lab, image
