@@ -145,7 +145,7 @@ def lab_workspace(tmp_path_factory):
 
     cam = json.loads((root / "camera.json").read_text())
     cam["K"][0][0] += FX_SHIFT
-    cam["calibration"] = _calibration_block(lab)
+    cam["calibration"] = dict(_calibration_block(lab), warnings=["focal length poorly determined (test)"])
     write_json(root / "camera.json", cam)
     _lamps(root, lab)
     _sparse(root, lab)
@@ -185,6 +185,7 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     text = page.all_text
     # Camera against truth/camera.json: the fx shift, to the report's 3 significant digits.
     cal = json.loads((root / "camera.json").read_text())["calibration"]
+    assert "focal length poorly determined (test)" in text
     assert len(cal["residuals_px"]) == 4 and len(cal["residuals_px"][0][0]) == 4
     assert re.search(r"fx\s+\d+\.\d+ ± [\d.e-]+\s+[\d.]+\s+" + re.escape(f"{lab.camera.K[0, 0]:.6g}") + r"\s+0\.5\b", text)
     # Lamp 0 is LAMP_SHIFT_MM from the truth; lamp 1 is where the marks put it.

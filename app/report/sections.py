@@ -201,6 +201,8 @@ def camera_section(src: Sources) -> Section | None:
             ("Tsai", ", ".join(f"{k} {num(v, 6)}" for k, v in cam.get("tsai", {}).items()) if isinstance(cam.get("tsai"), dict) else None),
             ("reference view (input pose)", cal.get("reference_image")),
             ("calibration time", f"{num(cal.get('time_s'), 3)} s" if cal.get("time_s") is not None else None)])
+    for w in cal.get("warnings") or [] if isinstance(cal.get("warnings"), list) else []:
+        sec.note(str(w), "warn")
     if not cal:
         sec.note("camera.json has no calibration block (written by hand or by another tool): no uncertainties, "
                  "per-view errors or residuals to show.")
