@@ -1,8 +1,9 @@
 """Timings of the forward model: tree building and re-rendering at three image sizes.
 
-Run ``python -m inverse.benchmarks [WORKSPACE]``: with a workspace (camera.json, lights.json,
-scene.json) it times that scene, else the simulated lab (``hardware.sim.lab.build_lab``). It prints
-a Markdown table (the one in docs/forward-model.md) and the machine it ran on.
+Run ``python -m inverse.benchmarks WORKSPACE``: it times that workspace's scene (camera.json,
+lights.json, scene.json) and prints a Markdown table and the machine it ran on. The table of
+docs/forward-model.md times the simulated lab: ``python docs/figures/forward_benchmark.py``
+(product code does not import the simulated twin; that script hands its scene to :func:`run`).
 """
 from __future__ import annotations
 
@@ -34,13 +35,8 @@ def machine() -> str:
             f"numpy {np.__version__}, open3d {open3d.__version__}")
 
 
-def load_scene(workspace=None):
-    """(scene, camera, lights) of a workspace, or of the simulated lab when ``workspace`` is None."""
-    if workspace is None:
-        from hardware.sim.lab import build_lab
-
-        lab = build_lab()
-        return lab.scene, lab.camera, lab.lights
+def load_scene(workspace):
+    """(scene, camera, lights) of a workspace."""
     from calibration.camera import Camera
     from calibration.lights import Lights
     from hardware.workspace import Workspace
@@ -140,16 +136,17 @@ def compare_ray_casters(scene, camera, repeats: int = 3) -> dict:
             "mitsuba_variant": mi.variant()}
 
 
-def main(argv=None) -> int:
+def main(argv=None, scene=None, name: str = "") -> int:
+    """The command line; ``scene`` = (scene, camera, lights) given by a caller replaces WORKSPACE."""
     parser = argparse.ArgumentParser(prog="python -m inverse.benchmarks", description=__doc__.splitlines()[0])
-    parser.add_argument("workspace", nargs="?", help="workspace folder (default: the simulated lab)")
+    parser.add_argument("workspace", nargs="?" if scene is not None else None, help="workspace folder")
     parser.add_argument("--depth", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--casters", action="store_true", help="also compare Open3D and Mitsuba ray casting")
     args = parser.parse_args(argv)
-    scene, camera, lights = load_scene(args.workspace)
+    scene, camera, lights = scene if scene is not None else load_scene(args.workspace)
     print(f"machine: {machine()}")
-    print(f"scene: {args.workspace or 'simulated lab'}, {len(scene.surfaces)} surfaces, {len(lights)} lights, depth {args.depth}\n")
+    print(f"scene: {name or args.workspace}, {len(scene.surfaces)} surfaces, {len(lights)} lights, depth {args.depth}\n")
     print(table(run(scene, camera, lights, depth=args.depth, repeats=args.repeats)))
     if args.casters:
         print("\n", compare_ray_casters(scene, camera.scaled(640, 480)))
