@@ -824,7 +824,7 @@ def novel_view(workspace, azimuth: float, elevation: float, dims) -> tuple:
     """Render the recovered model from the input camera orbited about the scene's centre, lamps scaled."""
     import tempfile
 
-    from app.commands.render import render_workspace
+    from inverse.stages import render_workspace
     from calibration.camera import Camera
     from calibration.lights import Lights
     from hardware.sim.camera import rotate_about_z

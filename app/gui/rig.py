@@ -21,84 +21,46 @@ class RigError(RuntimeError):
 class Rig:
     """Connect, jog, switch lamps, preview and capture on one controller and one camera."""
 
-    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=(320, 240), depth: int = 2,
-                 grain: float = 0.2, log=None):
+    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=(320, 240), log=None):
         self.workspace = Path(workspace)
-        self.port_spec, self.camera_spec = port, camera
-        self.size, self.depth, self.grain = tuple(size), int(depth), float(grain)
+        self.port_spec, self.camera_spec, self.size = port, camera, tuple(size)
         self.log = log or (lambda msg: None)
         self.lock = threading.RLock()
-        self.controller = self.camera = self.sim = self.config = None
+        self.devices = None  # app.devices.Rig while connected
 
     # ------------------------------------------------------------------ connection
     @property
     def connected(self) -> bool:
-        return self.controller is not None
+        return self.devices is not None
 
-    def _load_config(self):
-        from hardware.grbl import GrblConfig
+    controller = property(lambda self: self.devices.controller if self.devices else None)
+    camera = property(lambda self: self.devices.camera if self.devices else None)
+    sim = property(lambda self: self.devices.board if self.devices else None)  # the simulated board, if any
 
+    @property
+    def config(self):
+        from app.devices import load_config
+
+        if self.devices is not None:
+            return self.devices.config
         path = self.workspace / "hardware.json"
-        return GrblConfig.load(path) if path.exists() else GrblConfig()
+        return load_config(path if path.exists() else None)
 
     def connect(self) -> str:
-        """Open the board (starting the simulated one for ``sim``) and the camera; return the status line."""
-        from hardware.grbl import GrblController
+        """Open the board (starting the simulated one for ``sim``) and the camera (app/devices.py); the status line."""
+        from app.devices import Rig as Devices, SimOptions
 
         with self.lock:
-            if self.connected:
-                return self.status()
-            self.config = self._load_config()
-            port = self.port_spec
-            if port == "sim":
-                from hardware.sim.device import SimulatedGrbl
-
-                self.sim = SimulatedGrbl(time_scale=20.0).start()
-                port = self.sim.port
-                self.log(f"simulated GRBL board on {port}")
-            ctl = GrblController(port, self.config, log=self.log)
-            try:
-                ctl.connect()
-                self.camera = self._open_camera(ctl)
-            except BaseException:
-                ctl.close()
-                self._stop_sim()
-                raise
-            self.controller = ctl
+            if not self.connected:
+                self.devices = Devices(self.port_spec, self.camera_spec, config=self.config,
+                                       sim=SimOptions(size=self.size), log=self.log)
             return self.status()
-
-    def _open_camera(self, ctl):
-        if self.camera_spec != "sim":
-            from hardware.cameras import open_camera
-
-            return open_camera(self.camera_spec)
-        from hardware.sim.camera import SimulatedCamera, lab_renderer
-        from hardware.sim.lab import build_lab
-
-        lab = build_lab(*self.size, grain=self.grain)
-        if len(self.config.lamps) != len(lab.lights):
-            raise RigError(f"the simulated lab has {len(lab.lights)} lamps but hardware.json maps {len(self.config.lamps)}")
-        sim, axis = self.sim, self.config.axis
-        if sim is not None:
-            state = lambda: (sim.turntable(axis), self.config.lamp_states(sim.lamp_outputs()))  # noqa: E731
-        else:
-            state = lambda: (ctl.angle, ctl.lamps)  # noqa: E731
-        return SimulatedCamera(lab_renderer(lab, depth=self.depth), state,
-                               lab={"grain": self.grain, "fixed": ["ground"], "centre": [0.0, 0.0]})
-
-    def _stop_sim(self) -> None:
-        if self.sim is not None:
-            self.sim.stop()
-            self.sim = None
 
     def disconnect(self) -> None:
         with self.lock:
-            if self.controller is not None:
-                self.controller.close()
-            if self.camera is not None:
-                self.camera.close()
-            self.controller = self.camera = None
-            self._stop_sim()
+            if self.devices is not None:
+                self.devices.close()
+            self.devices = None
 
     def require(self):
         if not self.connected:

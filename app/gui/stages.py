@@ -48,10 +48,10 @@ class GuiStep:
 
 # ------------------------------------------------------------------ running a subcommand
 class _Lines(io.TextIOBase):
-    """A text stream that hands every complete line to ``sink`` (the log pane) and keeps the last error."""
+    """A text stream that hands every complete line to ``sink`` (the log pane)."""
 
-    def __init__(self, sink, keep_last: bool):
-        self.sink, self.keep_last, self.pending, self.last = sink, keep_last, "", ""
+    def __init__(self, sink):
+        self.sink, self.pending = sink, ""
 
     def write(self, text: str) -> int:
         self.pending += text
@@ -59,48 +59,24 @@ class _Lines(io.TextIOBase):
         for line in lines:
             if line.strip():
                 self.sink(line)
-                if self.keep_last:
-                    self.last = line
         return len(text)
 
 
-def run_command(ctx: Context, name: str, argv: list) -> int:
-    """Run ``reflab NAME ARGV`` in this thread, its output to the log; a failure raises StepFailed."""
+def run_command(ctx: Context, name: str, argv: list) -> None:
+    """Run ``reflab NAME ARGV`` in this thread (for app-level commands without a stage function),
+    its output to the log; a non-zero exit raises StepFailed with its last error line."""
     module = importlib.import_module(f"app.commands.{name}")
     parser = argparse.ArgumentParser(prog=f"reflab {name}")
     module.add_arguments(parser)
-    try:
-        args = parser.parse_args([str(a) for a in argv])
-    except SystemExit:
-        raise StepFailed(f"reflab {name}: bad options {argv}") from None
-    out, err = _Lines(ctx.log, False), _Lines(ctx.log, True)
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    args = parser.parse_args([str(a) for a in argv])
+    errors = []
+    with contextlib.redirect_stdout(_Lines(ctx.log)), contextlib.redirect_stderr(_Lines(lambda l: (errors.append(l), ctx.log(l)))):
         code = module.run(args) or 0
     if code:
-        message = err.last.split(": error: ", 1)[-1] if err.last else f"reflab {name} stopped with exit status {code}"
-        raise StepFailed(message)
-    return code
+        raise StepFailed(errors[-1].split(": error: ", 1)[-1] if errors else f"reflab {name}: exit status {code}")
 
 
 # ------------------------------------------------------------------ captures
-def _control(task):
-    """A capture Control driven by the window's Task (cancel, pause)."""
-    from hardware.capture import CaptureCancelled, Control
-    from hardware.task import Cancelled
-
-    class TaskControl(Control):
-        paused = property(lambda self: task.paused)
-        cancelled = property(lambda self: task.cancelled)
-
-        def wait(self):
-            try:
-                task.check()
-            except Cancelled:
-                raise CaptureCancelled("cancelled") from None
-
-    return TaskControl()
-
-
 def manifest_status(workspace, kind: str) -> dict:
     """The capture manifest of ``kind`` ({} when there is none)."""
     from hardware.capture import FOLDERS
@@ -109,39 +85,31 @@ def manifest_status(workspace, kind: str) -> dict:
     return read_json(path) if path.exists() else {}
 
 
-def capture(ctx: Context, task, kind: str, plan) -> dict:
-    """Take the shots of ``plan`` not yet taken: resume an unfinished session of the same plan,
+def capture(ctx: Context, task, kind: str, **options) -> dict:
+    """Take the shots of ``kind`` not yet taken: resume an unfinished session of the same plan,
     keep a complete one (unless the page's ``recapture`` is ticked), start again over another plan."""
-    from hardware.capture import FOLDERS, CaptureSession
+    from hardware.capture import FOLDERS, CaptureOptions, plan, run_capture
     from hardware.images import read_image
 
-    old = manifest_status(ctx.workspace, kind)
-    same = old.get("plan") == [asdict(s) for s in plan]
-    if same and old.get("status") == "complete" and not ctx.options.get("recapture"):
-        ctx.log(f"{kind}: the {len(plan)} shots are already taken (tick 'capture again' to retake them)")
-        return old
-    resume, overwrite = bool(old) and same and not ctx.options.get("recapture"), bool(old)
-    overwrite = overwrite and not resume
     rig = ctx.rig
     if not rig.connected:
         ctx.log(rig.connect())
     folder = ctx.ws.captures / FOLDERS[kind]
 
-    def progress(done, total, record):
+    def on_shot(done, total, record):
         ctx.report(done, total, f"{kind}: shot {done} of {total} at {record['angle']:.1f}°")
         ctx.image(read_image(folder / record["file"]))
 
     with rig.lock:
-        session = CaptureSession(ctx.workspace, kind, plan, rig.require(), rig.camera, resume=resume,
-                                 overwrite=overwrite, progress=progress, control=_control(task), log=ctx.log)
-        return session.run()
-
-
-def _lamps(ctx) -> int:
-    from app.commands.hardware import load_config
-
-    config = ctx.rig.config or load_config(ctx.workspace / "hardware.json" if (ctx.workspace / "hardware.json").exists() else None)
-    return len(config.lamps)
+        opts = CaptureOptions(ctx.workspace, kind, rig.require(), rig.camera, on_shot=on_shot, log=ctx.log, **options)
+        old = manifest_status(ctx.workspace, kind)
+        same = old.get("plan") == [asdict(s) for s in plan(kind, len(rig.config.lamps), opts)]
+        if same and old.get("status") == "complete" and not ctx.options.get("recapture"):
+            ctx.log(f"{kind}: the {len(old['shots'])} shots are already taken (tick 'capture again' to retake them)")
+            return old
+        opts.resume = bool(old) and same and not ctx.options.get("recapture")
+        opts.overwrite = bool(old) and not opts.resume
+        return run_capture(opts, task).manifest
 
 
 def _angles(text) -> list[float]:
@@ -172,15 +140,14 @@ def _devices(ctx, task) -> str:
 
 
 def _calibrate_camera(ctx, task) -> str:
-    from hardware.capture import plan_calibration
+    from calibration.stages import CameraOptions, calibrate_camera
 
     o = ctx.options
-    capture(ctx, task, "calibration", plan_calibration(_lamps(ctx), _angles(o.get("angles", "0"))))
-    task.check()
-    run_command(ctx, "calibrate", ["camera", ctx.workspace, "--grid", o.get("grid", "11x8"),
-                                   "--spacing", o.get("spacing", 0.015)])
-    cal = read_json(ctx.ws.camera).get("calibration", {})
-    return f"camera.json written: {len(cal.get('views', []))} views, reprojection RMS {cal.get('rms_px', float('nan')):.3f} px"
+    capture(ctx, task, "calibration", angles=_angles(o.get("angles", "0")))
+    result = calibrate_camera(CameraOptions(ctx.workspace, grid=o.get("grid", "11x8"),
+                                            spacing=float(o.get("spacing", 0.015))), task)
+    skipped = f", {len(result.skipped)} skipped" if result.skipped else ""
+    return f"camera.json written: {len(result.used)} views{skipped}, reprojection RMS {result.rms_px:.3f} px"
 
 
 def rod_shots(workspace) -> list[tuple[str, int]]:
@@ -195,17 +162,17 @@ def rod_shots(workspace) -> list[tuple[str, int]]:
 
 def _calibrate_lights(ctx, task) -> str:
     from calibration.lamps import detect_rod_marks
-    from hardware.capture import plan_lights
+    from calibration.stages import LightsOptions, calibrate_lights
     from hardware.images import read_image
 
     o = ctx.options
-    capture(ctx, task, "lights", plan_lights(_lamps(ctx), _angles(o.get("angles", "0"))))
+    capture(ctx, task, "lights", angles=_angles(o.get("angles", "0")))
     height = float(o.get("rod_height", 0.10))
     marks = {m["image"]: m for m in read_marks_file(ctx.workspace).get("marks", [])}
     missing = []
     for image, lamp in rod_shots(ctx.workspace):
         task.check()
-        if image in marks:
+        if image in marks:  # found earlier or placed by hand: kept
             continue
         try:
             base, tip = detect_rod_marks(read_image(ctx.workspace / image))
@@ -219,80 +186,80 @@ def _calibrate_lights(ctx, task) -> str:
     if missing:
         raise StepFailed(f"rod not found in {len(missing)} shot(s) ({', '.join(Path(m).name for m in missing)}): "
                          "mark the rod's foot and its shadow's tip on the shot, then run again")
-    run_command(ctx, "calibrate", ["lights", ctx.workspace, "--marks", ctx.workspace / "marks.json",
-                                   "--rod-height", height])
-    n = len(read_json(ctx.ws.lights)["lights"])
-    return f"lights.json written: {n} lamps from {len(marks)} rod marks"
+    result = calibrate_lights(LightsOptions(ctx.workspace, marks=ctx.ws.root / "marks.json", rod_height=height), task)
+    return f"lights.json written: {len(result.lamps)} lamps from {len(marks)} rod marks"
 
 
 def _sweep(ctx, task) -> str:
-    from hardware.capture import plan_sweep
-
-    count = int(ctx.options.get("count", 36))
-    manifest = capture(ctx, task, "sweep", plan_sweep(_lamps(ctx), count))
+    manifest = capture(ctx, task, "sweep", count=int(ctx.options.get("count", 36)))
     return f"{len(manifest['shots'])} turntable shots in captures/turntable"
 
 
 def _reconstruct(ctx, task) -> str:
+    from reconstruction.stages import ReconstructOptions, reconstruct
+
     o = ctx.options
-    argv = [ctx.workspace]
-    if o.get("turntable_centre"):
-        argv += ["--turntable-centre", o["turntable_centre"]]
-    if read_marks_file(ctx.workspace).get("surfaces"):
-        argv += ["--marks", ctx.workspace / "marks.json"]
-    if o.get("force"):
-        argv.append("--force")
-    run_command(ctx, "reconstruct", argv)
-    scene = read_json(ctx.ws.scene)
-    return f"scene.json written: {len(scene.get('surfaces', []))} surfaces"
+    centre = None
+    if str(o.get("turntable_centre", "")).strip():
+        try:
+            centre = tuple(float(x) for x in str(o["turntable_centre"]).split(","))
+        except ValueError:
+            raise StepFailed(f"turntable axis must be x,y in metres, got {o['turntable_centre']!r}") from None
+    marks = ctx.ws.root / "marks.json" if read_marks_file(ctx.workspace).get("surfaces") else None
+    result = reconstruct(ReconstructOptions(ctx.workspace, marks=marks, turntable_centre=centre,
+                                            force=bool(o.get("force"))), task, log=ctx.log)
+    if result.skipped:
+        return "scene.json already there: nothing to do (tick 'redo from scratch' to rebuild it)"
+    sfm = f"{result.sfm['sfm']['registered']}/{result.sfm['sfm']['images']} shots registered, " if result.sfm else ""
+    return f"scene.json written: {sfm}{len(result.scene)} surfaces in {result.time_s:.1f} s"
 
 
 def _input(ctx, task) -> str:
-    from hardware.capture import plan_input
-
-    capture(ctx, task, "input", plan_input(_lamps(ctx), float(ctx.options.get("angle", 0.0)),
-                                           bool(ctx.options.get("ambient", False))))
+    capture(ctx, task, "input", start=float(ctx.options.get("angle", 0.0)), ambient=bool(ctx.options.get("ambient", False)))
     return f"input photograph: {ctx.ws.input_image.name}"
 
 
 def _fit(ctx, task) -> str:
-    from inverse.fitting import fit_workspace
+    from inverse.stages import FitOptions, fit
 
     o = ctx.options
-    report, result = fit_workspace(ctx.workspace, o.get("method", "ftbo"), int(o.get("depth", 3)),
-                                   max_seconds=o.get("max_seconds") or None,
-                                   texture_rounds=int(o.get("texture_rounds", 2)), task=task,
-                                   progress=lambda rec: ctx.log(f"texture round {rec['round']}: refit RMS per band "
-                                                                f"{[round(v, 4) for v in rec['rms']]}"))
+    result = fit(FitOptions(ctx.workspace, o.get("method", "ftbo"), int(o.get("depth", 3)),
+                            max_seconds=o.get("max_seconds") or None, texture_rounds=int(o.get("texture_rounds", 2))),
+                 task, on_round=lambda rec: ctx.log(f"texture round {rec['round']}: refit RMS per band "
+                                                    f"{[round(v, 4) for v in rec['rms']]}"))
+    report = result.report
     for text in report.get("warnings", []):
         ctx.log(f"warning: {text}")
     rms = ", ".join(f"{v:.3g}" for v in report["rms"])
     if report.get("status") == "poor fit":
         raise StepFailed(f"poor fit (RMS per band [{rms}]): the fitted model does not explain the image; "
                          "fit.json says why")
-    return (f"fit.json written: {report.get('status', 'ok')}, RMS per band [{rms}], {result.iterations} iterations "
+    return (f"fit.json written: {report.get('status', 'ok')}, RMS per band [{rms}], {result.fit.iterations} iterations "
             f"in {report['time_s']:.1f} s")
 
 
 def _texture(ctx, task) -> str:
-    run_command(ctx, "texture", [ctx.workspace])
-    n = len(list(ctx.ws.textures.glob("*_mask.png")))
-    return f"textures written for {n} surfaces"
+    from inverse.stages import TextureOptions, texture
+
+    result = texture(TextureOptions(ctx.workspace), task, log=ctx.log)
+    st = result.result.stats
+    return (f"textures written for {len(result.result.maps)} surfaces: {st['unknowns']} texels, "
+            f"residual RMS per band [{', '.join(f'{v:.3g}' for v in st['residual_rms'])}]")
 
 
 def _results(ctx, task) -> str:
     import numpy as np
 
-    from app.commands.render import render_workspace
-    from hardware.images import read_image, write_image, write_preview
+    from hardware.images import read_image
+    from inverse.stages import RenderOptions, render
 
     ws = ctx.ws
-    photo = read_image(ws.require(ws.input_image, "the Input step"))
-    image, info = render_workspace(ctx.workspace, depth=int(ctx.options.get("depth", 3)))
-    task.check()
-    write_image(ws.root / "render.exr", image)
-    write_preview(ws.root / "render.png", image)
+    photo = read_image(ws.require(ws.input_image, "the Input photograph step"))
+    result = render(RenderOptions(ctx.workspace, output=ws.root / "render.exr", depth=int(ctx.options.get("depth", 3))),
+                    task, log=ctx.log)
+    image = result.image
     rel = float(np.sqrt(np.mean((image - photo) ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300))
+    task.check()
     try:
         run_command(ctx, "report", [ctx.workspace])
     except StepFailed as exc:
