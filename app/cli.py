@@ -33,29 +33,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: What a command does with its WORKSPACE, checked before it starts (hardware.workspace.check_folder):
-#: "read" it must exist; "write" it must exist and be writable; "create" it may be made (its parent
-#: writable). Commands not listed check nothing here.
-_WORKSPACE = {"calibrate": "write", "capture": "create", "demo": "create", "fit": "write", "reconstruct": "write",
-              "render": "read", "report": "write", "texture": "write"}
+#: Commands whose WORKSPACE is checked here, before devices open or a report is built
+#: (hardware.workspace.check_folder): "create" may make it (its parent writable), "write" needs it
+#: writable. The stage functions (calibrate, reconstruct, fit, texture, render) check their own.
+_WORKSPACE = {"capture": "create", "demo": "create", "report": "write"}
 
 
 def check_inputs(args) -> None:
-    """Folders a command reads and writes, checked before any work (one line naming the path)."""
-    from pathlib import Path
-
+    """The workspace of a command without a stage function, checked before any work."""
     from hardware.workspace import check_folder
 
     mode = _WORKSPACE.get(args.command)
-    if mode == "write" and args.command == "calibrate" and args.what == "camera":
-        mode = "create"  # a first calibration may start the workspace
-    output = getattr(args, "output", None) if args.command == "render" else None
-    if mode == "read" and not output:
-        mode = "write"  # render's default output goes into the workspace
     if mode and getattr(args, "workspace", None) is not None:
-        check_folder(args.workspace, write=mode != "read", create=mode == "create")
-    if output:
-        check_folder(Path(output).parent, write=True, create=True, what="output folder")
+        check_folder(args.workspace, write=True, create=mode == "create")
 
 
 def main(argv=None) -> int:

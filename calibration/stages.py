@@ -116,11 +116,11 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
     from calibration.target import target_points
     from calibration.tsai import CalibrationError, calibrate
     from hardware.images import image_files, read_image
-    from hardware.workspace import Workspace, WorkspaceError
+    from hardware.workspace import Workspace, WorkspaceError, check_folder
 
     task = ensure(task)
     o = options
-    ws = Workspace(o.workspace)
+    ws = Workspace(check_folder(o.workspace, write=True, create=True))  # a first calibration may start it
     cols, rows = parse_grid(o.grid) if isinstance(o.grid, str) else (int(o.grid[0]), int(o.grid[1]))
     if not o.spacing > 0:
         raise ValueError(f"--spacing must be a positive number of metres, got {o.spacing}")
@@ -187,11 +187,11 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     from calibration.lamps import Mark, detect_rod_marks, lamp_intensity, locate_lamps, read_marks, write_marks
     from calibration.lights import Lights, PointLight
     from hardware.images import read_image
-    from hardware.workspace import Workspace
+    from hardware.workspace import Workspace, check_folder
 
     task = ensure(task)
     o = options
-    ws = Workspace(o.workspace)
+    ws = Workspace(check_folder(o.workspace, write=True))
     camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
     images = [Path(p) for p in o.images or []]
     marks_path = Path(o.marks) if o.marks else ws.marks

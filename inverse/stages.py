@@ -58,11 +58,12 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     ``on_round(record)`` is called after each texture round (docs/fit.md). The task is stepped
     per outer iteration; its deadline, when it has one, stops the fit like ``max_seconds``.
     """
-    from hardware.workspace import Workspace
+    from hardware.workspace import Workspace, check_folder
     from inverse.fitting import fit_workspace
 
     task = ensure(task)
     o = options
+    check_folder(o.workspace, write=True)  # before any work: missing or read-only, named in one line
     report, result = fit_workspace(o.workspace, o.method, o.depth, saturation=o.saturation,
                                    maxiter=o.max_iterations, max_seconds=o.max_seconds,
                                    texture_rounds=o.texture_rounds, progress=on_round, task=task)
@@ -120,13 +121,13 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     ``log`` is told whether the trees were built or reused from the workspace's cache.
     """
     from hardware.images import check_radiance, read_image
-    from hardware.workspace import Workspace, WorkspaceError, read_json
+    from hardware.workspace import Workspace, WorkspaceError, check_folder, read_json
     from inverse import texture as tex
     from inverse.trees import trees_for_workspace
 
     task = ensure(task)
     o = options
-    ws = Workspace(o.workspace)
+    ws = Workspace(check_folder(o.workspace, write=True))
     camera, lights, scene = _inputs(ws)
     image_path = ws.require(ws.input_image, "reflab capture input")
     image = read_image(image_path)
@@ -242,12 +243,13 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
 def render(options: RenderOptions, task: Task | None = None, *, log=None) -> RenderResult:
     """Render the workspace's model and write the image and an 8-bit PNG preview beside it."""
     from hardware.images import write_image, write_preview
-    from hardware.workspace import Workspace
+    from hardware.workspace import Workspace, check_folder
 
     task = ensure(task)
     o = options
+    out = Path(o.output) if o.output else Workspace(check_folder(o.workspace)).render(o.aov)
+    check_folder(out.parent, write=True, create=True, what="output folder")  # a read-only workspace renders elsewhere
     image, info = render_workspace(o.workspace, o.camera, o.lights, aov=o.aov, depth=o.depth, task=task, log=log)
-    out = Path(o.output) if o.output else Workspace(o.workspace).render(o.aov)
     task.check()
     write_image(out, image, allow_nan=o.aov == "albedo")
     preview = out.with_suffix(".png") if out.suffix.lower() != ".png" else out.with_name(out.stem + "_preview.png")

@@ -18,7 +18,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from hardware.task import Task, ensure
-from hardware.workspace import Workspace, WorkspaceError
+from hardware.workspace import Workspace, WorkspaceError, check_folder
 
 
 @dataclass
@@ -211,7 +211,7 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
     task = ensure(task)
     o = options
     t0 = time.perf_counter()
-    ws = Workspace(o.workspace)
+    ws = Workspace(check_folder(o.workspace, write=True))
     unknown = set(o.iors) - set(o.meshes)
     if unknown:
         raise ValueError(f"ior: no imported mesh named {sorted(unknown)[0]!r}")
