@@ -329,6 +329,9 @@ def _colmap_token(task: Task):
     thread.start()
     try:
         yield token
+    except InterruptedError:  # pycolmap's answer to a cancelled token
+        if not task.cancelled:
+            raise
     finally:
         done.set()
         thread.join()

@@ -1,0 +1,155 @@
+"""Cancelling each long stage mid-way: it raises Cancelled at its next check, leaves no
+half-written output, and the same call run again finishes (hardware/task.py).
+
+The cancel comes from the task's own progress callback at a chosen step, or from a check count
+inside a loop (texture CG), or from another thread (structure from motion, whose COLMAP calls
+take a cancellation token); where it fired is asserted from the steps reported, not by timing.
+"""
+import threading
+
+import numpy as np
+import pytest
+
+from hardware.task import Cancelled, Task
+from hardware.workspace import Workspace
+
+
+def _leftovers(root):
+    """Temporary files an interrupted atomic write would leave (hidden, with a random infix)."""
+    return [p for p in root.rglob(".*") if p.is_file()]
+
+
+def _cancel_at(prefix: str, seen: list):
+    """A task that records every step and cancels itself at the first one starting with ``prefix``."""
+    task = None
+
+    def progress(done, total, message):
+        seen.append(message)
+        if message.startswith(prefix):
+            task.cancel()
+
+    task = Task(progress)
+    return task
+
+
+def test_trees_cancelled_between_levels_then_rebuilt(lab_workspace):
+    from inverse.stages import RenderOptions, render
+
+    root, _, _ = lab_workspace
+    ws = Workspace(root)
+    seen = []
+    with pytest.raises(Cancelled):
+        render(RenderOptions(root), _cancel_at("trees: level 2", seen))
+    assert seen[-1].startswith("trees: level 2") and not any(m.startswith("trees: level 3") for m in seen)
+    assert not ws.render().exists() and not list(ws.cache.glob("trees-*")) and not _leftovers(root)
+    r = render(RenderOptions(root))
+    assert r.path.exists() and len(list(ws.cache.glob("trees-*"))) == 1
+
+
+def test_texture_cg_cancelled_inside_its_iterations_then_rerun(lab_workspace):
+    from inverse.stages import TextureOptions, texture
+
+    root, _, _ = lab_workspace
+
+    class CancelInCG(Task):
+        """Cancels at the 3rd check after conjugate gradient started: inside the CG loop."""
+
+        def __init__(self):
+            super().__init__()
+            self.in_cg, self.checks = False, 0
+
+        def step(self, done, total, message=""):
+            self.in_cg = self.in_cg or message.startswith("texture: conjugate gradient")
+            super().step(done, total, message)
+
+        def check(self):
+            if self.in_cg:
+                self.checks += 1
+                if self.checks == 3:
+                    self.cancel()
+            super().check()
+
+    task = CancelInCG()
+    with pytest.raises(Cancelled):
+        texture(TextureOptions(root), task)
+    assert task.checks == 3  # stopped at the check that saw the cancel, two CG iterations in
+    assert not Workspace(root).textures.exists() and not _leftovers(root)
+    r = texture(TextureOptions(root))
+    assert (root / "textures" / "index.json").exists() and r.result.stats["iterations"] > 2
+
+
+def test_fit_cancelled_between_iterations_then_rerun(lab_workspace):
+    from inverse.stages import FitOptions, fit
+
+    root, _, _ = lab_workspace
+    seen = []
+    task = _cancel_at("F-TBO iteration", seen)
+    with pytest.raises(Cancelled):
+        fit(FitOptions(root, texture_rounds=0), task)
+    assert sum(m.startswith("F-TBO iteration") for m in seen) == 1
+    assert not Workspace(root).fit.exists() and not _leftovers(root)
+    r = fit(FitOptions(root, texture_rounds=0))
+    assert r.path.exists() and r.fit.iterations > 1 and r.report["method"] == "ftbo"
+
+
+def test_structure_from_motion_stops_inside_colmap(tmp_path):
+    """A cancel from another thread while COLMAP extracts features: its token stops it."""
+    from calibration.camera import Camera
+    from reconstruction.sfm import run_sfm
+
+    cam = Camera.look_at(320, 240, 50.0, (0, -0.4, 0.4), (0, 0, 0))
+    rng = np.random.default_rng(0)
+    images = [rng.random((240, 320, 3)).astype(np.float32) for _ in range(6)]
+    seen = []
+
+    def progress(done, total, message):
+        seen.append(message)
+        if message.endswith("features"):
+            threading.Timer(0.05, task.cancel).start()
+
+    task = Task(progress)
+    with pytest.raises(Cancelled):
+        run_sfm(images, [f"{i:04d}.exr" for i in range(6)], cam, workdir=tmp_path / "sfm", auto_mask=False,
+                task=task)
+    assert seen[0].endswith("features") and not any(m.endswith("mapping") for m in seen)
+
+
+def test_reconstruct_cancelled_writes_nothing(tmp_path):
+    from calibration.camera import Camera
+    from hardware.images import write_image
+    from reconstruction.stages import ReconstructOptions, reconstruct
+
+    root = tmp_path / "ws"
+    ws = Workspace(root)
+    Camera.look_at(64, 48, 50.0, (0, -0.4, 0.4), (0, 0, 0)).save(ws.camera)
+    rng = np.random.default_rng(1)
+    for i in range(4):
+        write_image(ws.captures_of("sweep") / f"{i:04d}.exr", rng.random((48, 64, 3)).astype(np.float32))
+    seen = []
+    with pytest.raises(Cancelled):
+        reconstruct(ReconstructOptions(root, turntable_centre=(0.0, 0.0)), _cancel_at("structure from motion", seen))
+    assert not ws.sfm.exists() and not ws.sparse.exists() and not ws.scene.exists() and not _leftovers(root)
+
+
+def test_capture_cancelled_after_two_shots_then_resumed(tmp_path):
+    from app import steps
+    from app.devices import Rig, SimOptions
+    from hardware.capture import CaptureCancelled
+    from hardware.workspace import read_json
+
+    root = tmp_path / "ws"
+    ws = Workspace(root)
+    seen = []
+    with Rig("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
+        task = _cancel_at("sweep: 0001", seen)
+        with pytest.raises(CaptureCancelled) as info:
+            steps.step("sweep").run(root, task, rig=rig, count=5)
+        assert isinstance(info.value, Cancelled)
+        manifest = read_json(ws.manifest("sweep"))
+        assert manifest["status"] == "cancelled" and [s["file"] for s in manifest["shots"]] == ["0000.exr", "0001.exr"]
+        assert sorted(p.name for p in ws.captures_of("sweep").glob("*.exr")) == ["0000.exr", "0001.exr"]
+        assert not _leftovers(root) and not steps.step("sweep").done(root)
+        steps.step("sweep").run(root, rig=rig, count=5)  # the same plan: resumes, takes the other three
+    manifest = read_json(ws.manifest("sweep"))
+    assert manifest["status"] == "complete" and len(manifest["shots"]) == 5
+    assert [s["file"] for s in manifest["shots"][:2]] == ["0000.exr", "0001.exr"]
