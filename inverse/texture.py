@@ -306,7 +306,7 @@ def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------------- the solver
-def _cg(apply, b, x, free, sizes, stop, max_iter, check=None) -> tuple[np.ndarray, int]:
+def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tuple[np.ndarray, int]:
     """Conjugate gradient on N x = b over the free unknowns, one independent solve per component.
 
     ``apply(p)`` computes N p; the unknowns are ordered by connected component, ``sizes`` giving
@@ -314,7 +314,8 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None) -> tuple[np.ndarra
     (squared residual ≤ ``stop[component]``), exactly as if it were solved alone, while one set
     of sparse products per iteration serves them all. ``free`` (0/1 per unknown, or None for
     all free): fixed unknowns keep their value. ``check()``, when given, is called every
-    iteration (a task's cancellation). Returns (x, iterations of the slowest component).
+    iteration (a task's cancellation). ``trace``, when given, gets (perf_counter, squared residual
+    summed over the components) after every iteration. Returns (x, iterations of the slowest component).
     """
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     seg = lambda v: np.add.reduceat(v, starts, dtype=np.float64)  # noqa: E731 -- per-component sums
@@ -338,6 +339,8 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None) -> tuple[np.ndarra
         q *= alpha
         r -= q
         new = seg(r * r)
+        if trace is not None:
+            trace.append((time.perf_counter(), float(new.sum())))
         active &= (new > stop) & (delta > 0)
         p *= each(np.divide(new, gamma, out=np.zeros_like(gamma), where=active).astype(x.dtype))
         p += r * each(active).astype(x.dtype) if not active.all() else r
@@ -455,11 +458,12 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
     y = np.clip(ratio, lo, hi) / scale
     free = None
     iters = rounds = 0
+    steps = []  # (perf_counter, squared normal-equation residual) per CG iteration, every round
     for rounds in range(5):
         if task is not None:
             task.step(rounds, 5, f"texture: conjugate gradient, active-set round {rounds + 1}")
         y, it = _cg(apply, b.astype(F), y.astype(F), None if free is None else free.astype(F), sizes, stop,
-                    options.max_iter, None if task is None else task.check)
+                    options.max_iter, None if task is None else task.check, steps)
         y = y.astype(np.float64)
         iters += it
         z = y * scale
@@ -470,8 +474,13 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
         free = np.where(viol, 0.0, 1.0) if free is None else np.where(viol, 0.0, free)
     out = np.empty(ncol)
     out[order] = np.clip(y * scale, lo, hi)
+    g0 = max(float(r0 @ r0), 1e-300)
     stats = {"components": int(len(sizes)), "largest_component": int(sizes.max()), "iterations": iters,
-             "active_set_rounds": rounds, "solve_s": time.perf_counter() - t0}
+             "active_set_rounds": rounds, "solve_s": time.perf_counter() - t0,
+             # The CG's error against its run time (the report's error-vs-time plot): seconds since
+             # the solve began, normal-equation residual relative to the homogeneous kd's (tol's scale).
+             "trace": [[round(t - t0, 6), float(np.sqrt(g / g0))] for t, g in steps],
+             "trace_quantity": "relative residual"}
     return out, stats
 
 

@@ -174,6 +174,10 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     for section in ("captures", "camera", "lights", "geometry", "fit", "texture", "views"):
         assert page.ids.get(section) == "section", section
     assert page.ids.get("error-vs-time") == "figure"
+    # The texture solve's CG recorded its residual at every iteration, falling to its stopping level.
+    cg = json.loads((root / "textures" / "index.json").read_text())["stats"]["trace"]
+    assert len(cg) >= 5 and cg[-1][1] < 0.1 * cg[0][1] and all(b[0] >= a[0] for a, b in zip(cg, cg[1:]))
+    assert "conjugate gradient" in page.all_text
     # Every image embedded as a PNG that decodes; nothing fetched from anywhere.
     assert len(page.images) >= 15
     for src in page.images:

@@ -746,7 +746,7 @@ def views_section(src: Sources, views: dict) -> Section | None:
 # ---------------------------------------------------------------------- error against run time
 def error_section(src: Sources) -> Section | None:
     fit, idx, cam, sfm = src.fit, src.textures, src.camera, src.sfm
-    photometric, geometric = [], []
+    photometric, convergence, geometric = [], [], []
 
     def band_mean(v):
         a = _floats(v)
@@ -781,9 +781,11 @@ def error_section(src: Sources) -> Section | None:
         trace = st.get("trace")
         if isinstance(trace, list) and trace:
             pts = [(p[0], band_mean(p[1])) for p in trace if isinstance(p, (list, tuple)) and len(p) >= 2]
-            photometric.append({"label": "texture CG", "points": [(t, e) for t, e in pts if e is not None]})
-        elif st.get("total_s") is not None and band_mean(st.get("residual_rms")) is not None:
-            photometric.append({"label": f"texture solve ({st.get('iterations', '?')} CG iterations)",
+            convergence.append({"label": f"texture CG ({st.get('trace_quantity', 'residual')}, "
+                                         f"{st.get('active_set_rounds', '?')} active-set rounds)",
+                                "points": [(t, e) for t, e in pts if isinstance(t, (int, float)) and e is not None]})
+        if st.get("total_s") is not None and band_mean(st.get("residual_rms")) is not None:
+            photometric.append({"label": f"texture solve, end ({st.get('iterations', '?')} CG iterations)",
                                 "points": [(st["total_s"], band_mean(st["residual_rms"]))], "style": "D"})
     cal = (cam or {}).get("calibration") if isinstance((cam or {}).get("calibration"), dict) else {}
     if cal.get("time_s") is not None and cal.get("rms_px") is not None:
@@ -801,28 +803,27 @@ def error_section(src: Sources) -> Section | None:
         rt = sfm.get("rigid_turntable") if isinstance(sfm.get("rigid_turntable"), dict) else {}
         if rt.get("time_s") is not None and rt.get("rms_px") is not None:
             geometric.append({"label": "one turntable axis", "points": [(rt["time_s"], rt["rms_px"])], "style": "s"})
-    if not photometric and not geometric:
+    if not photometric and not convergence and not geometric:
         return None
     sec = Section("error", "Error against run time", "Every fit and solve: its error against the seconds it ran "
                                                       "(each from its own start).")
-    parts = []
-    if photometric:
-        parts.append("photometric fits: RMS residual in linear radiance (mean of the bands; fit: over pixels, "
-                     "texture: over its equations)")
-    if geometric:
-        parts.append("geometric solves: RMS reprojection error in pixels")
-    if len(parts) == 2:
-        parts = ["Left: " + parts[0], "right: " + parts[1]]
-    sec.figure(_error_plot(photometric, geometric), "; ".join(parts)[0].upper() + "; ".join(parts)[1:] + ".",
+    panels = [(series, ylabel, what) for series, ylabel, what in (
+        (photometric, "RMS residual (linear radiance)", "photometric fits: RMS residual in linear radiance (mean of "
+                                                        "the bands; fit: over pixels, texture: over its equations)"),
+        (convergence, "relative residual", "the texture solver's conjugate gradient: its normal-equation residual "
+                                           "relative to that of the homogeneous kd (the stopping test's scale)"),
+        (geometric, "RMS reprojection (px)", "geometric solves: RMS reprojection error in pixels")) if series]
+    where = ["Left", "middle", "right"] if len(panels) == 3 else ["Left", "right"] if len(panels) == 2 else [""]
+    caption = "; ".join(f"{w}: {what}" if w else what for w, (_, _, what) in zip(where, panels))
+    sec.figure(_error_plot([(series, ylabel) for series, ylabel, _ in panels]), caption[0].upper() + caption[1:] + ".",
                id="error-vs-time")
     return sec
 
 
-def _error_plot(photometric, geometric) -> str:
-    panels = [p for p in (photometric, geometric) if p]
-    fig, axes = F.new_figure(5.2 * len(panels), 3.6, ncols=len(panels))
-    for ax, series, ylabel in zip(axes, panels, ["RMS residual (linear radiance)" if photometric else "RMS reprojection (px)",
-                                                 "RMS reprojection (px)"]):
+def _error_plot(panels) -> str:
+    """One figure, one log-log panel per (series, y label): error against seconds."""
+    fig, axes = F.new_figure(4.6 * len(panels), 3.6, ncols=len(panels))
+    for ax, (series, ylabel) in zip(axes, panels):
         for i, s in enumerate(series):
             t = np.maximum([p[0] for p in s["points"]], 1e-3)
             e = [p[1] for p in s["points"]]
