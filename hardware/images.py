@@ -50,15 +50,23 @@ def image_files(folder) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in CAMERA_SUFFIXES and not p.name.startswith("."))
 
 
-def _truncated_jpeg(path: Path) -> bool:
-    """A JPEG whose last scan has no end-of-image marker after it (a cut-off file).
+def _cut_off(path: Path) -> str:
+    """What a cut-off JPEG or PNG lacks ("" for a complete file or another type).
 
-    OpenCV decodes such a file anyway (grey below the cut, "Premature end of JPEG file" on
-    stderr). 0xFF inside entropy-coded data is stuffed, so SOS (FFDA) and EOI (FFD9) occur only as
-    markers.
+    OpenCV decodes a cut-off JPEG anyway (grey below the cut, "Premature end of JPEG file" on
+    stderr) and refuses a cut-off PNG only after libpng printed "Read Error" on stderr. A JPEG's
+    last scan (SOS, FFDA) must be followed by its end-of-image marker (EOI, FFD9): 0xFF inside
+    entropy-coded data is stuffed, so both occur only as markers. A PNG ends with its IEND chunk.
     """
-    data = path.read_bytes()
-    return data.rfind(b"\xff\xd9") < max(data.rfind(b"\xff\xda"), 0) or not data.startswith(b"\xff\xd8")
+    suffix = path.suffix.lower()
+    if suffix in (".jpg", ".jpeg"):
+        data = path.read_bytes()
+        ok = data.startswith(b"\xff\xd8") and data.rfind(b"\xff\xd9") > max(data.rfind(b"\xff\xda"), 0)
+        return "" if ok else "a cut-off JPEG (no end-of-image marker)"
+    if suffix == ".png":
+        data = path.read_bytes()
+        return "" if data.rfind(b"IEND") > 0 else "a cut-off PNG (no IEND chunk)"
+    return ""
 
 
 def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -89,8 +97,9 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
         return _checked(path, np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img)
     cv2 = _cv2()
     kinds = "EXR, 16-bit PNG or TIFF" if linear else "EXR, PNG, TIFF or JPEG"
-    if path.suffix.lower() in (".jpg", ".jpeg") and _truncated_jpeg(path):
-        raise WorkspaceError(path, expected=f"a complete {kinds} image", got="a cut-off JPEG (no end-of-image marker)")
+    cut = _cut_off(path)
+    if cut:
+        raise WorkspaceError(path, expected=f"a complete {kinds} image", got=cut)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise WorkspaceError(path, expected=f"a readable {kinds} image", got="a file that cannot be decoded")

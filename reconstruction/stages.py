@@ -124,13 +124,24 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
         if centre.size != 2 or not np.all(np.isfinite(centre)):
             raise ValueError(f"turntable centre: expected X,Y in metres, got {o.turntable_centre!r}")
         centre = centre.tolist()
-    images = []
-    for i, p in enumerate(paths):
-        task.step(i, len(paths) + 3, f"reading {p.name}")
-        images.append(read_image(p, linear=False))  # geometry: any image a camera writes
-    names = [str(p.relative_to(ws.root)) for p in paths]
     ref_angle = _reference_angle(ws)
     reference = 0 if angles is None else int(np.argmin(np.abs((angles - ref_angle + 180.0) % 360.0 - 180.0)))
+    images, keep, unreadable = [], [], []
+    for i, p in enumerate(paths):
+        task.step(i, len(paths) + 3, f"reading {p.name}")
+        try:
+            images.append(read_image(p, linear=False))  # geometry: any image a camera writes
+            keep.append(i)
+        except WorkspaceError as exc:  # one shot that cannot be read (cut-off file) is not fatal
+            if i == reference:
+                raise
+            unreadable.append(str(p.relative_to(ws.root)))
+            if log is not None:
+                log(f"warning: skipping {exc}")
+    reference = keep.index(reference)
+    paths = [paths[i] for i in keep]
+    angles = None if angles is None else angles[keep]
+    names = [str(p.relative_to(ws.root)) for p in paths]
     # With the axis known, the commanded angles give every shot's pose to within the rig's error:
     # matches that contradict it (a turning mirror showing the still room) go before mapping.
     commanded = None if centre is None or angles is None else [
@@ -160,7 +171,7 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     # Points seen by few shots or reprojecting poorly sit mostly on occluding edges (mismatches).
     good = (sfm.point_error < 1.0) & (np.array([len(tr) for tr in sfm.tracks], dtype=int) >= 3)
     points = sim.points(sfm.points[good])
-    report = {"sfm": sfm.report, "registration": reg, "reference_shot": names[reference],
+    report = {"sfm": dict(sfm.report, unreadable=unreadable), "registration": reg, "reference_shot": names[reference],
               "reference": reference_check(Rw, tw, camera, reference)}
     if rigid is not None:
         report["rigid_turntable"] = rigid["report"]
