@@ -105,13 +105,21 @@ def _sparse(root, lab):
     angles = np.arange(0, 360, 45.0)
     err = [0.01 * np.sin(np.radians(a)) for a in angles]
     write_json(root / "sfm.json", {
-        "sfm": {"images": 8, "registered": 8, "reprojection_px": 0.31, "points": 400, "time_s": {"total_s": 4.2}},
+        "sfm": {"images": 8, "registered": 7, "reprojection_px": 0.31, "points": 400, "time_s": {"total_s": 4.2}},
         "rigid_turntable": {"used": True, "rms_px": 0.35, "rms_px_free": 0.31, "time_s": 1.1},
         "turntable": {"axis_tilt_deg": 0.05, "angle_error_deg": err, "max_angle_error_deg": 0.01,
                       "rms_angle_error_deg": 0.007, "angles_deg": angles.tolist()},
         "registration": {"method": "axis", "scale": 1.0}, "reference": {"centre_mm": 0.2, "rotation_deg": 0.01},
         "time_s": 6.0, "images": [f"captures/turntable/{i:04d}.exr" for i in range(8)],
-        "poses": {f"captures/turntable/{i:04d}.exr": {"R": lab.camera.R, "t": lab.camera.t} for i in range(1)}})
+        "poses": {f"captures/turntable/{i:04d}.exr": _turned_pose(lab.camera, a) for i, a in enumerate(angles[:7])}})
+
+
+def _turned_pose(camera, degrees):
+    """The camera's pose turned about the world's vertical axis (a turntable shot, seen from the object)."""
+    a = np.radians(degrees)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    R = camera.R @ Rz.T
+    return {"R": R, "t": -R @ (Rz @ camera.center)}
 
 
 def _captures(root, photo):
@@ -195,6 +203,7 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     # Lamp 0 is LAMP_SHIFT_MM from the truth; lamp 1 is where the marks put it.
     row = re.search(r"\b0\s+\[[^\]]+\]\s+\[[^\]]+\]\s+\[[^\]]+\].*?\[[^\]]+\]\s+([\d.]+)\s", text)
     assert row and float(row.group(1)) == pytest.approx(LAMP_SHIFT_MM, rel=1e-3)
+    assert re.search(r"shots registered\s+7 of 8\s+shots not registered\s+captures/turntable/0007\.exr\s", text)
     # The sparse points sit SURFACE_OFFSET_MM off the ground: its point-to-surface RMS says so.
     ground = re.search(r"ground\s+\S+\s+lambert\s+opaque\s+yes\s+(\d+)\s+([\d.]+)", text)
     assert ground and int(ground.group(1)) >= 250 and float(ground.group(2)) == pytest.approx(SURFACE_OFFSET_MM, rel=0.01)

@@ -388,6 +388,8 @@ def geometry_section(src: Sources) -> Section | None:
         ref = sfm.get("reference") if isinstance(sfm.get("reference"), dict) else {}
         times = s.get("time_s") if isinstance(s.get("time_s"), dict) else {}
         sec.kv([("shots registered", f"{s.get('registered')} of {s.get('images')}" if "registered" in s else None),
+                ("shots not registered", ", ".join(str(n) for n in sfm["images"] if n not in sfm["poses"]) or None
+                 if isinstance(sfm.get("images"), list) and isinstance(sfm.get("poses"), dict) else None),
                 ("structure from motion reprojection", f"{num(s.get('reprojection_px'))} px" if "reprojection_px" in s else None),
                 ("sparse points", s.get("points")),
                 ("one turntable axis", (f"{num(rt.get('rms_px'))} px RMS against {num(rt.get('rms_px_free'))} px with free poses"
