@@ -22,7 +22,7 @@ def render_model(src: Sources, depth: int) -> dict | None:
     """The recovered model at the input view, beside the input photograph (None without a scene)."""
     if src.scene is None or src.camera is None or src.lights is None:
         return None
-    from app.commands.render import render_workspace
+    from inverse.stages import render_workspace
 
     photo = src.image(src.ws.input_image.relative_to(src.root))
     try:
@@ -60,7 +60,7 @@ def render_views(src: Sources, depth: int) -> dict:
     """
     import numpy as np
 
-    from app.commands.render import render_workspace
+    from inverse.stages import render_workspace
     from calibration.camera import Camera
     from calibration.lights import Lights, PointLight
 
