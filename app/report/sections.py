@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.report import figures as F
-from app.report.data import Sources
+from app.report.data import Sources, as_dict, as_list
 
 #: The photometric parameters shown per surface, in this order.
 MATERIAL_KEYS = ("kd", "ks", "ns", "alpha", "sigma", "r", "t", "ior")
@@ -117,10 +117,10 @@ def captures_section(src: Sources, thumbs: int = 6) -> Section | None:
     sec = Section("captures", "Captures", "What was photographed, when, and with which exposure (captures/*/manifest.json).")
     rows = []
     for folder, m in manifests.items():
-        shots = [s for s in m.get("shots") or [] if isinstance(s, dict)]
+        shots = [s for s in as_list(m.get("shots")) if isinstance(s, dict)]
         exposures = sorted({s.get("exposure") for s in shots if s.get("exposure") is not None})
         sizes = sorted({"x".join(map(str, s.get("size"))) for s in shots if isinstance(s.get("size"), list)})
-        cam = m.get("camera") if isinstance(m.get("camera"), dict) else {}
+        cam = as_dict(m.get("camera"))
         rows.append([folder, m.get("kind", folder), m.get("status", "–"), f"{len(shots)} of {len(m['plan']) if isinstance(m.get('plan'), list) else '?'}",
                      m.get("started", "–"), m.get("updated", "–"),
                      ", ".join(num(e) for e in exposures) or "camera's own", ", ".join(sizes) or "–",
@@ -130,7 +130,7 @@ def captures_section(src: Sources, thumbs: int = 6) -> Section | None:
     sec.table(["folder", "kind", "status", "shots", "started (UTC)", "last written", "exposure (s)", "size", "camera"],
               rows)
     for folder, m in manifests.items():
-        shots = [s for s in m.get("shots") or [] if isinstance(s, dict) and s.get("file")]
+        shots = [s for s in as_list(m.get("shots")) if isinstance(s, dict) and s.get("file")]
         if not shots:
             continue
         pick = [shots[i] for i in sorted(set(np.linspace(0, len(shots) - 1, min(thumbs, len(shots))).round().astype(int)))]
@@ -165,13 +165,13 @@ def camera_section(src: Sources) -> Section | None:
     cam = src.camera
     if cam is None:
         return None
-    cal = cam.get("calibration") if isinstance(cam.get("calibration"), dict) else {}
+    cal = as_dict(cam.get("calibration"))
     sec = Section("camera", "Camera", "camera.json: intrinsics with one-sigma uncertainties, per-view reprojection "
                                       "error, and the pose of the input view.")
     truth = src.truth("camera.json")
-    ours, sig = _camera_values(cam), cal.get("sigma") if isinstance(cal.get("sigma"), dict) else {}
+    ours, sig = _camera_values(cam), as_dict(cal.get("sigma"))
     tv = _camera_values(truth) if truth else {}
-    cc = cal.get("opencv_crosscheck") if isinstance(cal.get("opencv_crosscheck"), dict) else {}
+    cc = as_dict(cal.get("opencv_crosscheck"))
     head = ["parameter", "value ± σ"] + (["OpenCV calibrateCamera"] if cc else []) + (["truth", "error", "error / σ"] if tv else [])
     rows = []
     for k in CAMERA_KEYS:
@@ -190,8 +190,8 @@ def camera_section(src: Sources) -> Section | None:
                           "k1, k2 OpenCV radial distortion")
     sec.kv([("image size", f"{cam.get('width')} × {cam.get('height')} px"),
             ("reprojection RMS", f"{num(cal.get('rms_px'))} px" if cal.get("rms_px") is not None else None),
-            ("views used", len(cal.get("views") or []) or None),
-            ("views skipped (no grid found)", ", ".join(cal.get("skipped") or []) or None),
+            ("views used", len(as_list(cal.get("views"))) or None),
+            ("views skipped (no grid found)", ", ".join(as_list(cal.get("skipped"))) or None),
             ("target", f"{cal['grid'][0]}×{cal['grid'][1]} circles, spacing {num(cal.get('spacing'))} m"
              if isinstance(cal.get("grid"), list) and len(cal["grid"]) == 2 else None),
             ("estimated circle radius", f"{num(1e3 * cal['circle_radius_m'])} mm"
@@ -201,16 +201,16 @@ def camera_section(src: Sources) -> Section | None:
             ("Tsai", ", ".join(f"{k} {num(v, 6)}" for k, v in cam.get("tsai", {}).items()) if isinstance(cam.get("tsai"), dict) else None),
             ("reference view (input pose)", cal.get("reference_image")),
             ("calibration time", f"{num(cal.get('time_s'), 3)} s" if cal.get("time_s") is not None else None)])
-    for w in cal.get("warnings") or [] if isinstance(cal.get("warnings"), list) else []:
+    for w in as_list(cal.get("warnings")) if isinstance(cal.get("warnings"), list) else []:
         sec.note(str(w), "warn")
     if not cal:
         sec.note("camera.json has no calibration block (written by hand or by another tool): no uncertainties, "
                  "per-view errors or residuals to show.")
-    rejected = [v for v in cal.get("rejected") or [] if isinstance(v, dict)]
+    rejected = [v for v in as_list(cal.get("rejected")) if isinstance(v, dict)]
     if rejected:
         sec.note("views left out (reprojecting far worse than the others): "
                  + ", ".join(f"{v.get('image')} ({num(v.get('rms_px'), 3)} px)" for v in rejected), "warn")
-    views = [v for v in cal.get("views") or [] if isinstance(v, dict)]
+    views = [v for v in as_list(cal.get("views")) if isinstance(v, dict)]
     if views:
         labels = [str(v.get("image", i)).rsplit("/", 1)[-1] for i, v in enumerate(views)]
         sec.figure(F.bars(labels, {"RMS": [v.get("rms_px") for v in views], "worst": [v.get("worst_px") for v in views]},
@@ -264,17 +264,17 @@ def lights_section(src: Sources) -> Section | None:
     lights = src.lights
     if lights is None:
         return None
-    items = [l for l in lights.get("lights") or [] if isinstance(l, dict)]
+    items = [l for l in as_list(lights.get("lights")) if isinstance(l, dict)]
     sec = Section("lights", "Lights", "lights.json: point lamps located from rod shadows (marks.json), with "
                                       "one-sigma uncertainties.")
     truth = src.truth("lights.json")
-    true_items = [l for l in (truth or {}).get("lights") or [] if isinstance(l, dict)]
+    true_items = [l for l in as_list((truth or {}).get("lights")) if isinstance(l, dict)]
     rows = []
     for k, l in enumerate(items):
         pos = _floats(l.get("position"))
         cov = _floats(l.get("sigma_position"))
         sd = np.sqrt(np.clip(np.diag(cov), 0, None)) * 1e3 if cov is not None and cov.shape == (3, 3) else None
-        cal = l.get("calibration") if isinstance(l.get("calibration"), dict) else {}
+        cal = as_dict(l.get("calibration"))
         row = [k, num(pos.tolist() if pos is not None else None, 5), num(sd.tolist(), 2) if sd is not None else "–",
                num(l.get("intensity"), 4), num(cal.get("mark_sigma_px"), 3), num(cal.get("outliers") or "none")]
         if true_items:
@@ -350,7 +350,7 @@ def _meshes(src: Sources, scene_obj: dict, base) -> dict:
     from reconstruction.scene import Mesh
 
     out = {}
-    for s in scene_obj.get("surfaces") or []:
+    for s in as_list(scene_obj.get("surfaces")):
         if not isinstance(s, dict) or not s.get("mesh"):
             continue
         path = base / s["mesh"]
@@ -381,12 +381,12 @@ def geometry_section(src: Sources) -> Section | None:
     sec = Section("geometry", "Geometry", "Registered turntable shots (sfm.json), the sparse points (sparse.ply) "
                                           "and the surfaces fitted to them (scene.json, meshes/).")
     if sfm:
-        s = sfm.get("sfm") if isinstance(sfm.get("sfm"), dict) else {}
-        tt = sfm.get("turntable") if isinstance(sfm.get("turntable"), dict) else {}
-        rt = sfm.get("rigid_turntable") if isinstance(sfm.get("rigid_turntable"), dict) else {}
-        reg = sfm.get("registration") if isinstance(sfm.get("registration"), dict) else {}
-        ref = sfm.get("reference") if isinstance(sfm.get("reference"), dict) else {}
-        times = s.get("time_s") if isinstance(s.get("time_s"), dict) else {}
+        s = as_dict(sfm.get("sfm"))
+        tt = as_dict(sfm.get("turntable"))
+        rt = as_dict(sfm.get("rigid_turntable"))
+        reg = as_dict(sfm.get("registration"))
+        ref = as_dict(sfm.get("reference"))
+        times = as_dict(s.get("time_s"))
         sec.kv([("shots registered", f"{s.get('registered')} of {s.get('images')}" if "registered" in s else None),
                 ("shots not registered", ", ".join(str(n) for n in sfm["images"] if n not in sfm["poses"]) or None
                  if isinstance(sfm.get("images"), list) and isinstance(sfm.get("poses"), dict) else None),
@@ -420,13 +420,13 @@ def geometry_section(src: Sources) -> Section | None:
     truth_scene = src.truth("scene.json")
     true_meshes = _meshes(src, truth_scene, src.truth_dir) if truth_scene else {}
     rows, surf_res = [], _surface_residuals(meshes, points)
-    for s in (scene or {}).get("surfaces") or []:
+    for s in as_list((scene or {}).get("surfaces")):
         if not isinstance(s, dict):
             continue
         name = str(s.get("name"))
-        mat = s.get("material") if isinstance(s.get("material"), dict) else {}
+        mat = as_dict(s.get("material"))
         r = surf_res.get(name, {})
-        row = [name, (s.get("extra") or {}).get("source", s.get("source", "–")) if isinstance(s.get("extra"), dict) else s.get("source", "–"),
+        row = [name, s.get("source", "–"),  # reconstruct writes how it made the surface (fitted, marked, imported)
                mat.get("brdf", "–"), num(mat.get("ior")) if mat.get("ior") is not None else "opaque",
                "yes" if s.get("textured", True) else "no"]
         if points is not None:
@@ -522,7 +522,7 @@ def _top_view(src: Sources, meshes, true_meshes, points, sfm) -> str:
     if C is not None:
         ax.plot(C[0], C[1], "*", color="crimson", ms=12, label="input camera")
         focus.append(C[None, :2])
-    for k, l in enumerate((src.lights or {}).get("lights") or []):
+    for k, l in enumerate(as_list((src.lights or {}).get("lights"))):
         p = _floats(l.get("position")) if isinstance(l, dict) else None
         if p is not None and p.shape == (3,):
             ax.plot(p[0], p[1], "o", color="gold", mec="k", ms=9, label="lamps" if k == 0 else None)
@@ -554,9 +554,9 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
     if status:
         sec.note(f"status: {status}" + (f" — {fit['message']}" if fit.get("message") else ""),
                  "good" if status == "ok" else "bad" if status == "poor fit" else "warn")
-    for w in fit.get("warnings") or []:
+    for w in as_list(fit.get("warnings")):
         sec.note(str(w), "warn")
-    image = fit.get("image") if isinstance(fit.get("image"), dict) else {}
+    image = as_dict(fit.get("image"))
     sec.kv([("method", fit.get("method")), ("depth", fit.get("depth")),
             ("image", f"{image.get('file')} {image.get('width')} × {image.get('height')}, {image.get('saturated_pixels')} saturated pixels masked"
              if image else None),
@@ -571,15 +571,15 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
         sec.figure(_phases_figure(phases), "Where the fit's time went (fit.json phases_s), in the order they run; "
                    "the error-vs-time plot below shows the error over the same seconds.")
     truth, truth_file = src.truth_materials()
-    items = [s for s in fit.get("surfaces") or [] if isinstance(s, dict)]
+    items = [s for s in as_list(fit.get("surfaces")) if isinstance(s, dict)]
     keys = [k for k in MATERIAL_KEYS if any(isinstance(s.get("material"), dict) and s["material"].get(k) is not None
                                              for s in items)]
     rows = []
     for s in items:
-        name, mat = str(s.get("name")), s.get("material") if isinstance(s.get("material"), dict) else {}
-        sig = s.get("sigma") if isinstance(s.get("sigma"), dict) else {}
-        und = [str(u) for u in s.get("undetermined") or []]
-        bounds = s.get("at_bound") if isinstance(s.get("at_bound"), dict) else {}  # {"ks[0]": "upper"}
+        name, mat = str(s.get("name")), as_dict(s.get("material"))
+        sig = as_dict(s.get("sigma"))
+        und = [str(u) for u in as_list(s.get("undetermined"))]
+        bounds = as_dict(s.get("at_bound"))  # {"ks[0]": "upper"}
         true = truth.get(name, {})
         row = [name, mat.get("brdf", "–")]
         for key in keys:
@@ -644,7 +644,7 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     bad = np.any(np.abs(img - photo) > tol, axis=2)
     overlay = F.display(photo, exposure).copy()
     overlay[bad] = [255, 0, 255]
-    rejected = _floats((fit.get("rejected") or {}).get("pixels")) if isinstance(fit.get("rejected"), dict) else None
+    rejected = _floats(as_dict(fit.get("rejected")).get("pixels"))
     if rejected is not None and rejected.ndim == 2 and rejected.shape[1] == 2:
         x, y = rejected[:, 0].astype(int), rejected[:, 1].astype(int)
         inside = (x >= 0) & (x < overlay.shape[1]) & (y >= 0) & (y < overlay.shape[0])
@@ -674,7 +674,7 @@ def texture_section(src: Sources) -> Section | None:
         return None
     sec = Section("texture", "Texture", "textures/: the recovered diffuse albedo of each textured surface, which "
                                         "texels the image determines, and which were amplified.")
-    st = idx.get("stats") if isinstance(idx.get("stats"), dict) else {}
+    st = as_dict(idx.get("stats"))
     sec.kv([("materials from", idx.get("materials")),
             ("residual RMS per band", num(st.get("residual_rms"))),
             ("equations / unknowns / non-zeros", f"{st.get('rows')} / {st.get('unknowns')} / {st.get('nonzeros')}" if "rows" in st else None),
@@ -683,16 +683,16 @@ def texture_section(src: Sources) -> Section | None:
              if "texels_known" in st else None),
             ("time", f"{num(st.get('total_s'), 3)} s (maps {num(st.get('maps_s'), 2)}, system {num(st.get('system_s'), 2)}, "
                      f"solve {num(st.get('solve_s'), 2)}; trees {num(idx.get('trees_s'), 2)})" if "total_s" in st else None)])
-    rounds = ((src.fit or {}).get("texture_rounds") or {}).get("rounds") if isinstance((src.fit or {}).get("texture_rounds"), dict) else None
+    rounds = as_dict(as_dict(src.fit).get("texture_rounds")).get("rounds")
     if isinstance(rounds, list) and rounds:
         sec.table(["round", "pixels left out", "RMS per band", "texture (s)", "refit (s)"],
                   [[i + 1, r.get("pixels_left_out"), num(r.get("rms")), num(r.get("texture_s"), 3), num(r.get("fit_s"), 3)]
                    for i, r in enumerate(rounds) if isinstance(r, dict)],
                   "fit.json texture_rounds: the fit refitted against the texture (docs/fit.md).")
-    for e in idx.get("surfaces") or []:
+    for e in as_list(idx.get("surfaces")):
         if not isinstance(e, dict):
             continue
-        name, files = e.get("surface"), e.get("files") if isinstance(e.get("files"), dict) else {}
+        name, files = e.get("surface"), as_dict(e.get("files"))
         kd = src.image(f"textures/{files['kd']}") if files.get("kd") else None
         mask = src.image(f"textures/{files['mask']}") if files.get("mask") else None
         diag = src.image(f"textures/{files['diag']}") if files.get("diag") else None
@@ -764,7 +764,7 @@ def error_section(src: Sources) -> Section | None:
         for phase in dict.fromkeys(ph for _, _, ph in raw):
             sel = [(t, e) for t, e, ph in raw if ph == phase]
             photometric.append({"label": f"fit ({method}{', ' + phase if phase else ''})", "points": sel})
-        rounds = (fit.get("texture_rounds") or {}).get("rounds") if isinstance(fit.get("texture_rounds"), dict) else None
+        rounds = as_dict(fit.get("texture_rounds")).get("rounds")
         if isinstance(rounds, list) and rounds and pts:
             t_end = pts[-1][0]
             t = t_end - sum((r.get("texture_s") or 0) + (r.get("fit_s") or 0) for r in rounds if isinstance(r, dict))
@@ -789,20 +789,20 @@ def error_section(src: Sources) -> Section | None:
         if st.get("total_s") is not None and band_mean(st.get("residual_rms")) is not None:
             photometric.append({"label": f"texture solve, end ({st.get('iterations', '?')} CG iterations)",
                                 "points": [(st["total_s"], band_mean(st["residual_rms"]))], "style": "D"})
-    cal = (cam or {}).get("calibration") if isinstance((cam or {}).get("calibration"), dict) else {}
+    cal = as_dict(as_dict(cam).get("calibration"))
     if cal.get("time_s") is not None and cal.get("rms_px") is not None:
         geometric.append({"label": "camera calibration", "points": [(cal["time_s"], cal["rms_px"])], "style": "o"})
-    for k, l in enumerate((src.lights or {}).get("lights") or []):
+    for k, l in enumerate(as_list((src.lights or {}).get("lights"))):
         c = (l or {}).get("calibration") if isinstance(l, dict) else None
         if isinstance(c, dict) and c.get("time_s") is not None and _floats(c.get("mark_errors_px")) is not None:
             e = _floats(c["mark_errors_px"])
             geometric.append({"label": f"lamp {k}", "points": [(c["time_s"], float(np.sqrt(np.mean(e ** 2))))], "style": "v"})
     if sfm:
-        s = sfm.get("sfm") if isinstance(sfm.get("sfm"), dict) else {}
-        ts = s.get("time_s") if isinstance(s.get("time_s"), dict) else {}
+        s = as_dict(sfm.get("sfm"))
+        ts = as_dict(s.get("time_s"))
         if ts.get("total_s") is not None and s.get("reprojection_px") is not None:
             geometric.append({"label": "structure from motion", "points": [(ts["total_s"], s["reprojection_px"])], "style": "^"})
-        rt = sfm.get("rigid_turntable") if isinstance(sfm.get("rigid_turntable"), dict) else {}
+        rt = as_dict(sfm.get("rigid_turntable"))
         if rt.get("time_s") is not None and rt.get("rms_px") is not None:
             geometric.append({"label": "one turntable axis", "points": [(rt["time_s"], rt["rms_px"])], "style": "s"})
     if not photometric and not convergence and not geometric:
