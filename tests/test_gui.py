@@ -246,3 +246,20 @@ def test_the_qt_binding_keeps_its_references_to_none(qtbot):
     for _ in range(2000):
         label.setText("x")
     assert sys.getrefcount(None) > before - 100
+
+
+def test_naming_a_fitted_surface_by_clicking_it_writes_marks_json(qtbot, lab_workspace):
+    window = open_window(qtbot, lab_workspace)
+    window.go_to("reconstruct")
+    view = window.findChild(QWidget, "reconstruct_view")
+    assert view.array is not None and view.array.shape[:2] == (SIZE[1], SIZE[0])  # the input view, overlaid
+    at = view.mapFromScene(60.5, 45.5)
+    qtbot.mouseClick(view.viewport(), Qt.MouseButton.LeftButton, pos=QPoint(at.x(), at.y()))
+    window.findChild(QWidget, "point_name").setText("tile")
+    window.findChild(QWidget, "point_kind").setCurrentIndex(4)  # transparent
+    window.findChild(QWidget, "point_ior").setValue(1.52)
+    qtbot.mouseClick(window.findChild(QPushButton, "point_add"), Qt.MouseButton.LeftButton)
+    (entry,) = read_json(lab_workspace / "marks.json")["surfaces"]
+    assert (entry["name"], entry["ior"]) == ("tile", 1.52)
+    assert np.allclose(entry["at"], [60.0, 45.0], atol=1.0 / view.transform().m11())
+    assert window.findChild(QWidget, "point_list").count() == 1

@@ -175,7 +175,6 @@ class MainWindow(QMainWindow):
         ctx = stages.Context(self.workspace, self.rig, page.options(), log=self.log_line.emit)
         worker = Worker(lambda task: step.run(ctx, task), name)
         ctx.image = lambda img: worker.post("image", img)
-        ctx.report = lambda done, total, message: worker.post("progress", done, total, message)
         worker.progress.connect(self._progress)
         worker.image.connect(lambda img: self.pages[name].preview.set_image(img))
         worker.succeeded.connect(lambda box: self._ended(name, "done", str(box.value)))

@@ -368,6 +368,12 @@ class LightsPage(StepPage):
 CORNERS = [(x, y, z) for z in (1, -1) for y in (-1, 1) for x in (-1, 1)]
 
 
+def corner_name(corner) -> str:
+    """A corner label in the box's own axes (marks.json) in words: x left/right, y front/back, z bottom/top."""
+    x, y, z = (int(v) for v in corner)
+    return f"{'left' if x < 0 else 'right'} {'front' if y < 0 else 'back'} {'bottom' if z < 0 else 'top'}"
+
+
 class SweepPage(StepPage):
     preview_stretch = 1
     run_text = "Capture the sweep"
@@ -401,10 +407,10 @@ class SweepPage(StepPage):
         form.addRow("", self.textured)
         form.addRow("thickness", self.thickness)
         left.addLayout(form)
-        left.addWidget(QLabel("Corner (box axes x, y, z):"))
+        left.addWidget(QLabel("Corner (as the box stands in shot 0):"))
         self.corner = QComboBox()
         self.corner.setObjectName("corner_label")
-        self.corner.addItems([f"{x:+d} {y:+d} {z:+d}" for x, y, z in CORNERS])
+        self.corner.addItems([corner_name(c) for c in CORNERS])
         self.corner.currentIndexChanged.connect(lambda _: self._show_marks())
         left.addWidget(self.corner)
         left.addWidget(QLabel("Shot:"))
@@ -480,7 +486,7 @@ class SweepPage(StepPage):
             if image in c["marks"]:
                 here = list(c["corner"]) == self._corner()
                 self.view.set_mark(tuple(c["corner"]), *c["marks"][image], colour="#ffcc00" if here else "#00e0ff",
-                                   label=" ".join(f"{x:+d}" for x in c["corner"]))
+                                   label=corner_name(c["corner"]))
 
     def _set(self, key, u, v):
         image = self._image()
@@ -532,16 +538,71 @@ class ReconstructPage(StepPage):
                         "where the turntable axis meets the ground, to fix the scale (empty: use a target)")
         self.add_option("force", "", QCheckBox("redo from scratch"))
         w = QWidget()
-        lay = QVBoxLayout(w)
+        lay = QHBoxLayout(w)
+        left = QVBoxLayout()
         self.summary = text_label("", "reconstruct_summary")
-        lay.addWidget(self.summary)
+        left.addWidget(self.summary)
         self.view = ImageView(placeholder="sparse points and surfaces appear here")
         self.view.setObjectName("reconstruct_view")
-        lay.addWidget(self.view, 1)
+        self.view.clicked.connect(self._point)
+        left.addWidget(self.view, 1)
+        lay.addLayout(left, 3)
+        name = QGroupBox("Name a fitted surface")
+        nl = QFormLayout(name)
+        nl.addRow(text_label("Click the surface on the image, name it and say what it is; Run again applies it "
+                             "(marks.json).", wrap=True))
+        self.point_name = QLineEdit()
+        self.point_name.setObjectName("point_name")
+        self.point_name.setPlaceholderText("e.g. tile")
+        self.point_kind = QComboBox()
+        self.point_kind.setObjectName("point_kind")
+        self.point_kind.addItems(POINT_KINDS)
+        self.point_ior = spin(1.5, 1.0, 3.0, 0.01, 3)
+        self.point_ior.setObjectName("point_ior")
+        add = QPushButton("Add")
+        add.setObjectName("point_add")
+        add.clicked.connect(self.add_point)
+        self.points = QListWidget()
+        self.points.setObjectName("point_list")
+        nl.addRow("name", self.point_name)
+        nl.addRow("it is", self.point_kind)
+        nl.addRow("index", self.point_ior)
+        nl.addRow(add)
+        nl.addRow(self.points)
+        lay.addWidget(name, 1)
         self.tab(w, "Shots, sparse points and surfaces")
+        self.point = None
+
+    def _point(self, u, v):
+        self.point = (float(u), float(v))
+        self.view.set_mark("point", u, v, colour="#ff40ff", label=self.point_name.text() or "?")
+
+    def add_point(self):
+        """Append {name, at, what the user knows} to marks.json's surfaces (reconstruction/marks.py)."""
+        name = self.point_name.text().strip()
+        if self.point is None or not name:
+            self.window.log("name a surface: click it on the image and type its name first")
+            return
+        entry = {"name": name, "at": list(self.point)}
+        entry.update(POINT_WORDS[self.point_kind.currentIndex()])
+        if "ior" in entry:
+            entry["ior"] = float(self.point_ior.value())
+        items = [s for s in stages.read_marks_file(self.window.workspace).get("surfaces", []) if s.get("name") != name]
+        stages.update_marks_file(self.window.workspace, surfaces=items + [entry])
+        self.window.log(f"marks.json: the surface at ({self.point[0]:.0f}, {self.point[1]:.0f}) is {name!r}, "
+                        f"{POINT_KINDS[self.point_kind.currentIndex()]}; Run applies it")
+        self.point = None
+        self.refresh()
 
     def refresh(self):
         ws = self.ws
+        self.points.clear()
+        self.view.clear_marks()
+        for item in stages.read_marks_file(ws.root).get("surfaces", []):
+            if "at" in item:
+                self.view.set_mark(("at", item["name"]), *item["at"], colour="#ff40ff", label=item["name"])
+                words = ", ".join(k if v is True else f"{k} {v}" for k, v in item.items() if k not in ("name", "at"))
+                self.points.addItem(f"{item['name']} at ({item['at'][0]:.0f}, {item['at'][1]:.0f}): {words or 'glossy'}")
         lines = []
         sfm = read_json(ws.root / "sfm.json") if (ws.root / "sfm.json").exists() else None
         if sfm:
@@ -590,6 +651,11 @@ class ReconstructPage(StepPage):
                 uv = cam.project(s.mesh.vertices)
                 _draw_edges(img, uv, s.mesh.triangles, (colour.red(), colour.green(), colour.blue()))
         self.view.set_image(img)
+
+
+#: What a user can say about a surface (reconstruction/marks.py's plain words).
+POINT_KINDS = ["matte (paper, wood)", "glossy, textured", "glossy, one colour", "mirror", "transparent"]
+POINT_WORDS = [{"matte": True}, {}, {"untextured": True}, {"mirror": True}, {"ior": 1.5}]
 
 
 def _read_ply_points(path) -> np.ndarray:

@@ -30,7 +30,6 @@ class Context:
     options: dict = field(default_factory=dict)
     log: Callable[[str], None] = print
     image: Callable[[object], None] = lambda img: None
-    report: Callable[[float, float, str], None] = lambda done, total, message: None
 
     @property
     def ws(self) -> Workspace:
@@ -96,8 +95,7 @@ def capture(ctx: Context, task, kind: str, **options) -> dict:
         ctx.log(rig.connect())
     folder = ctx.ws.captures / FOLDERS[kind]
 
-    def on_shot(done, total, record):
-        ctx.report(done, total, f"{kind}: shot {done} of {total} at {record['angle']:.1f}°")
+    def on_shot(done, total, record):  # the session steps the task itself (progress bar, cancel)
         ctx.image(read_image(folder / record["file"]))
 
     with rig.lock:
