@@ -102,11 +102,13 @@ def _rotation_deg(Ra, Rb) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
-def psnr(image: np.ndarray, truth: np.ndarray) -> float:
-    """Peak signal-to-noise ratio (dB) of ``image`` against ``truth``, the peak being the truth's maximum."""
-    mse = float(np.mean((np.asarray(image) - np.asarray(truth)) ** 2))
-    peak = float(np.max(truth))
-    return float("inf") if mse == 0 else 10 * math.log10(max(peak, 1e-300) ** 2 / mse)
+def psnr(image: np.ndarray, truth: np.ndarray, known: np.ndarray | None = None) -> float:
+    """PSNR (dB) of ``image`` against ``truth`` over the pixels ``known`` (all by default), the peak
+    being the truth's maximum (as the demo scores it)."""
+    err = np.asarray(image, dtype=np.float64) - truth
+    err = err if known is None else err[known]
+    mse = float(np.mean(err ** 2)) if err.size else float("nan")
+    return float("inf") if mse == 0 else 10 * math.log10(max(float(np.max(truth)), 1e-300) ** 2 / mse)
 
 
 # ---------------------------------------------------------------------- captures
@@ -738,7 +740,10 @@ def views_section(src: Sources, views: dict) -> Section | None:
             items.append((F.thumb(F.display(truth, exposure), 480, 360), f"{label}: truth ({v['truth_file']})"))
             items.append((F.heat_with_bar(np.abs(img - truth).max(axis=2), "|model − truth|", "linear radiance"), "difference", True))
             sec.images(items)
-            sec.kv([(f"{label} PSNR against truth", f"{num(psnr(img, truth), 4)} dB"),
+            known = v.get("known")
+            share = f"{100 * float(np.mean(known)):.0f}" if known is not None else "100"
+            sec.kv([(f"{label} PSNR against truth", f"{num(psnr(img, truth, known), 4)} dB over the {share} % of pixels of "
+                                                     f"known albedo, {num(psnr(img, truth), 4)} dB over all"),
                     (f"{label} RMS per band", num(np.sqrt(np.mean((img - truth) ** 2, axis=(0, 1))).tolist()))])
         else:
             sec.images(items)
