@@ -2,17 +2,22 @@
 
 Stages (Tsai 1987, coplanar case; several views share one set of intrinsics):
 
-1. Per view, the radial alignment constraint (RAC) with the image centre at the image's middle,
-   ``sx = 1``: a homogeneous linear system gives ``[r1 r2 Tx r4 r5 Ty]`` up to scale, the scale
-   from orthonormality, the sign from the point farthest from the centre, R completed by
-   orthonormality; then ``f`` and ``Tz`` linearly (distortion ignored), flipping R's third
-   column/row when ``f < 0``.
-2. Per view, nonlinear ``f, Tz, kappa1`` with R, Tx, Ty fixed.
+1-2. The start: Zhang's, through ``cv2.calibrateCamera`` (intrinsics from the homographies of all
+   views at once, then every pose), so that no single view decides it. Tsai's own per-view start
+   is the fallback when OpenCV cannot start (:func:`_tsai_start`): the radial alignment
+   constraint (RAC) with the image centre at the image's middle, ``sx = 1``, a homogeneous
+   linear system for ``[r1 r2 Tx r4 r5 Ty]`` up to scale, the scale from orthonormality, the sign
+   from the point farthest from the centre, R completed by orthonormality; ``f`` and ``Tz``
+   linearly (flipping R's third column/row when ``f < 0``); then nonlinear ``f, Tz, kappa1``. It
+   cannot separate ``f`` from ``Tz`` for a fronto-parallel view.
 3. All views together: ``f, kappa1, Cx, Cy, sx`` and every pose (Tsai's "full optimisation").
 4. The same data in OpenCV form (``fx, fy, cx, cy, k1, k2``; ``p1 = p2 = k3 = 0``), started from
    stage 3 with ``k1 = -kappa1 f^2`` and ``k2 = 3 (kappa1 f^2)^2`` (the series inverse of Tsai's
    distorted->undistorted model, in normalised units). camera.json carries this form; its
    ``tsai`` block carries stage 3's parameters.
+
+After stage 3 a view reprojecting far worse than the others is left out and the rest restarted;
+the reference view far worse is a refusal (:func:`calibrate`).
 
 Tsai's distortion maps distorted to undistorted sensor coordinates, ``X_u = X_d (1 + kappa1 r_d^2)``
 (millimetres, ``r_d`` the distorted radius); projection therefore inverts it with Newton steps.
