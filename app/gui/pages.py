@@ -258,6 +258,24 @@ class CameraPage(StepPage):
         self.table_holder.addWidget(_table("camera_views", ["view", "RMS (px)", "worst (px)"], rows, bad))
 
 
+def _mark_editor(page, left: QVBoxLayout, outer: QHBoxLayout, save_text: str, save_name: str, view_name: str,
+                 placeholder: str) -> ImageView:
+    """The common end of a click-to-mark editor: a save button and a hint under the controls
+    (``left``), and the zoomable image, wired to the page's ``_clicked``, ``_set`` and ``save_marks``."""
+    save = QPushButton(save_text)
+    save.setObjectName(save_name)
+    save.clicked.connect(page.save_marks)
+    left.addWidget(save)
+    left.addWidget(text_label("Wheel zooms, shift-drag pans, double-click fits. Drag a mark to move it."))
+    outer.addLayout(left, 1)
+    view = ImageView(placeholder=placeholder)
+    view.setObjectName(view_name)
+    view.clicked.connect(page._clicked)
+    view.mark_moved.connect(lambda key, u, v: page._set(key, u, v))
+    outer.addWidget(view, 3)
+    return view
+
+
 # ====================================================================== lamp calibration (rod marks)
 class LightsPage(StepPage):
     preview_stretch = 1
@@ -281,17 +299,8 @@ class LightsPage(StepPage):
         self.mark_foot.setChecked(True)
         left.addWidget(self.mark_foot)
         left.addWidget(self.mark_tip)
-        save = QPushButton("Save marks")
-        save.setObjectName("save_rod_marks")
-        save.clicked.connect(self.save_marks)
-        left.addWidget(save)
-        left.addWidget(text_label("Wheel zooms, shift-drag pans, double-click fits. Drag a mark to move it."))
-        el.addLayout(left, 1)
-        self.view = ImageView(placeholder="rod shots appear here after Run")
-        self.view.setObjectName("rod_view")
-        self.view.clicked.connect(self._clicked)
-        self.view.mark_moved.connect(lambda key, u, v: self._set(key, u, v))
-        el.addWidget(self.view, 3)
+        self.view = _mark_editor(self, left, el, "Save marks", "save_rod_marks", "rod_view",
+                                 "rod shots appear here after Run")
         self.tab(editor, "Rod marks")
         self.lamps = QWidget()
         self.lamps_layout = QVBoxLayout(self.lamps)
@@ -418,17 +427,9 @@ class SweepPage(StepPage):
         self.shots.setObjectName("sweep_shots")
         self.shots.currentRowChanged.connect(lambda _: self._show_shot())
         left.addWidget(self.shots, 1)
-        save = QPushButton("Save corners")
-        save.setObjectName("save_corner_marks")
-        save.clicked.connect(self.save_marks)
-        left.addWidget(save)
-        left.addWidget(text_label("Click a corner on two or more shots; wheel zooms, shift-drag pans."))
-        el.addLayout(left, 1)
-        self.view = ImageView(placeholder="sweep shots appear here after Run")
-        self.view.setObjectName("sweep_view")
-        self.view.clicked.connect(self._clicked)
-        self.view.mark_moved.connect(lambda key, u, v: self._set(key, u, v))
-        el.addWidget(self.view, 3)
+        left.addWidget(text_label("Click the chosen corner on two or more shots."))
+        self.view = _mark_editor(self, left, el, "Save corners", "save_corner_marks", "sweep_view",
+                                 "sweep shots appear here after Run")
         self.tab(editor, "Mark mirror and glass corners")
         self.surfaces: dict = {}
 
