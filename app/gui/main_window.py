@@ -55,6 +55,7 @@ class MainWindow(QMainWindow):
         self._background: list[Worker] = []
         self._preview: Worker | None = None
         self._last_message = ""
+        self._preview_next = 0.0
         self.setWindowTitle(f"reflab — {self.workspace}")
         self.log_line.connect(self._append_log)
 
@@ -273,14 +274,19 @@ class MainWindow(QMainWindow):
 
     # ------------------------------------------------------------------ live camera view
     def _tick_preview(self) -> None:
-        if not self.rig.connected or self.running is not None or self._preview is not None or not self.isVisible():
+        """Take one frame off the UI thread; a slow camera (the simulated one renders the lab) is
+        asked at most every other frame time, so the live view never eats more than half a core."""
+        import time
+
+        if (not self.rig.connected or self.running is not None or self._preview is not None or not self.isVisible()
+                or time.monotonic() < self._preview_next):
             return
         page = self.pages[self.current_step()]
-        if page.preview_stretch == 0:
-            return
+        start = time.monotonic()
 
         def done(ok, img):
             self._preview = None
+            self._preview_next = time.monotonic() + (time.monotonic() - start)
             if ok and img is not None:
                 page.preview.set_image(img)
 
