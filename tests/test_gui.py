@@ -263,3 +263,26 @@ def test_naming_a_fitted_surface_by_clicking_it_writes_marks_json(qtbot, lab_wor
     assert (entry["name"], entry["ior"]) == ("tile", 1.52)
     assert np.allclose(entry["at"], [60.0, 45.0], atol=1.0 / view.transform().m11())
     assert window.findChild(QWidget, "point_list").count() == 1
+
+
+def test_novel_view_orbits_the_input_camera_and_relights_linearly(lab_workspace):
+    from app.gui.pages import novel_view, orbit
+    from calibration.camera import Camera
+    from inverse.stages import render_workspace
+
+    cam = Camera.load(lab_workspace / "camera.json")
+    same = orbit(cam, 0.0, 0.0)
+    assert np.allclose(same.R, cam.R) and np.allclose(same.t, cam.t)
+    moved = orbit(cam, 30.0, 10.0)
+    target = cam.center + cam.R[2] * (cam.center[2] / -cam.R[2][2])
+    # the orbit keeps the distance to the point looked at, and that point stays at the image centre's ray
+    assert np.linalg.norm(moved.center - target) == pytest.approx(np.linalg.norm(cam.center - target))
+    assert np.allclose(moved.R[2], (target - moved.center) / np.linalg.norm(target - moved.center))
+    assert np.degrees(np.arctan2(moved.center[2] - target[2], np.hypot(*(moved.center - target)[:2]))) == pytest.approx(
+        np.degrees(np.arctan2(cam.center[2] - target[2], np.hypot(*(cam.center - target)[:2]))) + 10.0)
+    base, _ = render_workspace(lab_workspace)
+    half, _ = novel_view(lab_workspace, 0.0, 0.0, [0.5, 0.5])
+    assert np.allclose(half, 0.5 * base, rtol=1e-6, atol=1e-9)  # radiance is linear in the lamps' intensity
+    one_lamp, _ = novel_view(lab_workspace, 0.0, 0.0, [0.0, 1.0])
+    other, _ = novel_view(lab_workspace, 0.0, 0.0, [1.0, 0.0])
+    assert np.allclose(one_lamp + other, base, rtol=1e-6, atol=1e-9)

@@ -887,34 +887,40 @@ class ResultsPage(StepPage):
         self.novel_info.setText(text)
 
 
+def orbit(camera, azimuth: float, elevation: float):
+    """The camera moved on a sphere about where its optical axis meets the ground: turned ``azimuth``
+    degrees about the vertical, then raised ``elevation`` degrees; same intrinsics, no roll added."""
+    from dataclasses import replace
+
+    eye, axis = camera.center, camera.R[2]
+    target = eye + axis * (eye[2] / max(-axis[2], 1e-6))  # the optical axis meets z = 0
+    a, e = np.radians(azimuth), np.radians(elevation)
+    turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    side = np.cross(axis, [0.0, 0.0, 1.0])
+    side = side / max(np.linalg.norm(side), 1e-12)
+    K = np.array([[0, -side[2], side[1]], [side[2], 0, -side[0]], [-side[1], side[0], 0]])
+    raise_ = np.eye(3) + np.sin(-e) * K + (1 - np.cos(e)) * K @ K  # Rodrigues about the camera's side axis
+    Q = turn @ raise_
+    R = camera.R @ Q.T
+    return replace(camera, R=R, t=-R @ (Q @ (eye - target) + target), extra={})
+
+
 def novel_view(workspace, azimuth: float, elevation: float, dims) -> tuple:
-    """Render the recovered model from the input camera orbited about the scene's centre, lamps scaled."""
+    """Render the recovered model from the input camera orbited (:func:`orbit`), each lamp's
+    intensity scaled by ``dims``."""
     import tempfile
 
-    from inverse.stages import render_workspace
     from calibration.camera import Camera
     from calibration.lights import Lights
-    from hardware.sim.camera import rotate_about_z
+    from inverse.stages import render_workspace
 
     ws = Workspace(workspace)
-    cam = Camera.load(ws.require(ws.camera, "the Calibrate the camera step"))
+    cam = orbit(Camera.load(ws.require(ws.camera, "the Calibrate the camera step")), azimuth, elevation)
     lights = Lights.load(ws.require(ws.lights, "the Calibrate the lamps step"))
-    eye = cam.center
-    target = eye + cam.R[2] * (eye[2] / max(-cam.R[2][2], 1e-6))  # where the optical axis meets the ground
-    target[2] = 0.0
-    e = rotate_about_z(eye[None], azimuth, target[:2])[0]
-    offset = e - target
-    horiz = np.hypot(offset[0], offset[1])
-    tilt = np.arctan2(offset[2], horiz) + np.radians(elevation)
-    r = np.linalg.norm(offset)
-    heading = offset[:2] / max(horiz, 1e-12)
-    e = target + r * np.array([np.cos(tilt) * heading[0], np.cos(tilt) * heading[1], np.sin(tilt)])
-    novel = Camera.look_at(cam.width, cam.height, float(np.degrees(2 * np.arctan(cam.width / (2 * cam.K[0, 0])))),
-                           eye=e, target=target, dist=cam.dist)
     dims = list(dims) + [1.0] * (len(lights) - len(dims))
     scaled = Lights([type(l)(l.position, np.asarray(l.intensity) * d) for l, d in zip(lights, dims)])
     with tempfile.TemporaryDirectory() as tmp:
-        novel.save(Path(tmp) / "camera.json")
+        cam.save(Path(tmp) / "camera.json")
         scaled.save(Path(tmp) / "lights.json")
         image, info = render_workspace(workspace, Path(tmp) / "camera.json", Path(tmp) / "lights.json")
     text = (f"orbit {azimuth:+.0f}°, raise {elevation:+.0f}°, lamps "
