@@ -239,7 +239,7 @@ STEPS = [
     Step("input", "Input photograph", lambda ws: Workspace(ws).input_image.exists(), _capture_only("input", "input"),
          "input"),
     Step("fit", "Fit the materials", _exists("fit"), _fit),
-    Step("texture", "Recover the textures", _exists("textures", "index.json"), _texture),
+    Step("texture", "Recover the textures", _exists("texture_index"), _texture),
     Step("results", "Results", lambda ws: Workspace(ws).render().exists(), _results),
 ]
 

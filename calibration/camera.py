@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.rotations import look_rotation
 from hardware.workspace import WorkspaceError, as_array, as_float, read_json, write_json
 
 
@@ -58,15 +59,8 @@ class Camera:
     @classmethod
     def look_at(cls, width, height, fov_x_deg, eye, target, up=(0, 0, 1), dist=None) -> "Camera":
         """A camera at ``eye`` looking at ``target`` with horizontal field of view ``fov_x_deg``."""
-        eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-        z = target - eye
-        z /= np.linalg.norm(z)
-        x = np.cross(z, up)
-        if np.linalg.norm(x) < 1e-9:
-            raise ValueError("look_at: the up vector is parallel to the viewing direction")
-        x /= np.linalg.norm(x)
-        y = np.cross(z, x)
-        R = np.stack([x, y, z])
+        eye, target = (np.asarray(v, dtype=np.float64) for v in (eye, target))
+        R = look_rotation(target - eye, up)
         f = 0.5 * width / np.tan(np.radians(fov_x_deg) / 2)
         K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
         return cls(width, height, K, dist, R, -R @ eye)

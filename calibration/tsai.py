@@ -37,6 +37,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.circles import ellipse_boundaries, ellipse_centres, polygon_centroids
+from calibration.rotations import nearest_rotation, rodrigues, rotation_vector
 
 
 class CalibrationError(ValueError):
@@ -48,32 +49,6 @@ class CalibrationError(ValueError):
     def __init__(self, message: str, view: int | None = None):
         super().__init__(message)
         self.view = view
-
-
-def rodrigues(rvec: np.ndarray) -> np.ndarray:
-    """Rotation matrices of axis-angle vectors: (3,) -> (3, 3), (V, 3) -> (V, 3, 3)."""
-    rvec = np.asarray(rvec, dtype=np.float64)
-    r = rvec.reshape(-1, 3)
-    theta = np.linalg.norm(r, axis=1)
-    k = r / np.maximum(theta, 1e-300)[:, None]
-    Kx = np.zeros((len(r), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(theta)[:, None, None], (1 - np.cos(theta))[:, None, None]
-    R = np.eye(3) + s * Kx + c * Kx @ Kx
-    return R[0] if rvec.ndim == 1 else R
-
-
-def rotation_vector(R: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation matrix (inverse of :func:`rodrigues`)."""
-    import cv2
-
-    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].ravel()
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
 
 
 # ------------------------------------------------------------------ the two camera models
@@ -134,7 +109,7 @@ def tsai_linear(plane_xy: np.ndarray, uv: np.ndarray, Cx: float, Cy: float, dx: 
 
     def rot(r3, r6):
         a, b = np.array([r1, r2, r3]), np.array([r4, r5, r6])
-        return _orthonormal(np.stack([a, b, np.cross(a, b)]))
+        return nearest_rotation(np.stack([a, b, np.cross(a, b)]))
 
     R = rot(r3, r6)
     f, Tz = f_tz(R)

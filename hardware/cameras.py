@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hardware.images import srgb_to_linear
 from hardware.workspace import IMAGE_SUFFIXES
 
 #: Files a tethered camera may write that :func:`hardware.images.read_image` reads as linear.
@@ -21,12 +22,6 @@ FOLDER_SUFFIXES = IMAGE_SUFFIXES
 
 class CameraError(RuntimeError):
     """The camera gave no usable image; the message says what to check."""
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """Invert the sRGB transfer curve (IEC 61966-2-1) for values in [0, 1]."""
-    x = np.asarray(x, dtype=np.float64)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
 class OpenCVCamera:

@@ -69,8 +69,10 @@ def _cut_off(path: Path) -> str:
     return ""
 
 
-def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """Invert the sRGB transfer curve (IEC 61966-2-1) for values in [0, 1] (float64)."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
 def read_image(path, *, linear: bool = True) -> np.ndarray:
@@ -109,7 +111,7 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
         raise WorkspaceError(path, expected="a linear image (float EXR or 16-bit PNG/TIFF); 8-bit JPEG/PNG serve "
                                             "the geometric stages only", got="8-bit")
     elif img.dtype == np.uint8:
-        img = _srgb_to_linear(img.astype(np.float32) / 255.0)
+        img = srgb_to_linear(img / 255.0).astype(np.float32)
     img = img.astype(np.float32, copy=False)
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)

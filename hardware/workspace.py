@@ -48,6 +48,9 @@ class WorkspaceError(ValueError):
 #: Linear image files (the input photograph, captures), in order of preference.
 IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
 
+#: The file in each capture folder that lists its shots (docs/hardware.md).
+MANIFEST = "manifest.json"
+
 #: Capture kind -> folder under WORKSPACE/captures (INTERFACES.md).
 CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
 
@@ -71,6 +74,7 @@ class Workspace:
     hardware = property(lambda self: self.root / "hardware.json")
     truth = property(lambda self: self.root / "truth")
     report = property(lambda self: self.root / "report.html")
+    texture_index = property(lambda self: self.textures / "index.json")
     cache = property(lambda self: self.root / "cache")
     logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
 
@@ -82,7 +86,11 @@ class Workspace:
 
     def manifest(self, kind: str) -> Path:
         """``captures/<folder>/manifest.json`` of a capture kind."""
-        return self.captures_of(kind) / "manifest.json"
+        return self.captures_of(kind) / MANIFEST
+
+    def mesh(self, name: str) -> Path:
+        """``meshes/<name>.ply``, the mesh of surface ``name`` (scene.json names it relative to the root)."""
+        return self.meshes / f"{name}.ply"
 
     def render(self, aov: str | None = None) -> Path:
         """The default output of ``reflab render`` (render.exr, or albedo.exr for the albedo AOV)."""

@@ -593,7 +593,7 @@ def write_textures(workspace, scene, result: TextureResult, extra: dict | None =
                      texels_amplified=int(np.count_nonzero(result.flags[s] & AMPLIFIED)))
         entries.append(entry)
     index = {"surfaces": entries, "stats": result.stats, **(extra or {})}
-    written.append(write_json(ws.textures / "index.json", index))
+    written.append(write_json(ws.texture_index, index))
     return written
 
 
@@ -602,7 +602,7 @@ def load_texture_maps(workspace, scene) -> dict[int, tuple[TexelMap, np.ndarray,
     from hardware.images import read_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    path = ws.require(ws.textures / "index.json", "reflab texture")
+    path = ws.require(ws.texture_index, "reflab texture")
     index = read_json(path)
     items = index.get("surfaces")
     if not isinstance(items, list):

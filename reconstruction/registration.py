@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.camera import Camera
+from calibration.rotations import perpendicular_basis
 from hardware.workspace import WorkspaceError
 
 
@@ -215,9 +216,7 @@ def register_target(images: list, R: np.ndarray, t: np.ndarray, camera: Camera, 
 
 def _fit_circle_axis(C: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """Centre of the circle that points ``C`` (N, 3) trace about ``axis`` (least squares, in its plane)."""
-    e1 = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
+    e1, e2 = perpendicular_basis(axis)
     p = np.stack([C @ e1, C @ e2], axis=1)
     A = np.concatenate([2 * p, np.ones((len(p), 1))], axis=1)
     sol, *_ = np.linalg.lstsq(A, (p**2).sum(axis=1), rcond=None)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError, as_array, as_float, atomic_path, object_items, read_json, write_json
+from hardware.workspace import Workspace, WorkspaceError, as_array, as_float, atomic_path, object_items, read_json, write_json
 
 #: Parameters of each BRTDF model: name -> per-band (3 values) or scalar (1 value).
 #: The models themselves live in inverse/models.py; the file format owns the names.
@@ -215,7 +215,7 @@ class Scene:
 
     def save(self, path=None, *, write_meshes: bool = True) -> Path:
         """Write scene.json (and each surface's mesh, when it is loaded) under the scene's root."""
-        path = Path(path) if path else self.root / "scene.json"
+        path = Path(path) if path else Workspace(self.root).scene
         if write_meshes:
             for s in self.surfaces:
                 if s.mesh is not None:

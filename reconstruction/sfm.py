@@ -526,10 +526,10 @@ def load_sweep(folder) -> tuple[list, np.ndarray | None]:
     their ``file`` and ``angle``; without it the folder's images are taken in name order and the
     angles are unknown (None).
     """
-    from hardware.workspace import read_json
+    from hardware.workspace import MANIFEST, read_json
 
     folder = Path(folder)
-    manifest = folder / "manifest.json"
+    manifest = folder / MANIFEST
     if manifest.exists():
         shots = read_json(manifest).get("shots")
         if not isinstance(shots, list) or not shots:

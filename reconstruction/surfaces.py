@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from calibration.rotations import nearest_rotation
 from hardware.workspace import WorkspaceError, as_array, as_float, object_items, read_json
 from reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
 
@@ -409,11 +410,6 @@ def _triangulate_corner(views: Views, marks: dict) -> np.ndarray:
     return X[0]
 
 
-def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-
-
 def box_from_marks(spec: dict, views: Views) -> Modelled:
     """A box (or an open rectangle) fitted to its corners marked in registered shots.
 
@@ -452,7 +448,7 @@ def box_from_marks(spec: dict, views: Views) -> Modelled:
     if len(varying) == 2:
         a = ({0, 1, 2} - set(varying)).pop()
         cols[:, a] = np.cross(cols[:, (a + 1) % 3], cols[:, (a + 2) % 3])
-    R0 = _nearest_rotation(cols / np.maximum(np.linalg.norm(cols, axis=0), 1e-12))
+    R0 = nearest_rotation(cols / np.maximum(np.linalg.norm(cols, axis=0), 1e-12))
     half0 = np.where(np.isfinite(given), given / 2, np.linalg.norm(cols, axis=0))
     if dims == 2:
         half0[2] = 0.0
@@ -493,14 +489,18 @@ def import_mesh(name: str, path, ior: float | None = None, brdf: str = "phong") 
 # ---------------------------------------------------------------- output
 def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -> Scene:
     """Write ``meshes/<name>.ply`` and scene.json: existing surfaces kept, same names replaced."""
-    root = Path(root)
+    from hardware.workspace import Workspace
+
+    ws = Workspace(root)
+    root = ws.root
     surfaces = list(existing.surfaces) if existing is not None else []
     for m in modelled:
         if m.ior is not None and not m.mesh.is_closed():
-            raise WorkspaceError(root / "meshes" / f"{m.name}.ply", expected=f"a closed mesh for transparent surface '{m.name}'",
+            raise WorkspaceError(ws.mesh(m.name), expected=f"a closed mesh for transparent surface '{m.name}'",
                                  got="an open mesh")
-        material = Material.from_json({"brdf": m.brdf, "ior": m.ior}, root / "scene.json", m.name)
-        s = Surface(m.name, f"meshes/{m.name}.ply", material, m.textured, m.mesh, {"source": m.source})
+        material = Material.from_json({"brdf": m.brdf, "ior": m.ior}, ws.scene, m.name)
+        s = Surface(m.name, ws.mesh(m.name).relative_to(root).as_posix(), material, m.textured, m.mesh,
+                    {"source": m.source})
         names = [x.name for x in surfaces]
         if m.name in names:
             surfaces[names.index(m.name)] = s
@@ -510,7 +510,7 @@ def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -
     for s in surfaces:
         if s.mesh is not None:
             s.mesh.save(root / s.mesh_path)
-    scene.save(root / "scene.json", write_meshes=False)
+    scene.save(ws.scene, write_meshes=False)
     return scene
 
 

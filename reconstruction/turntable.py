@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration.rotations import perpendicular_basis, rodrigues
+
 
 @dataclass
 class Observations:
@@ -44,9 +46,7 @@ class Observations:
 
 def rotations(u: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotations by angles ``phi`` (radians) about the unit axis ``u`` (Rodrigues)."""
-    K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-    s, c = np.sin(phi)[:, None, None], np.cos(phi)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+    return rodrigues(np.asarray(phi, dtype=np.float64)[:, None] * np.asarray(u, dtype=np.float64))
 
 
 def turntable_model(R: np.ndarray, t: np.ndarray, reference: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -89,12 +89,6 @@ def poses(R0: np.ndarray, t0: np.ndarray, u: np.ndarray, a: np.ndarray, phi: np.
     R = R0 @ Rot
     t = t0 + (a - Rot @ a) @ R0.T
     return R, t
-
-
-def _frame(u0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    e1 = np.cross(u0, [1.0, 0.0, 0.0] if abs(u0[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(u0, e1)
 
 
 def refine(R: np.ndarray, t: np.ndarray, points: np.ndarray, obs: Observations, reference: int,
@@ -189,7 +183,7 @@ def _solve(R, t, X0, pi, ii, xy, reference, focal, ok, loss_scale_px, max_evalua
 
     n, P = len(R), len(X0)
     u0, a0, phi0 = turntable_model(R, t, reference)
-    e1, e2 = _frame(u0)
+    e1, e2 = perpendicular_basis(u0)
     R0, t0 = R[reference], t[reference]
     C0 = -R0.T @ t0
     d0 = np.linalg.norm((C0 - a0) - ((C0 - a0) @ u0) * u0)

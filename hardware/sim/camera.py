@@ -44,8 +44,9 @@ class SimulatedCamera:
 
 def rotate_about_z(points: np.ndarray, degrees: float, centre) -> np.ndarray:
     """Points (N, 3) turned by ``degrees`` (counter-clockwise seen from +z) about the vertical axis through ``centre``."""
-    a = np.radians(degrees)
-    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    from calibration.rotations import axis_rotation
+
+    R = axis_rotation((0.0, 0.0, 1.0), degrees)
     c = np.array([centre[0], centre[1], 0.0], dtype=np.float64)
     return (np.asarray(points, dtype=np.float64) - c) @ R.T + c
 

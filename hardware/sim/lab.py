@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from calibration.rotations import axis_rotation
 from calibration.lights import Lights, PointLight
 from hardware.workspace import write_json
 from reconstruction.scene import Material, Mesh, Scene, Surface
@@ -44,35 +45,19 @@ ALBEDO_RANGE = (0.05, 0.9)
 
 # ---------------------------------------------------------------- geometry
 def _rot_z(deg: float) -> np.ndarray:
-    a = np.radians(deg)
-    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    return axis_rotation((0.0, 0.0, 1.0), deg)
 
 
 def _rot_x(deg: float) -> np.ndarray:
-    a = np.radians(deg)
-    return np.array([[1.0, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    return axis_rotation((1.0, 0.0, 0.0), deg)
 
 
 def box_mesh(size, center, rotation=None) -> Mesh:
-    """A closed box (8 vertices, 12 triangles) with outward-facing triangles.
+    """A closed box of edge lengths ``size`` centred at ``center``, turned by ``rotation``
+    (box-to-world, identity when omitted): :func:`reconstruction.surfaces.box_mesh`."""
+    from reconstruction.surfaces import box_mesh as box
 
-    Parameters
-    ----------
-    size : (3,) array_like
-        Edge lengths along the box's own x, y, z axes.
-    center : (3,) array_like
-        Centre in world coordinates.
-    rotation : (3, 3) ndarray, optional
-        Box-to-world rotation (identity when omitted).
-    """
-    half = 0.5 * np.asarray(size, dtype=np.float64)
-    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * half
-    R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-    verts = corners @ R.T + np.asarray(center, dtype=np.float64)
-    # Quads listed counter-clockwise seen from outside: -x, +x, -y, +y, -z, +z.
-    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
-    return Mesh(verts, tris)
+    return box(center, np.eye(3) if rotation is None else rotation, size)
 
 
 def plane_mesh(x_range, y_range, z: float = 0.0) -> Mesh:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.camera import Camera
+from calibration.rotations import look_rotation
 from calibration.target import target_points  # noqa: F401  (re-exported for the twin's users)
 
 
@@ -167,14 +168,8 @@ def random_target_poses(n: int, cols: int, rows: int, spacing: float, seed: int 
         d = distance * (0.9 + 0.2 * rng.random())
         eye = centre + d * np.array([np.sin(tilt) * np.cos(azim), np.sin(tilt) * np.sin(azim), np.cos(tilt)])
         aim = centre + rng.normal(0, 0.01, 3) * np.array([1, 1, 0])
-        z = aim - eye
-        z /= np.linalg.norm(z)
         roll = np.radians(rng.uniform(-20, 20))
-        up = np.array([np.sin(roll), np.cos(roll), 0.0])
-        x = np.cross(z, up)
-        x /= np.linalg.norm(x)
-        y = np.cross(z, x)
-        R = np.stack([x, y, z])
+        R = look_rotation(aim - eye, (np.sin(roll), np.cos(roll), 0.0))
         poses.append((R, -R @ eye))
     return poses
 
