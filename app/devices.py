@@ -76,6 +76,7 @@ class Rig:
             return open_camera(spec)
         from hardware.sim.camera import SimulatedCamera, lab_renderer
         from hardware.sim.lab import build_lab
+        from hardware.sim.props import LabProps
 
         if not 0.0 <= sim.grain < 1.0:
             raise ValueError(f"--grain must be in [0, 1), got {sim.grain}")
@@ -90,8 +91,12 @@ class Rig:
             state = lambda: (board.turntable(config.axis), config.lamp_states(board.lamp_outputs()))  # noqa: E731
         else:
             state = lambda: (ctl.angle, ctl.lamps)  # noqa: E731
-        return SimulatedCamera(lab_renderer(lab, depth=sim.depth, centre=sim.centre), state, ambient=sim.room_light,
-                               lab={"grain": sim.grain, "fixed": ["ground"], "centre": list(sim.centre)})
+        # The simulated user shows the props a shot's role needs: the circle target (calibration),
+        # the rod and grey card (lights); the bare scene otherwise (hardware.sim.props.LabProps).
+        camera = SimulatedCamera(lab_renderer(lab, depth=sim.depth, centre=sim.centre, props=LabProps()), state,
+                                 ambient=sim.room_light, lab={"grain": sim.grain, "fixed": ["ground"], "centre": list(sim.centre)})
+        camera.sim_lab = lab  # for the simulated user's marks after a sweep (hardware.sim.user)
+        return camera
 
     def close(self) -> None:
         self.controller.close()

@@ -57,12 +57,13 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return img.mean(axis=2) if img.ndim == 3 else img
 
 
-def _blob_detector(shape):
+def _blob_detector(shape, min_area: float = 12.0, max_area: float | None = None):
     import cv2
 
     p = cv2.SimpleBlobDetector_Params()
     p.filterByColor, p.blobColor = True, 0
-    p.filterByArea, p.minArea, p.maxArea = True, 12.0, float(shape[0] * shape[1]) / 8
+    p.filterByArea, p.minArea = True, float(min_area)
+    p.maxArea = float(shape[0] * shape[1]) / 8 if max_area is None else float(max_area)
     p.filterByCircularity = False
     p.filterByInertia, p.minInertiaRatio = True, 0.08
     p.filterByConvexity, p.minConvexity = True, 0.8
@@ -117,6 +118,14 @@ def detect_grid(image: np.ndarray, cols: int, rows: int) -> GridDetection:
     n_blobs = len(blobs)
     found, centres = cv2.findCirclesGrid(g8, (cols, rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID,
                                          blobDetector=detector)
+    if (not found or centres is None) and n_blobs > cols * rows:
+        # Clutter (a textured table's dark grain) confuses the grid search: keep only blobs of
+        # about the size of the target's circles (the cols x rows largest ones), and retry with
+        # OpenCV's clustering search, which tolerates a few stray blobs.
+        sizes = np.sort([k.size for k in detector.detect(g8)])[::-1][: cols * rows]
+        area = np.pi * (np.median(sizes) / 2) ** 2
+        found, centres = cv2.findCirclesGrid(g8, (cols, rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING,
+                                             blobDetector=_blob_detector(g.shape, area / 4, area * 4))
     if not found or centres is None or len(centres) != cols * rows:
         return GridDetection(False, None, None, n_blobs, f"no {cols}x{rows} grid among {n_blobs} dark blobs")
     centres = _canonical_order(centres.reshape(-1, 2).astype(np.float64), cols, rows)

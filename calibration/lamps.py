@@ -54,9 +54,11 @@ def read_marks(path) -> tuple[float, list[Mark]]:
 
 
 def write_marks(path, rod_height: float, marks: list[Mark]) -> Path:
-    """Write marks.json atomically."""
-    return write_json(path, {"rod_height": float(rod_height), "marks": [
+    """Write marks.json atomically; what else the file holds (the surfaces' corner marks) is kept."""
+    obj = read_json(path) if Path(path).exists() else {}
+    obj.update({"rod_height": float(rod_height), "marks": [
         {"image": m.image, "light": int(m.light), "base": m.base, "tip": m.tip} for m in marks]})
+    return write_json(path, obj)
 
 
 def ground_points(camera: Camera, uv: np.ndarray, where: str = "marks") -> np.ndarray:

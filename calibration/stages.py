@@ -69,10 +69,13 @@ class LightsOptions:
 
     With ``images`` it detects the rod's foot and shadow tip in each (lamp ``light``: one index
     for every image, or a list with one per image), merges them into marks.json and uses every
-    mark there; with ``marks`` it reads that file instead; with
-    neither it uses the workspace's marks.json. Intensity comes from ``sheet`` images (one per lamp,
-    of a sheet of Lambertian ``sheet_reflectance``), else ``intensity`` (data sheet), else the
-    previous lights.json, else 1.
+    mark there; with ``marks`` it reads that file instead; with neither it detects them in the
+    single-lamp shots of captures/lights/ (the lamp of each from its manifest) and merges them into
+    marks.json likewise (calibration/rod.py). Intensity comes from ``sheet`` images (one per lamp,
+    of a sheet of Lambertian ``sheet_reflectance``), else, with ``sheet_reflectance`` and
+    ``sheet_region`` alone, from that card lying in the rod shots (each lamp's frame minus the
+    lamps-off frame at its angle), else ``intensity`` (data sheet), else the previous lights.json,
+    else 1.
     """
 
     workspace: Path
@@ -184,10 +187,11 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
 def calibrate_lights(options: LightsOptions, task: Task | None = None) -> LightsResult:
     """Locate every lamp from rod shadows (and its intensity) and write lights.json."""
     from calibration.camera import Camera
-    from calibration.lamps import Mark, detect_rod_marks, lamp_intensity, locate_lamps, read_marks, write_marks
+    from calibration.lamps import lamp_intensity, locate_lamps, read_marks, write_marks
     from calibration.lights import Lights, PointLight
+    from calibration.rod import RodShot, card_intensities, detect_marks, rod_shots
     from hardware.images import read_image
-    from hardware.workspace import Workspace, check_folder
+    from hardware.workspace import Workspace, check_folder, read_json
 
     task = ensure(task)
     o = options
@@ -195,25 +199,29 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
     images = [Path(p) for p in o.images or []]
     marks_path = Path(o.marks) if o.marks else ws.marks
-    height, marks = read_marks(marks_path) if (o.marks or (marks_path.exists() and not images)) else (None, [])
-    detected = []
-    if images:
-        if o.marks:
-            raise ValueError("give either images to detect marks in or --marks, not both")
-        if marks_path.exists():
+    height, marks = read_marks(marks_path) if o.marks else (None, [])
+    detected, shots = [], None
+    if images and o.marks:
+        raise ValueError("give either images to detect marks in or --marks, not both")
+    geometric = lambda path: read_image(path, linear=False)  # noqa: E731 -- marks need no linear values
+    if not o.marks:
+        if marks_path.exists() and "marks" in read_json(marks_path):  # rod marks made (and corrected) before
             height, marks = read_marks(marks_path)
-        lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
-        if len(lamps) != len(images):
-            raise ValueError(f"light: {len(lamps)} lamp indices for {len(images)} images")
-        for i, (path, lamp) in enumerate(zip(images, lamps)):
-            task.step(i, len(images) + 1, f"detecting the rod in {path.name}")
-            try:
-                base, tip = detect_rod_marks(read_image(path, linear=False))
-            except ValueError as exc:
-                raise ValueError(f"{path}: {exc}; mark it by hand in marks.json") from None
-            name = str(path.relative_to(ws.root)) if path.is_relative_to(ws.root) else str(path)
-            marks = [m for m in marks if m.image != name] + [Mark(name, int(lamp), base, tip)]
-            detected.append((name, int(lamp), base, tip))
+        if images:
+            lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
+            if len(lamps) != len(images):
+                raise ValueError(f"light: {len(lamps)} lamp indices for {len(images)} images")
+            shots = [RodShot(str(p.relative_to(ws.root)) if p.is_relative_to(ws.root) else str(p), int(k))
+                     for p, k in zip(images, lamps)]
+        else:  # the lights session's shots: its manifest says which lamp lit each
+            shots = rod_shots(ws.root)
+        found = []
+        for i, shot in enumerate(shots):
+            task.step(i, len(shots) + 1, f"detecting the rod in {Path(shot.image).name}")
+            found += detect_marks(ws.root, [shot], geometric)
+        names = {m.image for m in found}
+        marks = [m for m in marks if m.image not in names] + found
+        detected = [(m.image, m.light, m.base, m.tip) for m in found]
     if o.rod_height is not None:
         height = o.rod_height
     if height is None or not height > 0:
@@ -221,7 +229,7 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     if not marks:
         raise ValueError(f"no marks: give rod images or --marks (nothing in {marks_path})")
     # Written before locating, so that a user can correct a bad mark there and rerun with marks.
-    written_marks = write_marks(marks_path, height, marks) if images else None
+    written_marks = write_marks(marks_path, height, marks) if not o.marks else None
     if o.sheet and o.sheet_reflectance is None:
         raise ValueError("--sheet needs --sheet-reflectance")
     if o.intensity and len(o.intensity) not in (1, 3):
@@ -232,6 +240,13 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
         raise ValueError(f"lamp indices in the marks are {[f.light for f in fits]}; expected 0..{len(fits) - 1}")
     if o.sheet and len(o.sheet) != len(fits):
         raise ValueError(f"--sheet: {len(o.sheet)} images for {len(fits)} lamps")
+    cards = {}
+    if not o.sheet and o.sheet_reflectance is not None:  # the card in the rod shots, room light subtracted
+        if o.sheet_region is None:
+            raise ValueError("--sheet-reflectance without --sheet images needs --sheet-region (the card on the table)")
+        cards = card_intensities(ws.root, shots if shots is not None else rod_shots(ws.root), camera,
+                                 {f.light: f.position for f in fits}, o.sheet_reflectance / np.pi, o.sheet_region,
+                                 read_image)
     old = Lights.load(ws.lights) if ws.lights.exists() else None
     lights, reports = [], []
     for k, fit in enumerate(fits):
@@ -241,6 +256,9 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
         if o.sheet:
             inten, spread = lamp_intensity(read_image(o.sheet[k]), camera, fit.position,
                                            o.sheet_reflectance / np.pi, region=o.sheet_region)
+            extra["calibration"]["intensity_spread"] = spread
+        elif cards:
+            inten, spread = cards[fit.light]
             extra["calibration"]["intensity_spread"] = spread
         elif o.intensity:
             inten = np.broadcast_to(np.asarray(o.intensity, float), (3,)).copy()

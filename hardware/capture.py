@@ -46,17 +46,30 @@ def _name(i: int, ext: str) -> str:
     return f"{i:04d}.{ext}"
 
 
-def plan_calibration(n_lamps: int, angles=(0.0,), ext: str = "exr") -> list[Shot]:
-    """Every lamp on, one shot per turntable angle (a target on the turntable seen in several poses)."""
-    return [Shot(_name(i, ext), float(a), [True] * n_lamps, "calibration") for i, a in enumerate(angles)]
+#: Default turntable angles of the calibration shots (the target on its wedge; at 180 degrees it
+#: would face away from the camera) and of the rod shots (the rod at four places).
+CALIBRATION_ANGLES = (0.0, 45.0, 90.0, 135.0, 225.0, 270.0, 315.0)
+LIGHTS_ANGLES = (0.0, 90.0, 180.0, 270.0)
 
 
-def plan_lights(n_lamps: int, angles=(0.0,), ext: str = "exr") -> list[Shot]:
-    """One lamp at a time, at each angle: each image holds one rod shadow (marks.json's ``light``)."""
+def plan_calibration(n_lamps: int, angles=CALIBRATION_ANGLES, ext: str = "exr") -> list[Shot]:
+    """Every lamp on: first the target lying flat at the first angle (the reference view: it
+    defines the world frame, camera.json's pose), then one shot per angle with the target tilted
+    on its wedge on the turntable (the varied orientations the intrinsics need)."""
+    angles = [float(a) for a in angles]
+    return [Shot(_name(0, ext), angles[0], [True] * n_lamps, "target flat")] + [
+        Shot(_name(i + 1, ext), a, [True] * n_lamps, "target on wedge") for i, a in enumerate(angles)]
+
+
+def plan_lights(n_lamps: int, angles=LIGHTS_ANGLES, ext: str = "exr") -> list[Shot]:
+    """At each angle (the rod standing on the turntable off its axis): one lamp at a time, then a
+    lamps-off frame of the room light: each lamp image holds one rod shadow (marks.json's ``light``);
+    the lamp image minus the room-light frame is that lamp's light alone (its power, on a grey card)."""
     shots = []
     for a in angles:
         for k in range(n_lamps):
             shots.append(Shot(_name(len(shots), ext), float(a), [j == k for j in range(n_lamps)], f"lamp {k}"))
+        shots.append(Shot(_name(len(shots), ext), float(a), [False] * n_lamps, "room light"))
     return shots
 
 
@@ -271,6 +284,9 @@ class CaptureSession:
         if changed and self.settle_s > 0:
             time.sleep(self.settle_s)
         self._wait()
+        prepare = getattr(self.camera, "prepare", None)
+        if prepare is not None:  # a camera that shows what the shot is for (the simulated one's props)
+            prepare(shot)
         t0 = time.monotonic()
         image = self.camera.capture(self.exposure)
         if not np.all(np.isfinite(image)):
@@ -324,7 +340,7 @@ class CaptureOptions:
     kind: str
     controller: object = None
     camera: object = None
-    angles: list = field(default_factory=lambda: [0.0])
+    angles: list | None = None  # None: the kind's default (CALIBRATION_ANGLES, LIGHTS_ANGLES)
     count: int = 36
     start: float = 0.0
     ambient: bool = False
@@ -354,9 +370,9 @@ def plan(kind: str, n_lamps: int, options: CaptureOptions) -> list[Shot]:
     """The shots of one capture kind (:data:`FOLDERS`)."""
     o = options
     if kind == "calibration":
-        return plan_calibration(n_lamps, o.angles, o.format)
+        return plan_calibration(n_lamps, o.angles or CALIBRATION_ANGLES, o.format)
     if kind == "lights":
-        return plan_lights(n_lamps, o.angles, o.format)
+        return plan_lights(n_lamps, o.angles or LIGHTS_ANGLES, o.format)
     if kind == "sweep":
         return plan_sweep(n_lamps, o.count, o.start, o.format)
     if kind == "input":

@@ -6,7 +6,8 @@ block with per-view errors, uncertainties and the cv2.calibrateCamera cross-chec
 
 `reflab calibrate lights WORKSPACE [images...] --rod-height H [--marks marks.json]` locates each
 lamp from rod shadows and writes lights.json. Without --marks it detects the rod's foot and the
-shadow's tip in the images (lamp --light), merges them into WORKSPACE/marks.json (edit that file
+shadow's tip in the images (lamp --light; by default in captures/lights/, whose manifest says
+which lamp was on in each shot), merges them into WORKSPACE/marks.json (edit that file
 to correct a mark, then rerun with --marks) and uses every mark there.
 """
 from __future__ import annotations
@@ -35,7 +36,8 @@ def add_arguments(parser) -> None:
 
     li = sub.add_parser("lights", help="lights.json from rod shadows")
     li.add_argument("workspace", type=Path)
-    li.add_argument("images", nargs="*", type=Path, help="rod images to detect marks in (lamp --light)")
+    li.add_argument("images", nargs="*", type=Path, help="rod images to detect marks in (lamp --light); default: the shots of "
+                         "WORKSPACE/captures/lights/, each with the lamp its manifest says was on")
     li.add_argument("--rod-height", type=float, default=None, help="rod height in metres (default: marks.json's)")
     li.add_argument("--marks", type=Path, default=None, help="marks.json to use instead of detecting marks")
     li.add_argument("--light", type=int, default=0, help="lamp index of the images given (default 0)")

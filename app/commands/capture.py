@@ -23,7 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", required=True, help="serial port of the GRBL board, or 'sim' for the simulated board")
     parser.add_argument("--camera", required=True, help="sim | opencv:N | opencv:URL | folder:PATH (tethered camera)")
     parser.add_argument("--config", help="hardware JSON (default: WORKSPACE/hardware.json when it exists)")
-    parser.add_argument("--angles", type=float_list, default=[0.0], help="turntable angles for calibration/lights (default 0)")
+    parser.add_argument("--angles", type=float_list, default=None,
+                        help="turntable angles: calibration, of the target on its wedge (default 0,45,90,135,225,270,315, "
+                             "after one shot of it lying flat); lights, of the rod (default 0,90,180,270)")
     parser.add_argument("--count", type=int, default=36, help="sweep: number of shots over 360 degrees (default 36)")
     parser.add_argument("--start", type=float, default=0.0, help="sweep: first angle; input: the angle (default 0)")
     parser.add_argument("--ambient", action="store_true", help="input: also take a lamps-off frame and subtract it")
@@ -38,8 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera-timeout", type=float, default=60.0, help="folder camera: seconds to wait for a file")
     sim = parser.add_argument_group("simulated camera (--camera sim)")
     sim.add_argument("--size", type=image_size, default=None,
-                     help="image size WxH (default: camera.json's, else 320x240; a sweep for `reflab reconstruct` "
-                          "needs 480x360 or more, and every capture of a workspace the same size)")
+                     help="image size WxH (default: camera.json's, else 480x360: at 320x240 structure from motion "
+                          "registers too few sweep shots; every capture of a workspace must have the same size)")
     sim.add_argument("--depth", type=int, default=3, help="ray depth of the simulated camera (default 3)")
     sim.add_argument("--centre", type=float_list, default=[0.0, 0.0], help="turntable axis x,y in metres (default 0,0)")
     sim.add_argument("--room-light", type=float, default=0.0, help="ambient radiance added to every pixel")
@@ -64,7 +66,7 @@ def run(args) -> int:
 
     calibrated = calibrated_size(ws)
     if args.camera == "sim" and args.size is None:
-        args.size = calibrated or (320, 240)
+        args.size = calibrated or (480, 360)
     elif args.camera == "sim" and calibrated and tuple(args.size) != calibrated and args.kind != "calibration":
         raise WorkspaceError(ws.camera, "width/height",
                              f"captures of the calibrated size {calibrated[0]}x{calibrated[1]} (leave --size out, "
@@ -76,7 +78,12 @@ def run(args) -> int:
             result = run_capture(CaptureOptions(
                 args.workspace, args.kind, rig.controller, rig.camera, args.angles, args.count, args.start,
                 args.ambient, args.format, args.exposure, args.settle, args.resume, args.overwrite, on_shot, print))
-        print(f"wrote {len(result.shots)} images and {result.manifest_path}")
+            print(f"wrote {len(result.shots)} images and {result.manifest_path}")
+            if args.camera == "sim" and args.kind == "sweep":
+                from hardware.sim.user import mark_sweep
+
+                path = mark_sweep(ws.root, rig.camera.sim_lab, result.manifest, centre=args.centre)
+                print(f"the simulated user marked the mirror's and the sheet's corners and named the surfaces in {path}")
         return 0
     except CaptureCancelled as exc:
         print(f"reflab capture: {exc}", file=sys.stderr)

@@ -26,12 +26,25 @@ class SimulatedCamera:
         self.render, self.state, self.lab = render, state, lab
         self.ambient, self.reference_exposure = float(ambient), float(reference_exposure)
         self.last_state = None
+        self.role = None
+        import inspect
+
+        try:
+            self._takes_role = "role" in inspect.signature(render).parameters
+        except (TypeError, ValueError):
+            self._takes_role = False
+
+    def prepare(self, shot) -> None:
+        """Told by the capture session what the next shot is for (its plan role): the simulated
+        user puts the props that role needs in front of the camera (hardware.sim.props)."""
+        self.role = getattr(shot, "role", None) or None
 
     def capture(self, exposure: float | None = None) -> np.ndarray:
         angle, lamps = self.state()
         self.last_state = (float(angle), [bool(x) for x in lamps])
         scale = (self.reference_exposure if exposure is None else float(exposure)) / self.reference_exposure
-        img = (np.asarray(self.render(angle, lamps), dtype=np.float64) + self.ambient) * scale
+        image = self.render(angle, lamps, role=self.role) if self._takes_role else self.render(angle, lamps)
+        img = (np.asarray(image, dtype=np.float64) + self.ambient) * scale
         return img.astype(np.float32)
 
     def describe(self) -> dict:
@@ -51,12 +64,18 @@ def rotate_about_z(points: np.ndarray, degrees: float, centre) -> np.ndarray:
     return (np.asarray(points, dtype=np.float64) - c) @ R.T + c
 
 
-def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",)):
-    """A ``render(angle, lamps)`` for :class:`SimulatedCamera` from a :class:`hardware.sim.lab.SimLab`.
+def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), props=None, supersample: int = 2):
+    """A ``render(angle, lamps, role=None)`` for :class:`SimulatedCamera` from a :class:`hardware.sim.lab.SimLab`.
 
     The surfaces not named in ``fixed`` stand on the turntable: their meshes and textures turn
     with it about the vertical axis through ``centre`` (x, y in metres). Lamps that are off are
     left out; with every lamp off the image is black.
+
+    ``props`` (a :class:`hardware.sim.props.LabProps`): a shot whose ``role`` needs a prop (the
+    circle target for "target flat"/"target on wedge", the rod for "lamp K") shows the fixed
+    surfaces and that prop only (the objects are not on the table while the camera and lamps are
+    calibrated), rendered at ``supersample`` times the size and box-filtered down (pixel-area
+    integration, as a sensor does, so printed edges are not aliased), with ray depth 1.
     """
     from calibration.lights import Lights
     from hardware.sim.reference import render_reference
@@ -67,11 +86,36 @@ def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",)):
         raise ValueError(f"lab_renderer: no surface named {sorted(unknown)} (surfaces: {lab.scene.names})")
     turning = [s.name not in fixed for s in lab.scene]
 
-    def render(angle: float, lamps) -> np.ndarray:
+    def render_props(angle: float, on, role: str):
+        from hardware.sim.props import prop_surfaces
+
+        shown = prop_surfaces(props, role, angle, centre)
+        still = [i for i, s in enumerate(lab.scene) if not turning[i]]
+        surfaces = [lab.scene[i] for i in still] + [s for s, _ in shown]
+        fns = [None] * len(still) + [fn for _, fn in shown]
+
+        def albedo(index: int, points: np.ndarray) -> np.ndarray:
+            if index < len(still):
+                return lab.albedo(still[index], points)
+            fn = fns[index]
+            return fn(points) if fn is not None else np.broadcast_to(surfaces[index].material["kd"], points.shape).copy()
+
+        k = int(supersample)
+        cam = lab.camera.scaled(k * lab.camera.width, k * lab.camera.height)
+        if role.startswith("lamp") or role == "room light":  # the room light stays on: a dim lamp at the camera
+            from calibration.lights import PointLight
+
+            on = on + [PointLight(lab.camera.center + [0.0, 0.0, 0.02], np.full(3, props.room_light))]
+        fine = render_reference(Scene(surfaces), cam, Lights(on), 1, albedo)
+        return fine.reshape(lab.camera.height, k, lab.camera.width, k, 3).mean(axis=(1, 3))
+
+    def render(angle: float, lamps, role: str | None = None) -> np.ndarray:
         lamps = list(lamps)
         if len(lamps) != len(lab.lights):
             raise ValueError(f"{len(lamps)} lamp states for a lab with {len(lab.lights)} lamps")
         on = [light for light, state in zip(lab.lights, lamps) if state]
+        if props is not None and role is not None and role.startswith(("target", "lamp", "room light")):
+            return render_props(angle, on, role)
         if not on:
             return np.zeros((lab.camera.height, lab.camera.width, 3))
         surfaces = [Surface(s.name, s.mesh_path, s.material, s.textured,

@@ -241,3 +241,146 @@ def render_lit_ground(camera: Camera, lamp: np.ndarray, intensity, reflectance: 
                  "intensity": {"type": "rgb", "value": np.broadcast_to(np.asarray(intensity, float), (3,)).tolist()}},
     }
     return render_view(camera, objects, spp=spp)[:, :, :3].astype(np.float32)
+
+
+# ---------------------------------------------------------------- props in the simulated lab
+# What the simulated user puts on the table for the calibration shots, rendered by the reference
+# renderer together with the lab's ground (hardware.sim.camera.lab_renderer). The lab's objects
+# are not on the table then: the camera and the lamps are calibrated on the empty table, before
+# the scene is set up (docs/simulated-lab.md, "The procedure").
+
+@dataclass(frozen=True)
+class LabProps:
+    """The printed target, the wedge it is tilted on, and the rod, as the simulated user has them.
+
+    The target's first circle lies at the world origin in the flat (reference) shot, rows along
+    +x, columns toward -y (:func:`calibration.target.target_points`); on the wedge it is centred on
+    the turntable axis and tilted by ``wedge_deg`` toward the camera at angle 0. The rod stands
+    on the turntable ``rod_offset`` from its axis.
+    """
+
+    cols: int = 7
+    rows: int = 5
+    spacing: float = 0.03
+    radius: float = 0.009
+    paper: float = 0.2e-3          # printed sheet thickness: the flat target's plane is z = paper
+    wedge_deg: float = 25.0
+    rod_height: float = 0.08
+    rod_radius: float = 0.003
+    rod_offset: tuple = (0.06, 0.0)
+    card: tuple = (-0.28, -0.18, 0.03, 0.10)   # grey card on the table during rod shots: xmin xmax ymin ymax
+    card_reflectance: float = 0.9              # Lambertian reflectance: kd = reflectance / pi
+    room_light: float = 0.04                   # intensity of the room light (a lamp at the camera) in rod shots
+
+    @property
+    def grid(self) -> str:
+        return f"{self.cols}x{self.rows}"
+
+
+def _rz(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rx(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+
+
+def target_placement(props: LabProps, role: str, angle: float, centre=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Target-to-world (R, c) of the printed target in a calibration shot: world = R @ local + c.
+
+    ``role`` "target flat": lying on the turntable, first circle at the origin (the frame the
+    reference view defines); "target on wedge": centred on the axis, tilted toward the camera
+    side by ``wedge_deg``; both then turned with the turntable by ``angle`` about the axis.
+    """
+    c_axis = np.array([centre[0], centre[1], 0.0])
+    if role == "target flat":
+        R, c = np.eye(3), np.array([0.0, 0.0, props.paper])
+    else:
+        mid = np.array([(props.cols - 1) * props.spacing / 2, -(props.rows - 1) * props.spacing / 2, 0.0])
+        tilt = _rx(props.wedge_deg)
+        half = ((props.rows - 1) * props.spacing / 2 + 1.5 * props.spacing) * np.sin(np.radians(props.wedge_deg))
+        R = tilt
+        c = -tilt @ mid + c_axis + np.array([0.0, 0.0, half + props.paper])
+    turn = _rz(angle)
+    return turn @ R, turn @ (c - c_axis) + c_axis
+
+
+def target_albedo(props: LabProps, R: np.ndarray, c: np.ndarray, paper: float = 0.8, ink: float = 0.04):
+    """``albedo(points) -> (N, 3)`` of the printed target placed by (R, c): white paper, black discs."""
+    def albedo(points: np.ndarray) -> np.ndarray:
+        local = (np.asarray(points, dtype=np.float64).reshape(-1, 3) - c) @ R
+        s = props.spacing
+        dx = local[:, 0] - np.clip(np.round(local[:, 0] / s), 0, props.cols - 1) * s
+        dy = local[:, 1] + np.clip(np.round(-local[:, 1] / s), 0, props.rows - 1) * s
+        disc = np.hypot(dx, dy) <= props.radius
+        return np.repeat(np.where(disc, ink, paper)[:, None], 3, axis=1)
+    return albedo
+
+
+def _quad(corners: np.ndarray):
+    from reconstruction.scene import Mesh
+
+    return Mesh(corners, [[0, 1, 2], [0, 2, 3]])
+
+
+def _wedge(sheet: np.ndarray):
+    """A closed wedge under a tilted sheet (corners 0, 1 its high edge, 3, 2 its low edge), 1 mm below it."""
+    from reconstruction.scene import Mesh
+
+    H = sheet[[0, 1]] - [0.0, 0.0, 1e-3]
+    ground = lambda p: p * [1.0, 1.0, 0.0]  # noqa: E731
+    v = np.concatenate([ground(sheet[[3, 2]]), H, ground(sheet[[0, 1]])])  # l0 l1 H0 H1 h0 h1
+    tris = [[0, 1, 3], [0, 3, 2], [4, 5, 3], [4, 3, 2], [0, 1, 5], [0, 5, 4], [0, 2, 4], [1, 3, 5]]
+    return Mesh(v, tris)
+
+
+def _prism(foot, height: float, radius: float, sides: int = 24):
+    """A closed vertical n-sided prism (the rod) standing on ``foot``."""
+    from reconstruction.scene import Mesh
+
+    a = 2 * np.pi * np.arange(sides) / sides
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(sides)], axis=1) + np.asarray(foot, float)
+    top = ring + [0.0, 0.0, height]
+    verts = np.concatenate([ring, top, [np.asarray(foot, float)], [np.asarray(foot, float) + [0, 0, height]]])
+    b, t = 2 * sides, 2 * sides + 1
+    tris = []
+    for i in range(sides):
+        j = (i + 1) % sides
+        tris += [[i, j, sides + j], [i, sides + j, sides + i], [b, j, i], [t, sides + i, sides + j]]
+    return Mesh(verts, tris)
+
+
+def prop_surfaces(props: LabProps, role: str, angle: float, centre=(0.0, 0.0)):
+    """The props a shot of ``role`` shows: a list of (Surface, albedo function or None).
+
+    Roles (hardware.capture's plans): "target flat" and "target on wedge" (calibration shots),
+    "lamp K" and "room light" (rod-shadow shots: the rod on the turntable and the grey card on the
+    table); any other role shows no prop.
+    """
+    from reconstruction.scene import Material, Surface
+
+    lambert = lambda kd: Material("lambert", {"kd": np.asarray(kd, float), "r": np.zeros(3), "t": np.zeros(3)}, None)  # noqa: E731
+    out = []
+    if role in ("target flat", "target on wedge"):
+        R, c = target_placement(props, role, angle, centre)
+        s, m = props.spacing, 1.5 * props.spacing
+        local = np.array([[-m, m, 0], [(props.cols - 1) * s + m, m, 0],
+                          [(props.cols - 1) * s + m, -(props.rows - 1) * s - m, 0], [-m, -(props.rows - 1) * s - m, 0]])
+        out.append((Surface("target", "", lambert([0.8] * 3), True, _quad(local @ R.T + c)), target_albedo(props, R, c)))
+        if role == "target on wedge":
+            out.append((Surface("wedge", "", lambert([0.35, 0.33, 0.30]), False, _wedge(local @ R.T + c)), None))
+    elif role.startswith("lamp") or role == "room light":
+        foot = rod_foot(props, angle, centre)
+        out.append((Surface("rod", "", lambert([0.6, 0.04, 0.04]), False, _prism(foot, props.rod_height, props.rod_radius)),
+                    None))
+        x0, x1, y0, y1 = props.card
+        card = np.array([[x0, y0, props.paper], [x1, y0, props.paper], [x1, y1, props.paper], [x0, y1, props.paper]])
+        out.append((Surface("card", "", lambert([props.card_reflectance / np.pi] * 3), False, _quad(card)), None))
+    return out
+
+
+def rod_foot(props: LabProps, angle: float, centre=(0.0, 0.0)) -> np.ndarray:
+    """Where the rod stands in a rod shot at turntable ``angle`` (world, z = 0)."""
+    return _rz(angle) @ np.array([props.rod_offset[0], props.rod_offset[1], 0.0]) + [centre[0], centre[1], 0.0]
