@@ -214,14 +214,18 @@ def _line(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return c, np.linalg.eigh(cov)[1][:, -1]
 
 
-def detect_rod_marks(image: np.ndarray, *, red_ratio: float = 1.8, shadow_level: float = 0.5,
-                     min_pixels: int = 15) -> tuple[np.ndarray, np.ndarray]:
+def detect_rod_marks(image: np.ndarray, *, room: np.ndarray | None = None, red_ratio: float = 1.8,
+                     shadow_level: float = 0.5, min_pixels: int = 15) -> tuple[np.ndarray, np.ndarray]:
     """Find the rod's foot and its shadow's tip in one image (a red rod, one lamp on).
 
     The rod is the largest red blob (red channel ``red_ratio`` times green and blue); the shadow
     the largest blob darker than ``shadow_level`` times the local ground level (grey closing, which
     erases thin dark structures). Each is reduced to its principal line; the foot is where the two
     lines cross (both pass through it), the tip the shadow's far end along its line.
+
+    ``room``: a lamps-off frame of the same view (the room light alone). The shadow is then found
+    in the lamp's light relative to the room light, ``(image - room) / room``, in which the
+    ground's texture cancels: a shadow falling across dark wood and white paper is one even strip.
 
     Returns
     -------
@@ -238,6 +242,9 @@ def detect_rod_marks(image: np.ndarray, *, red_ratio: float = 1.8, shadow_level:
     img = np.asarray(image, dtype=np.float64)
     r, g, b = img[..., 0], img[..., 1], img[..., 2]
     lum = img.mean(axis=2)
+    if room is not None:
+        base = np.asarray(room, dtype=np.float64).mean(axis=2)
+        lum = np.clip(lum - base, 0.0, None) / np.maximum(base, 1e-6 * max(float(base.max()), 1e-12))
     rod = (r > red_ratio * np.maximum(g, b)) & (r > 1e-6)
 
     def largest(mask):

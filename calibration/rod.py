@@ -63,7 +63,8 @@ def rod_shots(root) -> list[RodShot]:
 
 
 def detect_marks(root, shots: list[RodShot], read_image) -> list[Mark]:
-    """Rod foot and shadow tip detected in every shot (:func:`calibration.lamps.detect_rod_marks`).
+    """Rod foot and shadow tip detected in every shot (:func:`calibration.lamps.detect_rod_marks`),
+    the shadow against the shot's lamps-off frame when there is one.
 
     Raises
     ------
@@ -73,7 +74,8 @@ def detect_marks(root, shots: list[RodShot], read_image) -> list[Mark]:
     marks = []
     for shot in shots:
         try:
-            base, tip = detect_rod_marks(read_image(Path(root) / shot.image))
+            room = read_image(Path(root) / shot.room) if shot.room is not None else None
+            base, tip = detect_rod_marks(read_image(Path(root) / shot.image), room=room)
         except ValueError as exc:
             raise ValueError(f"{shot.image}: {exc}; mark it by hand in marks.json and rerun with --marks") from None
         marks.append(Mark(shot.image, shot.light, base, tip))

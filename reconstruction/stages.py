@@ -10,8 +10,9 @@ surfaces), none of which imports it, so reconstruction/ has no import cycle.
 """
 from __future__ import annotations
 
+
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -216,6 +217,7 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
     An existing scene.json is left alone (``result.skipped``) unless ``marks`` or ``meshes`` add
     to it, or ``force`` redoes it. ``log`` gets structure from motion's progress lines.
     """
+    from reconstruction import marks as user_marks
     from reconstruction import surfaces as surf
     from reconstruction.scene import Scene
 
@@ -223,6 +225,8 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
     o = options
     t0 = time.perf_counter()
     ws = Workspace(check_folder(o.workspace, write=True))
+    if o.marks is None and user_marks.has_surfaces(ws.marks):  # the GUI's (or simulated user's) marks.json
+        o = replace(o, marks=ws.marks)
     unknown = set(o.iors) - set(o.meshes)
     if unknown:
         raise ValueError(f"ior: no imported mesh named {sorted(unknown)[0]!r}")
@@ -241,11 +245,13 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
         task.check()
         if fresh and o.fit_surfaces and not o.meshes:
             modelled = surf.fit_scene_points(points, camera=camera) + modelled
-        if o.marks:
-            for spec in surf.load_marks(o.marks):
-                modelled.append(surf.box_from_marks(spec, views))
+        specs, pointed = user_marks.read_surfaces(o.marks) if o.marks else ([], [])
+        for spec in specs:
+            modelled.append(surf.box_from_marks(spec, views))
     if not modelled:
         raise WorkspaceError(ws.scene, expected="at least one surface (fitted, marked or imported)", got="none")
     task.check()
     scene = surf.write_scene(ws.root, modelled, existing)
+    if o.marks:  # names and what the user knows, said once in the marks file
+        scene = user_marks.apply_options(ws.root, scene, specs, pointed, Camera.load(ws.camera), o.marks)
     return ReconstructResult(ws.scene, scene, modelled, sfm_report, time.perf_counter() - t0)

@@ -348,10 +348,10 @@ class Views:
         return uv.reshape(-1, 2)
 
 
-def load_marks(path) -> list[dict]:
-    """Read and validate a marks file (docs/reconstruction.md); image names are checked later."""
+def load_marks(path, obj: dict | None = None) -> list[dict]:
+    """Read and validate a marks file (docs/reconstruction.md), or ``obj`` read from it; image names are checked later."""
     path = Path(path)
-    obj = read_json(path)
+    obj = read_json(path) if obj is None else obj
     out = []
     for where, item in object_items(obj.get("surfaces"), path, "surfaces", "marked surfaces"):
         name = item.get("name")

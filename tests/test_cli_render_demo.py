@@ -18,7 +18,7 @@ def _summary(out):
 
 def test_demo_end_to_end(tmp_path, capsys):
     ws = tmp_path / "demo"
-    assert main(["demo", str(ws), "--size", "64x48"]) == 0
+    assert main(["demo", str(ws), "--from-truth", "--size", "64x48"]) == 0
     out = capsys.readouterr().out
     assert "stage fit: exit 0" in out and "stage texture: exit 0" in out
     assert "materials from fit.json" in out and "recovered texture" in out
@@ -55,7 +55,7 @@ def test_demo_fit_against_the_texture(tmp_path, capsys):
     default) then bring the mirror's r, the sheet's t and the tile's ks and r to the truth, and
     the recovered model re-renders the input within 3 %."""
     ws = tmp_path / "demo"
-    assert main(["demo", str(ws), "--size", "160x120"]) == 0
+    assert main(["demo", str(ws), "--from-truth", "--size", "160x120"]) == 0
     assert _summary(capsys.readouterr().out) < 3  # 1.9 % measured (6.9 % at 320x240 before both changes)
     truth = {s["name"]: s["material"] for s in read_json(ws / "truth.json")["surfaces"]}
 

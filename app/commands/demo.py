@@ -1,111 +1,104 @@
-"""The simulated lab end to end: write its workspace, render the "photograph", recover, compare.
+"""The simulated lab end to end, from its captures, with no truth handed to any stage.
 
-1. writes the simulated lab (hardware/sim/lab.py) as a workspace: camera.json, lights.json,
-   meshes, and a scene.json with only what a user knows before fitting (``brdf``, ``ior``, and
-   ``r = 0`` for the matte paper ground); the true materials go to truth.json;
-2. renders input.exr with the independent reference renderer (hardware/sim/reference.py) and the
-   true textures, optionally with Gaussian noise;
-3. runs the later stages (`reflab fit`, `reflab texture`);
-4. renders the recovered model (`reflab render`) and prints its RMS error against input.exr.
+`reflab demo WORKSPACE` runs, on the simulated board and camera (hardware/sim/), exactly the
+commands a user runs by hand (README, "The simulated lab step by step"; :func:`commands`):
+devices -> target shots -> calibrate camera -> rod shots -> calibrate lights -> sweep (the
+simulated user marks the mirror and the sheet and names the surfaces) -> reconstruct -> input
+photograph -> fit -> texture -> render (novel view, relit view) -> report. Each reads only what
+the earlier ones wrote. The truth goes to WORKSPACE/truth/ (INTERFACES.md, "The simulated lab's
+truth") and after each stage the demo prints its error against it and its time.
+
+`--from-truth` keeps the inverse-only demo: the true camera, lamps and geometry are written and
+only the photograph is recovered (fit, texture, render).
 """
 from __future__ import annotations
 
 import argparse
-import importlib
 import time
 from pathlib import Path
 
 from app.commands._args import image_size, nonneg_float
 
-HELP = "the simulated lab end to end: write a workspace, render its photograph, fit, texture, re-render"
+HELP = "the simulated lab end to end: capture, calibrate, reconstruct, fit, texture, render, report; scored against truth/"
 
-#: Later stages, in order, run through their own subcommand modules.
-STAGES = ("fit", "texture")
+#: The simulated lab's turntable axis (x, y), metres.
+CENTRE = "0,0"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workspace", nargs="?", default="demo-workspace", help="folder to write (default ./demo-workspace)")
-    parser.add_argument("--size", type=image_size, default=(320, 240), help="image size WIDTHxHEIGHT (default 320x240)")
+    parser.add_argument("--size", type=image_size, default=None,
+                        help="image size WIDTHxHEIGHT (default 480x360, the simulated camera's; --from-truth 320x240)")
+    parser.add_argument("--quick", action="store_true",
+                        help="a shorter run for tests: 24 sweep shots, one texture round, coarser texels")
+    parser.add_argument("--from-truth", action="store_true",
+                        help="the inverse-only demo: true camera, lamps and geometry; fit, texture and render only")
     parser.add_argument("--noise", type=nonneg_float, default=0.0,
-                        help="standard deviation of Gaussian noise added to input.exr, linear units (peak ~0.9)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed")
+                        help="--from-truth: standard deviation of Gaussian noise added to input.exr (linear units)")
+    parser.add_argument("--seed", type=int, default=0, help="--from-truth: noise seed")
     parser.add_argument("--depth", type=int, default=3, choices=range(1, 7), metavar="D",
                         help="internal nodes per path for the photograph and the model (default 3)")
+    parser.add_argument("--truth-only", action="store_true",
+                        help="write WORKSPACE/truth/ and stop (to score the stepwise commands of README by hand)")
 
 
-def _run_stage(name: str, workspace: Path) -> bool:
-    """Run a later stage's subcommand on the workspace; False when it failed."""
-    module = importlib.import_module(f"app.commands.{name}")
-    parser = argparse.ArgumentParser(prog=f"reflab {name}")
-    module.add_arguments(parser)
-    args = parser.parse_args([str(workspace)])
-    start = time.perf_counter()
-    code = module.run(args)
-    print(f"[demo] stage {name}: exit {code or 0} in {time.perf_counter() - start:.1f} s")
-    return not code
+def commands(workspace, size=(480, 360), quick: bool = False) -> list[tuple[str, list[str]]]:
+    """The stepwise commands of the demo, (stage, argv of `reflab`), as README lists them."""
+    from hardware.sim.props import LabProps
 
-
-def _fmt(value) -> str:
-    return "[" + ", ".join(f"{x:.3f}" for x in value) + "]" if isinstance(value, list) else f"{value:.3g}"
-
-
-def _compare_materials(workspace: Path) -> None:
-    """Print fitted against true values for each surface (truth.json vs fit.json)."""
-    from hardware.workspace import read_json
-
-    truth = {s["name"]: s["material"] for s in read_json(workspace / "truth.json")["surfaces"]}
-    fit = read_json(workspace / "fit.json")
-    for item in fit.get("surfaces", []):
-        true = truth.get(item.get("name"), {})
-        parts = []
-        for key in ("kd", "ks", "ns", "r", "t"):
-            if key in item.get("material", {}) and true.get(key) is not None:
-                parts.append(f"{key} {_fmt(item['material'][key])} (true {_fmt(true[key])})")
-        print(f"[demo]   {item.get('name')}: " + "; ".join(parts))
+    ws, props = str(workspace), LabProps()
+    sim = ["--port", "sim", "--camera", "sim"]  # later captures take camera.json's size
+    x0, x1, y0, y1 = props.card
+    inset = 0.005  # the card's region, inside its edges
+    card = [f"{x0 + inset:g}", f"{x1 - inset:g}", f"{y0 + inset:g}", f"{y1 - inset:g}"]
+    return [
+        ("devices", ["hardware", "--port", "sim", "status"]),
+        ("target shots", ["capture", "calibration", ws, *sim, "--size", f"{size[0]}x{size[1]}"]),
+        ("calibrate camera", ["calibrate", "camera", ws, "--grid", props.grid, "--spacing", f"{props.spacing:g}"]),
+        ("rod shots", ["capture", "lights", ws, *sim]),
+        ("calibrate lights", ["calibrate", "lights", ws, "--rod-height", f"{props.rod_height:g}",
+                              "--sheet-reflectance", f"{props.card_reflectance:g}", "--sheet-region", *card]),
+        ("sweep", ["capture", "sweep", ws, *sim] + (["--count", "24"] if quick else [])),
+        ("reconstruct", ["reconstruct", ws, "--turntable-centre", CENTRE]),
+        ("input", ["capture", "input", ws, *sim]),
+        ("fit", ["fit", ws] + (["--texture-rounds", "1"] if quick else [])),
+        ("texture", ["texture", ws]),
+        ("render novel", ["render", ws, "--camera", f"{ws}/truth/novel_camera.json", "-o", f"{ws}/novel.exr"]),
+        ("render relit", ["render", ws, "--lights", f"{ws}/truth/relit_lights.json", "-o", f"{ws}/relit.exr"]),
+        ("report", ["report", ws]),
+    ]
 
 
 def run(args) -> int:
-    import numpy as np
+    if args.from_truth:
+        from app.commands._demo_truth import run_from_truth
 
-    from inverse.stages import render_workspace
-    from hardware.images import write_image, write_preview
-    from hardware.sim.reference import render_reference
-    from hardware.sim.lab import build_lab, write_lab
+        return run_from_truth(args)
+    from app.cli import main
+    from app.commands import _score as score
 
-    start = time.perf_counter()
     root = Path(args.workspace)
-    width, height = args.size
-    lab = build_lab(width, height)
-    write_lab(root, lab, materials=False)
-    print(f"[demo] 1/4 wrote the simulated lab ({width}x{height}, {len(lab.scene)} surfaces, {len(lab.lights)} lamps) "
-          f"to {root}/ (true materials in truth.json)")
-
+    size = args.size or (480, 360)
+    start = time.perf_counter()
     t0 = time.perf_counter()
-    stats = {}
-    photo = render_reference(lab.scene, lab.camera, lab.lights, depth=args.depth, albedo=lab.albedo, stats=stats)
-    if args.noise > 0:
-        photo = np.maximum(photo + np.random.default_rng(args.seed).normal(0.0, args.noise, photo.shape), 0.0)
-    write_image(root / "input.exr", photo)
-    write_preview(root / "input.png", photo)
-    print(f"[demo] 2/4 rendered input.exr with the reference renderer in {time.perf_counter() - t0:.1f} s "
-          f"({stats['refractions']} refractions, {stats['tir']} total internal reflections, noise {args.noise:g})")
-
-    print("[demo] 3/4 recovering the model")
-    for name in STAGES:
-        if not _run_stage(name, root):
-            print(f"[demo] stage {name} failed: later stages skipped")
-            break
-
-    image, info = render_workspace(root, depth=args.depth, log=lambda line: print(f"[demo] {line}"))
-    write_image(root / "render.exr", image)
-    write_preview(root / "render.png", image)
-    rms = np.sqrt(np.mean((image - photo) ** 2, axis=(0, 1)))
-    rel = float(np.sqrt(np.mean((image - photo) ** 2)) / max(np.sqrt(np.mean(photo**2)), 1e-300))
-    texture = "homogeneous kd" if info["texture_nodes"] is None else "recovered texture"
-    print(f"[demo] 4/4 rendered the model (materials from {info['materials']}, {texture}) to {root / 'render.exr'}")
-    print(f"[demo] RMS model vs input per band: {rms[0]:.4f} {rms[1]:.4f} {rms[2]:.4f} "
-          f"(relative {100 * rel:.2f}%, input peak {photo.max():.3f})")
-    if (root / "fit.json").exists():
-        _compare_materials(root)
+    truth = score.write_truth(root, size, depth=args.depth)
+    print(f"[demo] wrote the truth to {root / 'truth'} ({time.perf_counter() - t0:.1f} s)")
+    if args.truth_only:
+        return 0
+    rows = []
+    for stage, argv in commands(root, size, args.quick):
+        print(f"[demo] $ reflab {' '.join(argv)}", flush=True)
+        t0 = time.perf_counter()
+        code = main(argv)
+        seconds = time.perf_counter() - t0
+        if code:
+            print(f"[demo] stage {stage} failed (exit {code}) after {seconds:.1f} s: later stages skipped")
+            return code
+        error = score.score_stage(stage, root, truth)
+        rows.append((stage, seconds, error))
+        print(f"[demo] {stage}: {seconds:.1f} s{'; ' + error if error else ''}", flush=True)
+    print("[demo] stage             time (s)  error against truth/")
+    for stage, seconds, error in rows:
+        print(f"[demo] {stage:<17} {seconds:8.1f}  {error}")
     print(f"[demo] done in {time.perf_counter() - start:.1f} s")
     return 0

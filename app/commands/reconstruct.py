@@ -20,7 +20,9 @@ def add_arguments(parser) -> None:
                         help="import a mesh (PLY/OBJ, metres, world frame) as surface NAME; repeatable")
     parser.add_argument("--ior", action="append", default=[], metavar="NAME=INDEX",
                         help="refraction index of an imported surface (its mesh must then be closed)")
-    parser.add_argument("--marks", metavar="FILE", help="corners marked in the turntable shots (docs/reconstruction.md)")
+    parser.add_argument("--marks", metavar="FILE", help="corners marked in the turntable shots and what the user knows "
+                                                        "per surface (default: WORKSPACE/marks.json when it has "
+                                                        "'surfaces'; docs/reconstruction.md)")
     parser.add_argument("--target", metavar="COLSxROWS", help="circle target lying on the turntable, to fix the frame")
     parser.add_argument("--spacing", type=float, default=0.015, help="circle spacing of --target in metres (0.015)")
     parser.add_argument("--turntable-centre", metavar="X,Y",

@@ -33,13 +33,13 @@ from app.cli import main  # noqa: E402
 from hardware.sim.camera import lab_renderer, rotate_about_z  # noqa: E402
 from hardware.images import write_image  # noqa: E402
 from hardware.sim.lab import build_lab  # noqa: E402
+from hardware.sim.user import surface_marks  # noqa: E402
 from hardware.workspace import read_json, write_json  # noqa: E402
 from reconstruction import surfaces as surf  # noqa: E402
 from reconstruction.scene import Scene  # noqa: E402
 
 N_SHOTS = 36
-MARKED = {"mirror": 0.006, "sheet": 0.003}  # name -> thickness (local y), given in the marks file
-MARK_ANGLES = tuple(range(-60, 61, 10))
+MARKED = ("mirror", "sheet")  # surfaces from marked corners (hardware/sim/user.py)
 
 
 def render_sweep(root: Path, lab, ground: str, depth: int = 3) -> float:
@@ -62,23 +62,9 @@ def render_sweep(root: Path, lab, ground: str, depth: int = 3) -> float:
 
 
 def write_marks(path: Path, lab, rng) -> None:
-    """Front-face corners of the mirror and the sheet, projected with 1 px noise where inside the image."""
-    items = []
-    for name, thickness in MARKED.items():
-        truth = lab.scene[lab.scene.index(name)].mesh
-        corners = []
-        for k in np.flatnonzero(surf.CORNERS[:, 1] < 0):  # the face toward the camera at angle 0
-            marks = {}
-            for a in MARK_ANGLES:
-                i = int(round(a * N_SHOTS / 360.0)) % N_SHOTS
-                X = rotate_about_z(truth.vertices[k][None], 360.0 * i / N_SHOTS, (0.0, 0.0))
-                uv = lab.camera.project(X)[0] + rng.normal(0.0, 1.0, 2)
-                if 0 <= uv[0] <= lab.camera.width - 1 and 0 <= uv[1] <= lab.camera.height - 1:
-                    marks[f"captures/turntable/{i:04d}.exr"] = uv.tolist()
-            corners.append({"corner": surf.CORNERS[k].tolist(), "marks": marks})
-        items.append({"name": name, "shape": "box", "ior": lab.scene[lab.scene.index(name)].material.ior,
-                      "textured": False, "size": [None, thickness, None], "corners": corners})
-    write_json(path, {"surfaces": items})
+    """The simulated user's marks (hardware/sim/user.py): mirror and sheet corners with 1 px noise, named surfaces."""
+    shots = [(f"captures/turntable/{i:04d}.exr", 360.0 * i / N_SHOTS) for i in range(N_SHOTS)]
+    write_json(path, {"surfaces": surface_marks(lab, shots, seed=int(rng.integers(1 << 30)))})
 
 
 def true_centres(lab) -> np.ndarray:

@@ -259,15 +259,15 @@ class LabProps:
     on the turntable ``rod_offset`` from its axis.
     """
 
-    cols: int = 7
-    rows: int = 5
-    spacing: float = 0.03
-    radius: float = 0.009
+    cols: int = 9
+    rows: int = 7
+    spacing: float = 0.025
+    radius: float = 0.0075
     paper: float = 0.2e-3          # printed sheet thickness: the flat target's plane is z = paper
     wedge_deg: float = 25.0
-    rod_height: float = 0.08
+    rod_height: float = 0.12
     rod_radius: float = 0.003
-    rod_offset: tuple = (0.06, 0.0)
+    rod_offset: tuple = (0.04, 0.0)
     card: tuple = (-0.28, -0.18, 0.03, 0.10)   # grey card on the table during rod shots: xmin xmax ymin ymax
     card_reflectance: float = 0.9              # Lambertian reflectance: kd = reflectance / pi
     room_light: float = 0.04                   # intensity of the room light (a lamp at the camera) in rod shots

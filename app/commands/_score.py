@@ -1,0 +1,144 @@
+"""The simulated lab's truth (WORKSPACE/truth/) and each demo stage's error against it.
+
+The truth (INTERFACES.md, "The simulated lab's truth"): camera.json, lights.json, scene.json with
+its meshes (true materials), novel_camera.json + novel.exr (a view the input did not see) and
+relit_lights.json + relit.exr (the input view under other lamps), both rendered with the true
+textures by the independent reference renderer (hardware/sim/reference.py).
+
+PSNR is ``10 log10(peak² / MSE)`` with ``peak`` the true image's maximum, over the pixels whose
+albedo the recovered model knows (its albedo AOV is finite there).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+#: Turntable angle (degrees) of the novel view's camera about the vertical axis through the origin.
+NOVEL_TURN = -25.0
+#: The relit view's lamps: positions (m) and intensities (the input's lamps are elsewhere).
+RELIT = [((0.30, -0.25, 0.50), (0.20, 0.19, 0.17)), ((-0.25, 0.35, 0.55), (0.30, 0.27, 0.22))]
+
+
+def _turned(camera, degrees: float):
+    from calibration.camera import Camera
+
+    a = np.radians(degrees)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    C = Rz @ camera.center
+    R = camera.R @ Rz.T
+    return Camera(camera.width, camera.height, camera.K.copy(), camera.dist.copy(), R, -R @ C)
+
+
+def write_truth(root, size, *, depth: int = 3, grain: float = 0.2) -> dict:
+    """Write ``root/truth/`` for the simulated lab as `reflab capture --camera sim` renders it; return it in memory."""
+    from calibration.lights import Lights, PointLight
+    from hardware.images import write_image, write_preview
+    from hardware.sim.lab import build_lab, write_lab
+    from hardware.sim.reference import render_reference
+
+    folder = Path(root) / "truth"
+    lab = build_lab(*size, grain=grain)
+    write_lab(folder, lab, materials=True)
+    novel = _turned(lab.camera, NOVEL_TURN)
+    novel.save(folder / "novel_camera.json")
+    relit = Lights([PointLight(p, i) for p, i in RELIT])
+    relit.save(folder / "relit_lights.json")
+    images = {}
+    for name, cam, lights in (("novel", novel, lab.lights), ("relit", lab.camera, relit)):
+        images[name] = render_reference(lab.scene, cam, lights, depth, albedo=lab.albedo)
+        write_image(folder / f"{name}.exr", images[name])
+        write_preview(folder / f"{name}.png", images[name])
+    return {"lab": lab, "novel_camera": novel, "relit_lights": relit, "images": images, "depth": depth}
+
+
+def camera_error(cam, true) -> dict:
+    f = np.array([cam.K[0, 0], cam.K[1, 1]]) / np.array([true.K[0, 0], true.K[1, 1]]) - 1
+    dR = cam.R @ true.R.T
+    return {"focal_pct": float(100 * np.max(np.abs(f))), "centre_mm": float(1e3 * np.linalg.norm(cam.center - true.center)),
+            "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
+            "principal_px": float(np.hypot(*(cam.K[:2, 2] - true.K[:2, 2])))}
+
+
+def lights_error(lights, true) -> list[dict]:
+    out = []
+    for k, (got, want) in enumerate(zip(lights, true)):
+        d = np.linalg.norm(got.position - want.position)
+        out.append({"lamp": k, "position_mm": float(1e3 * d), "of_distance_pct": float(100 * d / np.linalg.norm(want.position)),
+                    "intensity_pct": float(100 * np.max(np.abs(got.intensity / want.intensity - 1)))})
+    return out
+
+
+def geometry_error(scene, true_scene) -> dict:
+    """Per true surface: RMS and max distance (mm) between it and the surface of the same name."""
+    from reconstruction.surfaces import distance_to_mesh
+
+    names = {s.name: s for s in scene}
+    out = {}
+    for t in true_scene:
+        s = names.get(t.name)
+        if s is None:
+            out[t.name] = None
+            continue
+        d = distance_to_mesh(t.mesh, s.mesh.sample_points(4000))
+        if t.name != "ground":  # a bounded object: both ways (a missing part counts too)
+            d = np.concatenate([d, distance_to_mesh(s.mesh, t.mesh.sample_points(4000))])
+        out[t.name] = {"rms_mm": float(1e3 * np.sqrt(np.mean(d**2))), "max_mm": float(1e3 * d.max())}
+    return out
+
+
+def psnr(image, truth, known) -> float:
+    err = (np.asarray(image, float) - truth)[known]
+    mse = float(np.mean(err**2)) if err.size else float("nan")
+    return float(10 * np.log10(truth.max() ** 2 / max(mse, 1e-300)))
+
+
+def view_psnr(root, truth: dict, which: str) -> dict:
+    """PSNR of the recovered model's novel or relit view against the truth, over pixels of known albedo."""
+    from inverse.stages import render_workspace
+    from hardware.images import read_image
+
+    root = Path(root)
+    kw = {"camera": root / "truth" / "novel_camera.json"} if which == "novel" else {"lights": root / "truth" / "relit_lights.json"}
+    albedo, _ = render_workspace(root, aov="albedo", depth=truth["depth"], **kw)
+    known = np.all(np.isfinite(albedo), axis=2)
+    image = read_image(root / f"{which}.exr")
+    return {"psnr_db": psnr(image, truth["images"][which], known), "known_pct": float(100 * known.mean()),
+            "psnr_all_db": psnr(image, truth["images"][which], np.ones_like(known))}
+
+
+def score_stage(stage: str, root, truth: dict) -> str:
+    """One line: the stage's error against the truth ('' for stages with nothing to compare)."""
+    from calibration.camera import Camera
+    from calibration.lights import Lights
+    from hardware.workspace import read_json
+    from reconstruction.scene import Scene
+
+    root, lab = Path(root), truth["lab"]
+    if stage == "calibrate camera":
+        e = camera_error(Camera.load(root / "camera.json"), lab.camera)
+        return (f"focal {e['focal_pct']:.3f} %, camera centre {e['centre_mm']:.2f} mm, rotation {e['rotation_deg']:.3f} deg, "
+                f"principal point {e['principal_px']:.2f} px")
+    if stage == "calibrate lights":
+        return "; ".join(f"lamp {e['lamp']} {e['position_mm']:.1f} mm ({e['of_distance_pct']:.2f} % of its distance), "
+                         f"intensity {e['intensity_pct']:.1f} %" for e in lights_error(Lights.load(root / "lights.json"), lab.lights))
+    if stage == "reconstruct":
+        errs = geometry_error(Scene.load(root / "scene.json"), lab.scene)
+        return ", ".join(f"{n} missing" if e is None else f"{n} {e['rms_mm']:.2f} mm RMS (max {e['max_mm']:.1f})"
+                         for n, e in errs.items())
+    if stage == "fit":
+        fit = read_json(root / "fit.json")
+        want = {s.name: s.material for s in lab.scene}
+        parts = [f"re-render RMS {np.round(fit['rms'], 4).tolist()}"]
+        for item in fit.get("surfaces", []):
+            m, t = item.get("material", {}), want.get(item.get("name"))
+            if t is None:
+                continue
+            keys = [k for k in ("ks", "ns", "r", "t") if k in m and k in t.params and np.any(t.params[k])]
+            parts.append(f"{item['name']} " + " ".join(f"{k} {np.round(np.mean(m[k]), 3)} ({np.round(np.mean(t.params[k]), 3)})"
+                                                        for k in keys))
+        return "; ".join(parts) + " (true in brackets)"
+    if stage in ("render novel", "render relit"):
+        e = view_psnr(root, truth, stage.split()[1])
+        return f"PSNR {e['psnr_db']:.1f} dB over the {e['known_pct']:.0f} % of pixels of known albedo ({e['psnr_all_db']:.1f} dB over all)"
+    return ""
