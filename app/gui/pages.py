@@ -86,8 +86,8 @@ class StepPage(QWidget):
         split = QSplitter(Qt.Orientation.Horizontal)
         box = QGroupBox("Camera (live)")
         bl = QVBoxLayout(box)
-        self.preview = ImageView(placeholder="not connected" if self.preview_stretch == 0 else
-                                 "connect the rig (Devices) to see the camera")
+        self.preview = ImageView(placeholder="live view" if self.preview_stretch == 0 else
+                                 "the camera shows here once the rig is connected (Devices)")
         self.preview.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.preview.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.preview.setObjectName(f"preview_{step.name}")
@@ -842,6 +842,8 @@ class ResultsPage(StepPage):
             s.setValue(100)
             controls.addRow(f"lamp {k} (%)", s)
             self.dimmers.append(s)
+        for slider in [self.azimuth, self.elevation] + self.dimmers:
+            slider.valueChanged.connect(self._describe_novel)
         self.novel_button = QPushButton("Render this view")
         self.novel_button.setObjectName("render_novel")
         self.novel_button.clicked.connect(self.render_novel)
@@ -869,6 +871,11 @@ class ResultsPage(StepPage):
             rel = float(np.sqrt(np.mean((model - photo) ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300))
             report = " — report.html written" if (ws.root / "report.html").exists() else ""
             self.summary.setText(f"RMS difference <b>{100 * rel:.2f}%</b> of the photograph's RMS{report}")
+
+    def _describe_novel(self, _=None):
+        dims = ", ".join(f"{s.value()}%" for s in self.dimmers)
+        self.novel_info.setText(f"orbit {self.azimuth.value():+d}°, raise {self.elevation.value():+d}°, lamps {dims}: "
+                                "press Render this view")
 
     def render_novel(self):
         az, el = float(self.azimuth.value()), float(self.elevation.value())
