@@ -67,7 +67,7 @@ def new_figure(width: float = 6.4, height: float = 3.6, ncols: int = 1):
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, ncols, figsize=(width, height), squeeze=False)
+    fig, axes = plt.subplots(1, ncols, figsize=(width, height), squeeze=False, layout="constrained")
     return fig, list(axes[0])
 
 

@@ -67,7 +67,7 @@ def num(x, digits: int = 4) -> str:
 
 def mm(x) -> str:
     """A length in millimetres, to the micrometre."""
-    return "–" if x is None or not math.isfinite(x) else f"{x:.3f}"
+    return f"{x:.3f}" if isinstance(x, (int, float)) and math.isfinite(x) else "–"
 
 
 def pm(value, sigma, digits: int = 4) -> str:
@@ -111,6 +111,21 @@ def psnr(image: np.ndarray, truth: np.ndarray, known: np.ndarray | None = None) 
     return float("inf") if mse == 0 else 10 * math.log10(max(float(np.max(truth)), 1e-300) ** 2 / mse)
 
 
+def _when(stamp) -> str:
+    """An ISO 8601 UTC time as 'YYYY-MM-DD HH:MM:SS' (as written when it does not parse)."""
+    import datetime
+
+    if not isinstance(stamp, str):
+        return "–"
+    try:
+        t = datetime.datetime.fromisoformat(stamp)
+    except ValueError:
+        return stamp
+    if t.tzinfo is not None:
+        t = t.astimezone(datetime.timezone.utc)
+    return t.strftime("%Y-%m-%d %H:%M:%S")
+
+
 # ---------------------------------------------------------------------- captures
 def captures_section(src: Sources, thumbs: int = 6) -> Section | None:
     manifests = src.manifests()
@@ -124,7 +139,7 @@ def captures_section(src: Sources, thumbs: int = 6) -> Section | None:
         sizes = sorted({"x".join(map(str, s.get("size"))) for s in shots if isinstance(s.get("size"), list)})
         cam = as_dict(m.get("camera"))
         rows.append([folder, m.get("kind", folder), m.get("status", "–"), f"{len(shots)} of {len(m['plan']) if isinstance(m.get('plan'), list) else '?'}",
-                     m.get("started", "–"), m.get("updated", "–"),
+                     _when(m.get("started")), _when(m.get("updated")),
                      ", ".join(num(e) for e in exposures) or "camera's own", ", ".join(sizes) or "–",
                      cam.get("type", "–")])
         if m.get("error"):
@@ -236,15 +251,17 @@ def camera_section(src: Sources) -> Section | None:
 def _residual_field(residuals, cam, views) -> str | None:
     """Quiver plot of per-circle residuals over the image frame (rows [u, v, du, dv] per view)."""
     fig, (ax,) = F.new_figure(6.0, 6.0 * (cam.get("height") or 3) / max(cam.get("width") or 4, 1))
-    biggest = 0.0
+    lengths = []
     for i, rows in enumerate(residuals):
         a = _floats(rows)
         if a is None or a.ndim != 2 or a.shape[1] != 4:
             continue
-        biggest = max(biggest, float(np.max(np.hypot(a[:, 2], a[:, 3]))))
-    if biggest <= 0:
+        lengths.append(np.hypot(a[:, 2], a[:, 3]))
+    if not lengths or not np.concatenate(lengths).max() > 0:
         return None
-    scale = 0.04 * (cam.get("width") or 640) / biggest
+    biggest = float(np.concatenate(lengths).max())
+    typical = float(np.percentile(np.concatenate(lengths), 95)) or biggest
+    scale = 0.04 * (cam.get("width") or 640) / typical  # the 95th percentile drawn 4 % of the width long
     for i, rows in enumerate(residuals):
         a = _floats(rows)
         if a is None or a.ndim != 2 or a.shape[1] != 4:
@@ -257,7 +274,7 @@ def _residual_field(residuals, cam, views) -> str | None:
     ax.set_xlabel("u (px)", fontsize=8)
     ax.set_ylabel("v (px)", fontsize=8)
     ax.tick_params(labelsize=7)
-    ax.set_title(f"residuals × {num(scale, 3)} (longest {num(biggest, 3)} px)", fontsize=9)
+    ax.set_title(f"residuals × {num(scale, 3)} (95 % under {num(typical, 3)} px, longest {num(biggest, 3)} px)", fontsize=9)
     return F.figure_uri(fig)
 
 
@@ -401,7 +418,7 @@ def geometry_section(src: Sources) -> Section | None:
                 ("shot angle error vs commanded", f"max {num(tt.get('max_angle_error_deg'), 3)}°, RMS {num(tt.get('rms_angle_error_deg'), 3)}°"
                  if "max_angle_error_deg" in tt else None),
                 ("registration", f"{reg.get('method')}, scale {num(reg.get('scale'), 5)}" if reg else None),
-                ("input shot vs camera.json", f"{num(ref.get('centre_mm'), 3)} mm, {num(ref.get('rotation_deg'), 3)}°" if ref else None),
+                ("input shot vs camera.json", f"{mm(ref.get('centre_mm'))} mm, {num(ref.get('rotation_deg'), 3)}°" if ref else None),
                 ("time", f"{num(sfm.get('time_s'), 3)} s" + (f" (structure from motion {num(times.get('total_s'), 3)} s)" if "total_s" in times else "")
                  if sfm.get("time_s") is not None else None)])
         errs = tt.get("angle_error_deg")
@@ -439,7 +456,7 @@ def geometry_section(src: Sources) -> Section | None:
         rows.append(row)
     head = ["surface", "source", "BRDF", "ior", "textured"]
     head += ["sparse points on it", "point → surface RMS (mm)", "90th percentile (mm)"] if points is not None else []
-    head += ["placement error vs truth, mean (mm)", "max (mm)"] if true_meshes else []
+    head += ["distance to the true surface, mean (mm)", "max (mm)"] if true_meshes else []
     sec.table(head, rows, "Points are assigned to the nearest surface within 10 mm." if points is not None else "")
     if meshes or points is not None:
         sec.figure(_top_view(src, meshes, true_meshes, points, sfm), "Top view (world x, y in metres): surfaces "
@@ -467,7 +484,9 @@ def _surface_residuals(meshes: dict, points) -> dict:
 
 
 def _placement_error(mesh, true_mesh):
-    """Mean and max distance (mm) between a recovered surface and its true one, both ways, on vertices and face centres."""
+    """Mean and max distance (mm) from the recovered surface to the true one, and back for a closed
+    (bounded) true mesh; an open one (the ground plane) is larger than what any view covers, so only
+    the recovered surface's distance to it counts. Measured on vertices and face centres."""
     if mesh is None or true_mesh is None:
         return None
     from reconstruction.surfaces import distance_to_mesh
@@ -475,8 +494,10 @@ def _placement_error(mesh, true_mesh):
     def samples(m):
         return np.concatenate([m.vertices, m.vertices[m.triangles].mean(axis=1)])
 
-    d = np.concatenate([distance_to_mesh(true_mesh, samples(mesh)), distance_to_mesh(mesh, samples(true_mesh))]) * 1e3
-    return float(np.mean(d)), float(np.max(d))
+    d = distance_to_mesh(true_mesh, samples(mesh))
+    if true_mesh.is_closed():
+        d = np.concatenate([d, distance_to_mesh(mesh, samples(true_mesh))])
+    return float(np.mean(d)) * 1e3, float(np.max(d)) * 1e3
 
 
 def _footprint(mesh) -> np.ndarray:
