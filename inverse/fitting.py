@@ -24,6 +24,7 @@ explains the image (``status``, ``warnings``).
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -33,13 +34,17 @@ from hardware.images import clip_level
 from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
 from inverse.factorization import BANDS, Factorization, one_blas_thread
-from reconstruction.scene import INITIAL, SCALAR_RANGE
+from inverse.ranges import at_bound, clip, linear_upper, theta_bounds
+from reconstruction.scene import INITIAL
 
 #: Nonlinear parameters searched in log2 (scale parameters spanning decades).
 LOG2 = frozenset({"ns", "alpha"})
 #: A parameter whose one-sigma exceeds this fraction of its scale (its value or initial value for
 #: x, the range [0, 1] for r and t, a factor 2 for a log2 parameter) is undetermined.
 RESOLVE = 1.0
+#: A fitted shininess is reported undetermined when its final (robust) one-sigma exceeds this many
+#: log2 units (a factor √2): the linearised σ of a log-scale parameter understates its long tail.
+RESOLVE_THETA = 0.5
 #: Noise assumed at least this fraction of the image peak: a noise-free float image still carries
 #: rounding, so σ never reaches 0 and a parameter with vanishing signal stays undetermined.
 NOISE_FLOOR = 1e-6
@@ -69,6 +74,16 @@ METHODS = ("ftbo", "nftbo")
 #: The diagnosis flags a pixel whose residual exceeds this many image-noise σ plus DIAG_FLOOR of the peak.
 DIAG_SIGMAS = 6.0
 DIAG_FLOOR = 1e-4
+#: A pixel is an outlier, left out and the fit repeated, when its residual exceeds this many image-noise σ
+#: (plus DIAG_FLOOR of the peak); only when such pixels are at most REJECT_SHARE of those used (more
+#: is a misfit for the diagnosis, not outliers).
+REJECT_SIGMAS = 6.0
+REJECT_SHARE = 0.01
+#: A pixel where directly seen texture carries at least this share of the light says nothing about
+#: the other parameters once the texture is free (:func:`texture_absorbed`).
+ABSORB_SHARE = 0.02
+#: Passes of rejection and refit at most.
+REJECT_PASSES = 4
 #: fit.json's ``message`` when a method stops for ``max_seconds``.
 BUDGET_MESSAGE = "stopped: wall-clock budget (max_seconds) spent before convergence"
 
@@ -205,8 +220,7 @@ class _Search:
     def __init__(self, fac: Factorization):
         names = [name for _, name in fac.layout.theta_names]
         self.log = np.array([n in LOG2 for n in names], dtype=bool)
-        lo = np.array([SCALAR_RANGE[n][0] for n in names], dtype=np.float64).reshape(-1)
-        hi = np.array([SCALAR_RANGE[n][1] for n in names], dtype=np.float64).reshape(-1)
+        lo, hi = theta_bounds(fac)
         self.lo = np.where(self.log, np.log2(np.maximum(lo, 1e-300)), lo)
         self.hi = np.where(self.log, np.log2(hi), hi)
 
@@ -303,6 +317,13 @@ class _Inner:
         self.G = [(A[c].T @ A[c]).toarray() for c in range(BANDS)]
         self.h = [A[c].T @ problem.b[c] for c in range(BANDS)]
 
+    def upper(self, p: Params) -> np.ndarray:
+        """(X,) upper bounds of the linear parameters at ``p.theta`` (:mod:`inverse.ranges`)."""
+        key = p.theta.tobytes()
+        if getattr(self, "_ub_key", None) != key:
+            self._ub_key, self._ub = key, linear_upper(self.pb.fac, p.theta)
+        return self._ub
+
     def eps(self, c, y):
         return float(y @ self.G[c] @ y - 2.0 * self.h[c] @ y + self.pb.bb[c])
 
@@ -324,7 +345,13 @@ class _Inner:
             return
         R = np.sqrt(w[keep])[:, None] * V[:, keep].T
         d = (V[:, keep].T @ qf) / np.sqrt(w[keep])
-        p.x[fx, c] = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
+        x = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
+        ub = self.upper(p)[fx]
+        if np.any(x > ub):  # a plausible range binds (inverse.ranges): bounded least squares
+            from scipy.optimize import lsq_linear
+
+            x = np.clip(lsq_linear(R, d, bounds=(0.0, ub), method="bvls", tol=1e-14).x, 0.0, ub)
+        p.x[fx, c] = x
 
     def s_step(self, c, f, p: Params):
         """Exact minimiser on [0, 1] of band c's ε as a polynomial in factor f."""
@@ -367,7 +394,8 @@ class _Inner:
         g = D.T @ (self.G[c] @ y - self.h[c])
         H = D.T @ self.G[c] @ D
         z = np.array([p.x[i, c] if k == "x" else p.s[i, c] for k, i in labels])
-        hi = np.array([np.inf if k == "x" else 1.0 for k, _ in labels])
+        ub = self.upper(p)
+        hi = np.array([ub[i] if k == "x" else 1.0 for k, i in labels])
         act = ((z <= 0.0) & (g > 0)) | ((z >= hi) & (g < 0))
         fr = ~act
         if not fr.any():
@@ -765,10 +793,13 @@ def _gn_diagonal(pb: Problem, m: _NFMap, z) -> np.ndarray:
     return diag * d * d / pb.norm
 
 
-def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None):
+def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None, res=None, tiles=None, keep=None):
     """JᵀWJ of the free parameters (natural units) with band weights; and the label of each row.
 
-    ``A``, ``grad`` from ``fac.matrices_and_grad(p.theta)`` when the caller has them.
+    ``A``, ``grad`` from ``fac.matrices_and_grad(p.theta)`` when the caller has them. With the
+    residual ``res`` (3, R) and ``tiles`` = (tile of each used pixel, T), also the per-tile
+    gradients ``g_t = Σ_{i∈t} J_iᵀ W r_i`` (n, T) of :func:`inverse.uncertainty.covariance`.
+    ``keep`` (R,) bool: only these pixels inform (the others' rows count as zero).
     """
     fac = pb.fac
     if A is None:
@@ -776,6 +807,9 @@ def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=Non
     y = fac.y(p.x, p.s)
     q = np.flatnonzero(free.theta)
     img = grad.images(y)[q] if len(q) else np.zeros((0, BANDS, fac.n_rows))  # (nq, 3, R)
+    if keep is not None:
+        img = img * keep
+        res = None if res is None else res * keep
     blocks, labels = [], []
     for c in range(BANDS):
         D, lab = pb.dy(p, c, free)
@@ -784,11 +818,25 @@ def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=Non
     n_lin = sum(b.shape[1] for b in blocks)
     n = n_lin + len(q)
     H = np.zeros((n, n))
+    scores = None
+    if res is not None:
+        from scipy.sparse import csr_matrix
+
+        tile, n_tiles = tiles
+        P = csr_matrix((np.ones(len(tile)), (np.arange(len(tile)), tile)), shape=(len(tile), n_tiles))
+        wr = weights[:, None] * res  # (3, R)
+        scores = np.zeros((n, n_tiles))
+        if len(q):
+            scores[n_lin:] = np.asarray((P.T @ np.einsum("qcr,cr->rq", img, wr)).T)
     off = 0
     for c in range(BANDS):
         D = blocks[c]
         k = D.shape[1]
         AD = A[c] @ D  # (R, k): image derivatives of band c's linear parameters
+        if keep is not None:
+            AD = AD * keep[:, None]
+        if scores is not None and k:
+            scores[off:off + k] = np.asarray((P.T @ (AD * wr[c][:, None])).T)
         H[off:off + k, off:off + k] = weights[c] * (AD.T @ AD)
         if len(q):
             cross = weights[c] * (AD.T @ img[:, c, :].T)
@@ -798,31 +846,38 @@ def _normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=Non
     if len(q):
         H[n_lin:, n_lin:] = np.einsum("c,qcr,pcr->qp", weights, img, img)
     labels += [("theta", i, -1) for i in q]
+    if res is not None:
+        return H, labels, scores
     return H, labels
 
 
-def uncertainty(pb: Problem, p: Params, free: Free, res) -> Params:
+def uncertainty(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=None) -> Params:
     """One-sigma uncertainties (natural units) of the free parameters; inf where unconstrained.
 
     The noise of band c is estimated from its residual, but never below :data:`NOISE_FLOOR` of
-    the image peak; the covariance is ``(JᵀWJ)⁻¹`` with ``W = 1/σ_c²``.
+    the image peak; the model-based covariance is ``(JᵀWJ)⁻¹`` with ``W = 1/σ_c²``. With
+    ``robust`` each σ is the larger of that and the cluster-robust sandwich over image tiles
+    (:mod:`inverse.uncertainty`), which holds when the model is imperfect. ``keep`` (R,) bool:
+    only these pixels inform (:func:`texture_absorbed` leaves out what a free texture explains).
+    Never NaN.
     """
+    from inverse.uncertainty import covariance, tile_index
+
     n_free = free.count()
     dof = max(BANDS * pb.fac.n_rows - n_free, 1)
     var = np.sum(res * res, axis=1) / max(dof / BANDS, 1.0)
     var = np.maximum(var, (NOISE_FLOOR * pb.peak) ** 2)
-    H, labels = _normal_matrix(pb, p, free, 1.0 / var)
     sig = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+    if robust:
+        tiles = tile_index(pb.fac.rows, pb.fac.width, pb.fac.height)
+        H, labels, scores = _normal_matrix(pb, p, free, 1.0 / var, res=res, tiles=tiles, keep=keep)
+    else:
+        (H, labels), scores = _normal_matrix(pb, p, free, 1.0 / var, keep=keep), None
     if not labels:
         return sig
-    dg = np.sqrt(np.maximum(np.diag(H), 0.0))
-    ok = dg > 0
-    Hs = H[np.ix_(ok, ok)] / np.outer(dg[ok], dg[ok])
-    w, V = np.linalg.eigh(Hs)
-    w = np.maximum(w, 1e-14 * max(w.max(), 1e-300))
-    cov = (V / w) @ V.T
-    sd = np.full(len(labels), np.inf)
-    sd[ok] = np.sqrt(np.maximum(np.diag(cov), 0.0)) / dg[ok]
+    model, sandwich = covariance(H, scores)
+    sd = np.fmax(model, sandwich)
+    sd = np.where(np.isnan(sd), np.inf, sd)
     for (kind, i, c), v in zip(labels, sd):
         if kind == "x":
             sig.x[i, c] = v
@@ -866,10 +921,13 @@ def _structural_free(pb: Problem, p: Params) -> Free:
     return Free(x_free, s_free, th_free)
 
 
-def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A) -> Free:
+def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A, theta_resolve=RESOLVE,
+                bounds_hold: bool = True) -> Free:
     """Free parameters whose one-sigma exceeds :data:`RESOLVE` of their scale.
 
-    ``A`` = ``fac.matrices(p.theta)``, the system at the fitted θ.
+    ``A`` = ``fac.matrices(p.theta)``, the system at the fitted θ. With ``bounds_hold`` a value
+    pinned at a bound counts as determined whatever its σ (the fit's rounds); without, it is
+    judged by its σ like any other (the final report: ks = 0 ± 3000 is undetermined).
     """
     fac = pb.fac
     # Scale of x: its value, but at most 1 (albedo units) — a ks of 1e9 under a faint lobe tail
@@ -881,9 +939,12 @@ def _unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A
     live = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > SIGNAL_FLOOR * max(pb.peak, 1e-300)
     seen = np.zeros_like(free.x)
     np.logical_or.at(seen, fac.col_x, live)
-    bad_x = free.x & ~(sig.x <= RESOLVE * xs) & ((p.x > BOUND_TOL * xs) | ~seen)
-    bad_s = free.s & ~(sig.s <= RESOLVE) & (p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)
-    bad_t = free.theta & ~(_theta_resolution(pb, p, sig) <= RESOLVE)
+    bad_x = free.x & ~(sig.x <= RESOLVE * xs) & ((p.x > BOUND_TOL * xs) | ~seen | (not bounds_hold))
+    bad_s = free.s & ~(sig.s <= RESOLVE) & (((p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)) | (not bounds_hold))
+    # A shininess pinned at its lower bound is a lobe as broad as diffuse light: it trades with kd
+    # and fits misfit, not a highlight (docs/fit.md).
+    pinned = pb.search.log & (pb.search.to_u(p.theta) <= pb.search.lo + 1e-6)
+    bad_t = free.theta & (~(_theta_resolution(pb, p, sig) <= theta_resolve) | pinned)
     return Free(bad_x, bad_s, bad_t)
 
 
@@ -897,7 +958,7 @@ def _theta_resolution(pb: Problem, p: Params, sig: Params) -> np.ndarray:
 @one_blas_thread
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
-        names=None, scan: bool = True, task: Task | None = None) -> FitResult:
+        names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -929,6 +990,13 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     task : hardware.task.Task, optional
         Stepped once per outer iteration (raises ``Cancelled`` when cancelled); its deadline
         stops the methods like ``max_seconds``.
+    held : list of set of str, optional
+        Per surface, the parameter names the user gave (scene.json): held at their value, never
+        fitted (default: none; :func:`fit_workspace` passes every name not ``defaulted``).
+    reject : bool or int
+        Passes (True: :data:`REJECT_PASSES`) in which outlier pixels (:func:`outliers`: residual beyond :data:`REJECT_SIGMAS` image-noise σ,
+        at most :data:`REJECT_SHARE` of the used pixels) are left out and the fit repeated from
+        where it stopped; ``stats["rejected"]`` counts and lists them.
 
     Returns
     -------
@@ -949,6 +1017,8 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     p = init.copy()
     free = _structural_free(pb, p)
     pb.phases["structure"] = time.perf_counter() - t0
+    if held is not None:
+        _hold(fac, free, held)
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
@@ -961,10 +1031,13 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         else:
             p, nit, message = _nftbo(pb, p, free, t0, trace, **kw)
         pb.phases["refinement"] += time.perf_counter() - t_method
+        clip(fac, p)  # NF-TBO's reparametrisation has no upper bounds (F-TBO stays inside)
         iterations += nit
         A = fac.matrices(p.theta)
         res = pb.residual(A, fac.y(p.x, p.s))
-        sig = uncertainty(pb, p, free, res)
+        # Which parameters to hold: the model-based σ (the data's own resolution); the robust σ
+        # below also counts misfit, which holding a parameter at its start would not cure.
+        sig = uncertainty(pb, p, free, res, robust=False)
         bad = _unresolved(pb, p, init, free, sig, A)
         if bad.count() == 0 or pb.out_of_time():
             break
@@ -984,7 +1057,25 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         if rounds == max_rounds:
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
-            sig = uncertainty(pb, p, free, res)
+    sig = uncertainty(pb, p, free, res)
+    absorbed = texture_absorbed(fac, p, A, textured)
+    if absorbed.any():
+        # A free texture explains every pixel where it is seen directly: σ from the others only
+        # (kd of a textured surface is its texture's mean: its σ stays the one from every pixel).
+        tex_kd = np.array([bool(textured[s]) and name == "kd" for s, name in fac.layout.x_names], dtype=bool)
+        # The texture (its mean kd included) counts as known from the pixels that see it directly.
+        sig_t = uncertainty(pb, p, Free(free.x & ~tex_kd[:, None], free.s, free.theta), res, keep=~absorbed)
+        sig = Params(np.where(tex_kd[:, None], sig.x, np.fmax(sig.x, sig_t.x)), np.fmax(sig.s, sig_t.s),
+                     np.fmax(sig.theta, sig_t.theta))
+    # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
+    loose = _unresolved(pb, p, init, free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+    # A lobe's ks means nothing without its shininess: held or undetermined θ makes its ks so too.
+    lay = fac.layout
+    for k, (s, name) in enumerate(lay.x_names):
+        th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
+        if name != "kd" and (np.any(~free.theta[th]) or np.any(loose.theta[th])):
+            loose.x[k] |= free.x[k]
+    elapsed = time.perf_counter() - t0
     rms = pb.rms(res)
     trace.append(_trace_point(t0, rms))
     status, warnings = diagnose(pb, p, A, res, textured, names)
@@ -994,11 +1085,102 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
+    if int(reject) > 0 and not message.startswith("stopped"):
+        bad = outliers(pb, p, A, res, textured)
+        if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
+            first = FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace, [], rounds,
+                              pb.evaluations, iterations, message)
+            return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
+                                  task=task, held=held, t0=t0, passes=REJECT_PASSES if reject is True else int(reject),
+                                  max_seconds=None if max_seconds is None else max_seconds - elapsed)
     return FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace,
-                     _undetermined(fac, free, materials), rounds, pb.evaluations, iterations, message,
-                     {"used_pixels": int(fac.n_rows), "free_parameters": free.count(),
+                     _undetermined(fac, free, materials, loose), rounds, pb.evaluations, iterations, message,
+                     {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
                       "noise": [float(v) for v in pb.noise], "status": status, "warnings": warnings,
-                      "phases_s": {k: round(v, 6) for k, v in pb.phases.items()}, "scan_evaluations": pb.scan_evaluations})
+                      "phases_s": {k: round(v, 6) for k, v in pb.phases.items()}, "scan_evaluations": pb.scan_evaluations,
+                      "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}})
+
+
+def texture_absorbed(fac: Factorization, p: Params, A, textured) -> np.ndarray:
+    """(R,) bool: used pixels where directly seen texture carries at least :data:`ABSORB_SHARE`
+    of the predicted light in some band.
+
+    A texture free per texel (about one per pixel) can take up any residual there — a highlight,
+    a faint reflection — so those pixels say nothing about the other parameters once the texture
+    is free. Only pixels where texture is not seen directly (a reflection of it in a mirror, a
+    view through glass, untextured surfaces) tell a specular term from albedo.
+    """
+    if textured is None or not any(textured):
+        return np.zeros(fac.n_rows, dtype=bool)
+    direct = np.array([bool(textured[s]) and fac.layout.x_names[i][1] == "kd" for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
+    direct &= ~fac.exponents.any(axis=1)  # no r or t on the path: seen directly
+    if not direct.any():
+        return np.zeros(fac.n_rows, dtype=bool)
+    y = fac.y(p.x, p.s)
+    out = np.zeros(fac.n_rows, dtype=bool)
+    for c in range(BANDS):
+        total = A[c] @ y[c]
+        part = A[c] @ np.where(direct, y[c], 0.0)
+        out |= part > ABSORB_SHARE * np.maximum(total, 1e-300)
+    return out
+
+
+def outliers(pb: Problem, p: Params, A, res, textured=None) -> np.ndarray:
+    """Flat pixel indices whose residual exceeds :data:`REJECT_SIGMAS` σ in some band (σ the image
+    noise or 1.4826 × the median absolute residual, the larger).
+
+    The same test as :func:`diagnose`'s (plus :data:`DIAG_FLOOR` of the peak, plus on textured
+    surfaces the diffuse radiance their homogeneous kd predicts), at a lower threshold.
+    """
+    fac = pb.fac
+    textured = [False] * len(fac.models) if textured is None else [bool(t) for t in textured]
+    # The scale: the image noise, or the residual's own robust spread when larger (an outlier that
+    # pulled the fit leaves every pixel a little off, far below its own residual).
+    spread = 1.4826 * np.median(np.abs(res), axis=1) if res.size else np.zeros(BANDS)
+    tol = np.broadcast_to((REJECT_SIGMAS * np.maximum(pb.noise, spread) + DIAG_FLOOR * pb.peak)[:, None], res.shape).copy()
+    diffuse = np.array([textured[s] and fac.layout.x_names[i][1] == "kd" for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
+    if diffuse.any() and fac.albedo is None:
+        y = fac.y(p.x, p.s)
+        tol += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
+    excess = np.max(np.abs(res) / tol, axis=0)
+    over = excess > 1.0
+    if over.sum() > REJECT_SHARE * fac.n_rows:
+        # Too many to be outliers — unless a few strong ones pulled the fit so that the rest
+        # misfit a little: take the worst (over half the largest excess) first, refit, repeat.
+        over &= excess > 0.5 * excess.max()
+    return fac.rows[over]
+
+
+def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, t0, passes, **kw) -> FitResult:
+    """Fit again from ``first`` with the pixels ``bad`` left out; traces, counts and time add up."""
+    again = fit(fac.without(bad), image, first.materials, method, scan=False, reject=passes - 1, **kw)
+    width = fac.width
+    pixels = [[int(i % width), int(i // width)] for i in bad] + again.stats["rejected"]["pixels"]
+    rejected = {"count": len(pixels), "pixels": pixels, "threshold_sigmas": REJECT_SIGMAS}
+    bad = pixels
+    warnings = [f"{len(bad)} outlier pixel(s) left out of the fit (residual above {REJECT_SIGMAS:g} times the image noise or the residual's robust spread; "
+                "fit.json 'rejected' lists them as [x, y])"] + [w for w in again.stats.get("warnings", []) if "outlier" not in w]
+    offset = first.time_s
+    return dataclasses.replace(
+        again, trace=first.trace + [[offset + t, r] for t, r in again.trace], time_s=time.perf_counter() - t0,
+        evaluations=first.evaluations + again.evaluations, iterations=first.iterations + again.iterations,
+        rounds=first.rounds + again.rounds, stats={**again.stats, "rejected": rejected, "warnings": warnings})
+
+
+def _hold(fac: Factorization, free: Free, held) -> None:
+    """Take the user-given parameters (per surface, a set of names) out of ``free`` in place."""
+    lay = fac.layout
+    for k, (s, name) in enumerate(lay.x_names):
+        if name in held[s]:
+            free.x[k] = False
+    for q, (s, name) in enumerate(lay.theta_names):
+        if name in held[s]:
+            free.theta[q] = False
+    for i in range(len(fac.models)):
+        if "r" in held[i]:
+            free.s[2 * i] = False
+        if "t" in held[i]:
+            free.s[2 * i + 1] = False
 
 
 def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple[str, list]:
@@ -1069,16 +1251,21 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple
         "or geometry, lights or camera that do not match the image"]
 
 
-def _undetermined(fac: Factorization, free: Free, materials) -> list:
-    """Per surface, the names of the parameters held at their initial value ("ks[2]" for one band)."""
+def _undetermined(fac: Factorization, free: Free, materials, loose: Free | None = None) -> list:
+    """Per surface, the names of the parameters held at their initial value ("ks[2]" for one band),
+    and of those fitted whose (robust) σ exceeds their scale (``loose``)."""
     lay, out = fac.layout, []
+    if loose is None:
+        loose = Free(np.zeros_like(free.x), np.zeros_like(free.s), np.zeros_like(free.theta))
     for i, (model, mat) in enumerate(zip(fac.models, materials)):
         names = []
         for j, name in enumerate(model.linear):
-            names += _band_names(name, ~free.x[lay.x_offset[i] + j])
-        names += _band_names("r", ~free.s[2 * i])
-        names += _band_names("t", ~free.s[2 * i + 1])
-        names += [name for j, name in enumerate(model.nonlinear) if not free.theta[lay.theta_offset[i] + j]]
+            k = lay.x_offset[i] + j
+            names += _band_names(name, ~free.x[k] | loose.x[k])
+        names += _band_names("r", ~free.s[2 * i] | loose.s[2 * i])
+        names += _band_names("t", ~free.s[2 * i + 1] | loose.s[2 * i + 1])
+        names += [name for j, name in enumerate(model.nonlinear)
+                  if not free.theta[lay.theta_offset[i] + j] or loose.theta[lay.theta_offset[i] + j]]
         out.append(names)
     return out
 
@@ -1092,6 +1279,7 @@ def _band_names(name, held) -> list:
 def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: dict | None = None) -> dict:
     """The fit.json object of INTERFACES.md (plus diagnostics)."""
     lay, surfaces = fac.layout, []
+    bounds = result.stats.get("at_bound")
     for i, (surf, model, mat) in enumerate(zip(scene.surfaces, fac.models, result.materials)):
         sigma = {}
         for j, name in enumerate(model.linear):
@@ -1103,7 +1291,7 @@ def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: di
         sigma["r"] = _sigma_list(result.sigma.s[2 * i], result.free.s[2 * i])
         sigma["t"] = _sigma_list(result.sigma.s[2 * i + 1], result.free.s[2 * i + 1])
         surfaces.append({"name": surf.name, "material": mat.to_json(), "sigma": sigma,
-                         "undetermined": result.undetermined[i]})
+                         "undetermined": result.undetermined[i], "at_bound": bounds[i] if bounds else {}})
     out = {
         "method": result.method, "depth": int(depth), "time_s": round(result.time_s, 6),
         "rms": [float(v) for v in result.rms], "trace": result.trace, "surfaces": surfaces,
@@ -1112,9 +1300,20 @@ def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: di
         "iterations": result.iterations, "evaluations": result.evaluations, "rounds": result.rounds,
         "message": result.message,
     }
-    out.update(result.stats)
+    out.update({k: v for k, v in result.stats.items() if k != "at_bound"})
     out.update(extra or {})
-    return out
+    return _finite(out)
+
+
+def _finite(obj):
+    """``obj`` (JSON-like) with every NaN or infinite float replaced by None."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def _sigma_list(sig, free) -> list:
@@ -1182,8 +1381,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if fac.n_columns == 0:
         raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
                              got="no pixel sees a lit surface")
+    # What the user gave in scene.json is held (Material.defaulted names the rest).
+    held = [{n for n in s.material.params if n not in s.material.defaulted} for s in scene]
     result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
-                 textured=[s.textured for s in scene], names=scene.names, task=task)
+                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held)
     rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
     if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
@@ -1192,7 +1393,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         homogeneous_rms = [float(v) for v in result.rms]
         result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
                                            mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
-                                           maxiter=maxiter, progress=progress, task=task,
+                                           maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,

@@ -33,6 +33,11 @@ from inverse.fitting import FitResult, fit
 from inverse.rendering import node_radiance
 from inverse.texture import TextureOptions, recover_texture, sample_texture
 
+#: A round whose fit leaves an RMS residual more than RISE times the best so far is not kept. Each
+#: round's residual is against its own texture, so the rounds share no objective: a lower RMS does
+#: not mean better parameters (measured on the textured lab: round 2 right with a higher RMS than
+#: round 1), but a several-fold rise means the round's texture went wrong.
+RISE = 2.0
 #: A pixel feeds the texture when directly seen texture carries at least this share of its light.
 MIN_SHARE = 0.9
 
@@ -93,7 +98,7 @@ def relative_albedo(trees, textured, result) -> np.ndarray:
 def fit_with_texture(trees, scene, models, intensities, image, start: FitResult, *, mask=None, rounds: int = 2,
                      min_share: float = MIN_SHARE, method: str = "ftbo", options: TextureOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
-                     progress=None, task=None) -> tuple[FitResult, list]:
+                     progress=None, task=None, held=None) -> tuple[FitResult, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
     Parameters
@@ -125,12 +130,16 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         Called with each round's record.
     task : hardware.task.Task, optional
         Handed to each round's fit; no round starts once it is out of time.
+    held : list of set of str, optional
+        Per surface, the names given in scene.json (held; :func:`inverse.fitting.fit`).
 
     Returns
     -------
     FitResult
-        The last round's fit; ``trace`` continues the start's, ``time_s``, ``evaluations`` and
-        ``iterations`` add up.
+        The last round kept: a round is dropped when its RMS residual (against its own texture)
+        is more than :data:`RISE` times the best so far, and the next round starts from the
+        best; ``stats["best_round"]`` says which was kept (0 = the start); ``trace`` continues the start's, ``time_s``, ``evaluations`` and
+        ``iterations`` add up, ``stats["best_round"]`` says which (0 = the start).
     list of dict
         Per round: ``round``, ``pixels_left_out`` (from the texture), ``rms`` per band,
         ``texture_s``, ``fit_s``.
@@ -138,7 +147,17 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
     textured = np.array([s.textured for s in scene], dtype=bool)
+    # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
+    # for outliers where the homogeneous fit excused it as albedo variation).
+    rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
+    n_pix = trees.width * trees.height
+    mask = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix).copy()
+    if rejected["count"]:
+        xy = np.asarray(rejected["pixels"], dtype=np.int64).reshape(-1, 2)
+        mask[xy[:, 1] * trees.width + xy[:, 0]] = False
     result, records, relative = start, [], None
+    best, best_err, best_round = start, float(np.sum(np.asarray(start.rms) ** 2)), 0
+    best_relative = None
     trace, elapsed = [list(p) for p in start.trace], start.time_s
     evaluations, iterations = start.evaluations, start.iterations
     t_start = time.perf_counter()
@@ -156,7 +175,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
         result = fit(fac, image, result.materials, method, textured=list(textured), names=scene.names, scan=False,
-                     maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task)
+                     maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
+                     held=held, reject=False)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0
@@ -164,8 +184,16 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         iterations += result.iterations
         record = {"round": k + 1, "pixels_left_out": int(left_out.sum()), "rms": [float(v) for v in result.rms],
                   "texture_s": round(t1 - t0, 3), "fit_s": round(t2 - t1, 3)}
+        err = float(np.sum(np.asarray(result.rms) ** 2))
+        record["kept"] = bool(err < RISE**2 * best_err)
+        if record["kept"]:
+            best, best_err, best_round = result, min(err, best_err), k + 1
+        else:  # a round whose texture made the image worse: its successor starts from the best
+            result, relative = best, best_relative
+        if best_round == k + 1:
+            best_relative = relative
         records.append(record)
         if progress is not None:
             progress(record)
-    result = dataclasses.replace(result, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
+    result = dataclasses.replace(best, stats={**best.stats, "best_round": best_round, "rejected": rejected}, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
     return result, records

@@ -66,17 +66,28 @@ def test_bad_input_is_a_clear_error(workspace, case, capsys):
 
 
 def test_poor_fit_is_reported_and_exits_3(workspace, capsys):
-    """A bright spot no surface model can make, on surfaces all declared homogeneous."""
+    """A bright patch no surface model can make, on surfaces all declared homogeneous: too many
+    pixels (64, over 1% of those used) to be outliers; a 3x3 speck is rejected and mapped instead."""
     root, img, truth = workspace
     scene = json.loads((root / "scene.json").read_text())
     original = json.dumps(scene)
     for item in scene["surfaces"]:
         item["textured"] = False
     write_json(root / "scene.json", scene)
-    spot = img.copy()
-    spot[30:33, 10:13] += 0.3 * img.max()
-    write_image(root / "input.exr", spot)
     try:
+        speck = img.copy()
+        speck[30:33, 10:13] += 0.3 * img.max()
+        write_image(root / "input.exr", speck)
+        assert main(["fit", str(root), "--max-seconds", "60"]) == 0
+        fit = json.loads((root / "fit.json").read_text())
+        assert fit["rejected"]["count"] == 9 and sorted(map(tuple, fit["rejected"]["pixels"])) == [
+            (u, v) for u in range(10, 13) for v in range(30, 33)]
+        tile = {s["name"]: s for s in fit["surfaces"]}["tile"]["material"]
+        np.testing.assert_allclose(tile["kd"], truth[4]["kd"], rtol=1e-4)
+        patch = img.copy()
+        patch[28:36, 8:16] += 0.3 * img.max()
+        write_image(root / "input.exr", patch)
+        capsys.readouterr()
         assert main(["fit", str(root), "--max-seconds", "60"]) == 3
     finally:
         write_json(root / "scene.json", json.loads(original))

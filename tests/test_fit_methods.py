@@ -161,7 +161,12 @@ def test_diagnosis_flags_what_the_model_cannot_explain(lab):
     v, u = np.divmod(np.flatnonzero(ground)[len(np.flatnonzero(ground)) // 2], W)
     spot = clean.copy()
     spot[v - 1:v + 2, u - 1:u + 2] += 0.3 * clean.max()
-    bad = fit(fac, spot, _initial(truth), "ftbo", names=lab_.scene.names)
+    # A 3x3 speck is an outlier: rejected, mapped, and the ground's kd exact without it.
+    speck = fit(fac, spot, _initial(truth), "ftbo", names=lab_.scene.names)
+    assert speck.stats["status"] == "ok" and speck.stats["rejected"]["count"] == 9
+    assert sorted(map(tuple, speck.stats["rejected"]["pixels"])) == [(x, y) for x in range(u - 1, u + 2) for y in range(v - 1, v + 2)]
+    np.testing.assert_allclose(speck.params.x[0], truth[0]["kd"], rtol=1e-6)
+    bad = fit(fac, spot, _initial(truth), "ftbo", names=lab_.scene.names, reject=False)
     assert bad.stats["status"] == "poor fit"
     assert "ground" in bad.stats["warnings"][0] and "does not explain" in bad.stats["warnings"][0]
     # Declared textured, the ground may carry albedo variation: the spot is left to the texture stage.

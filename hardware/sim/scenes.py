@@ -1,0 +1,123 @@
+"""Textured test scenes for the fit, other than the demo lab (docs/fit.md, "Textured scenes").
+
+Each is built from :mod:`reconstruction.scene` types with a known per-point albedo, for the
+independent renderer (:func:`hardware.sim.reference.render_reference`):
+
+- ``shiny_box``: a shiny textured box (phong, ks 0.3, ns 40) on a plain matte ground, two lamps
+  whose highlights fall on its top at different places;
+- ``floor_mirror``: a matte textured floor (phong ks 0.04, ns 12) seen directly and in an upright
+  mirror (r 0.85), one lamp;
+- ``curved``: a textured cylinder (curved mesh, phong ks 0.2, ns 20) lying on a plain matte
+  ground, two lamps.
+
+The camera looks down at about 40° from 0.5 m (like the lab's); textures are smooth procedural
+functions of the surface point in [0.1, 0.9] with features of 1–3 cm.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.camera import Camera
+from calibration.lights import Lights, PointLight
+from hardware.sim.lab import _material, _rot_z, box_mesh, plane_mesh
+from reconstruction.scene import Mesh, Scene, Surface
+
+NAMES = ("shiny_box", "floor_mirror", "curved")
+
+
+@dataclass
+class TexturedScene:
+    """Camera, lamps, scene (true materials, kd = mean albedo) and the true albedo per surface."""
+
+    name: str
+    camera: Camera
+    lights: Lights
+    scene: Scene
+    textures: dict = field(default_factory=dict)
+
+    def albedo(self, surface_index: int, points: np.ndarray) -> np.ndarray:
+        """True albedo (N, 3) of a surface at world points (N, 3) (the renderer's ``albedo``)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        tex = self.textures.get(int(surface_index))
+        if tex is None:
+            return np.broadcast_to(self.scene[surface_index].material["kd"], points.shape).copy()
+        return tex(points)
+
+
+def _pattern(points, scale: float, colours) -> np.ndarray:
+    """A smooth two-colour pattern (waves and soft blobs) of world points, features ~``scale``."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    w = 0.5 + 0.5 * np.sin(2 * np.pi * (x + 0.4 * y) / scale) * np.cos(2 * np.pi * (y - 0.3 * z) / (1.3 * scale))
+    w = 0.5 + 0.5 * np.tanh(3.0 * (w - 0.5) + np.sin(2 * np.pi * z / (0.9 * scale)))
+    a, b = (np.asarray(c, dtype=np.float64) for c in colours)
+    return np.clip(a + (b - a) * w[:, None], 0.1, 0.9)
+
+
+def cylinder_mesh(radius: float, length: float, center, axis_deg: float = 0.0, segments: int = 48) -> Mesh:
+    """A closed cylinder lying along the rotated x axis (flat facets, capped, outward triangles)."""
+    ang = 2 * np.pi * np.arange(segments) / segments
+    ring = np.stack([np.zeros(segments), radius * np.cos(ang), radius * np.sin(ang)], axis=1)
+    left, right = ring + [-length / 2, 0, 0], ring + [length / 2, 0, 0]
+    verts = np.concatenate([left, right, [[-length / 2, 0, 0], [length / 2, 0, 0]]])
+    i = np.arange(segments)
+    j = (i + 1) % segments
+    cl, cr = 2 * segments, 2 * segments + 1
+    side = np.concatenate([np.stack([i, j, segments + j], 1), np.stack([i, segments + j, segments + i], 1)])
+    caps = np.concatenate([np.stack([np.full(segments, cl), j, i], 1), np.stack([np.full(segments, cr), segments + i, segments + j], 1)])
+    tris = np.concatenate([side, caps])
+    # Orient every triangle outward (its normal away from the axis or along the cap's side).
+    v = verts[tris]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    c = v.mean(axis=1)
+    out = c.copy()
+    out[:, 1:] = np.where(np.abs(c[:, :1]) > length / 2 - 1e-9, 0.0, c[:, 1:])
+    out[:, 0] = np.where(np.abs(c[:, 0]) > length / 2 - 1e-9, c[:, 0], 0.0)
+    flip = np.einsum("ij,ij->i", n, out) < 0
+    tris[flip] = tris[flip][:, ::-1]
+    R = _rot_z(axis_deg)
+    return Mesh(verts @ R.T + np.asarray(center, dtype=np.float64), tris)
+
+
+def _mean(mesh: Mesh, fn) -> np.ndarray:
+    return fn(mesh.sample_points(20000)).mean(axis=0)
+
+
+def build(name: str, width: int = 160, height: int = 120) -> TexturedScene:
+    """One of :data:`NAMES` at ``width`` x ``height``."""
+    camera = Camera.look_at(640, 480, fov_x_deg=36.0, eye=(0.0, -0.38, 0.36), target=(0.0, 0.02, 0.02))
+    camera = camera.scaled(width, height) if (width, height) != (640, 480) else camera
+    ground = plane_mesh((-0.8, 0.8), (-0.5, 1.2))
+    lamp = np.array([1.0, 0.92, 0.8])
+    if name == "shiny_box":
+        box = box_mesh((0.14, 0.10, 0.05), (0.0, 0.03, 0.025), _rot_z(15.0))
+        tex = lambda p: _pattern(p, 0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]))  # noqa: E731
+        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.45, 0.42, 0.38]), False, ground),
+                    Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex), ks=0.3, ns=40.0), True, box)]
+        lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
+        textures = {1: tex}
+    elif name == "floor_mirror":
+        mirror = box_mesh((0.22, 0.006, 0.16), (0.05, 0.10, 0.08), _rot_z(-8.0))
+        tex = lambda p: _pattern(p, 0.04, ([0.8, 0.7, 0.5], [0.15, 0.3, 0.35]))  # noqa: E731
+        surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex), ks=0.04, ns=12.0), True, ground),
+                    Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85), False, mirror)]
+        lights = [PointLight([-0.15, -0.2, 0.35], 0.1 * lamp)]
+        textures = {0: tex}
+    elif name == "curved":
+        cyl = cylinder_mesh(0.04, 0.18, (0.0, 0.03, 0.0401), axis_deg=20.0)
+        tex = lambda p: _pattern(p, 0.025, ([0.75, 0.7, 0.3], [0.2, 0.25, 0.6]))  # noqa: E731
+        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.42]), False, ground),
+                    Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
+        lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
+        textures = {1: tex}
+    else:
+        raise ValueError(f"unknown scene {name!r}; one of {NAMES}")
+    return TexturedScene(name, camera, Lights(lights), Scene(surfaces), textures)
+
+
+def render(ts: TexturedScene, depth: int = 3) -> np.ndarray:
+    """The photograph of ``ts`` by the independent reference renderer (noise-free, float64)."""
+    from hardware.sim.reference import render_reference
+
+    return render_reference(ts.scene, ts.camera, ts.lights, depth=depth, albedo=ts.albedo)

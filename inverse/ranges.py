@@ -1,0 +1,143 @@
+"""Physically plausible range of every fitted parameter (docs/fit.md, "Plausible ranges").
+
+Units are the project's: a white Lambertian surface has ``kd = 1`` (the 1/π lives in the lamp
+intensities), so a surface's directional albedo at normal incidence, relative to white, is
+
+    a = kd + ks · L(θ)
+
+with ``L`` the specular lobe's own albedo per unit ``ks``. A surface reflects no more light than
+it receives, so each term alone is at most 1:
+
+- ``kd`` in [0, 1] (with a known absolute texture, kd is a gain on it: at most 1 over its peak);
+- Phong ``ks`` in [0, 1 / L(ns)], ``L(ns) = 2 ∫₀^{π/2} cos^ns(θ/2) cos θ sin θ dθ`` (the lobe of
+  ``(n·h)^ns`` about the mirror direction at normal incidence, closed form below): 1.2 at
+  ns = 2, 4.5 at ns = 30, 37 at ns = 300 — a sharper lobe concentrates the same energy;
+- Ward ``ks`` (its ρ_s, already normalised) in [0, 1];
+- ``r``, ``t`` in [0, 1] (attenuations of ideal reflection and transmission);
+- θ in scene.json's ranges (:data:`reconstruction.scene.SCALAR_RANGE`): Ward α in [1e-4, 1],
+  Oren–Nayar σ in [0, π/2]; ns in [2, 2^20] (:data:`FIT_RANGE`; scene.json accepts 1e-3, but a
+  lobe broader than ns = 2 is as broad as diffuse light and only trades with kd).
+
+F-TBO keeps every value inside these ranges (its inner bounded least squares takes the θ-
+dependent upper bound of ks); :func:`clip` projects the result of a method that does not
+(NF-TBO's unbounded reparametrisation); :func:`at_bound` names values sitting on a bound.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from reconstruction.scene import SCALAR_RANGE
+
+#: Upper bound of kd, Ward ks, r and t.
+UNIT = 1.0
+#: The fit's narrower ranges than scene.json's: a Phong lobe broader than ns = 2 is as broad as
+#: diffuse light and trades with kd (a fitted ns there is held as undetermined).
+FIT_RANGE = {"ns": (2.0, 2.0**20)}
+#: Relative distance to a bound under which a value counts as on it.
+ON_BOUND = 1e-6
+
+
+def phong_lobe_albedo(ns) -> np.ndarray:
+    """``L(ns)``: albedo at normal incidence of ``(n·h)^ns`` per unit ks (closed form).
+
+    With ``c = cos(θ/2)``: ``L = 8 [2 c^(ns+4)/(ns+4) − c^(ns+2)/(ns+2)]`` from ``c = 1/√2`` to 1.
+    """
+    ns = np.asarray(ns, dtype=np.float64)
+    lo = np.sqrt(0.5)
+
+    def prim(c):
+        return 2.0 * c ** (ns + 4.0) / (ns + 4.0) - c ** (ns + 2.0) / (ns + 2.0)
+
+    return 8.0 * (prim(1.0) - prim(lo))
+
+
+def linear_upper(fac, theta) -> np.ndarray:
+    """(X,) upper bound of each flat linear parameter at nonlinear parameters ``theta``."""
+    lay = fac.layout
+    out = np.full(lay.n_x, UNIT)
+    gain = _kd_gain_limit(fac)
+    for k, (s, name) in enumerate(lay.x_names):
+        model = fac.models[s]
+        if name == "kd":
+            out[k] = gain[s]
+        if name == "ks" and model.name == "phong":
+            ns = theta[lay.theta_offset[s] + list(model.nonlinear).index("ns")]
+            out[k] = 1.0 / phong_lobe_albedo(ns)
+    return out
+
+
+def _kd_gain_limit(fac) -> np.ndarray:
+    """(S,) upper bound of each surface's kd: 1; with a known absolute texture (``fac.albedo`` at
+    most 1, kd a gain on it) 1 over its largest value. A relative texture (the texture rounds:
+    kd the surface's mean albedo) keeps 1: its largest value comes from a noisy recovery."""
+    out = np.ones(len(fac.models))
+    if getattr(fac, "albedo", None) is None:
+        return out
+    if not hasattr(fac, "_kd_gain_limit"):
+        surf = np.asarray(fac.trees.surface)[fac.node]
+        peak = np.zeros(len(fac.models))
+        np.maximum.at(peak, surf, fac.albedo.max(axis=1))
+        fac._kd_gain_limit = np.maximum(1.0, np.where(peak > 0, 1.0 / np.maximum(peak, 1e-300), 1.0))
+    return fac._kd_gain_limit
+
+
+def theta_bounds(fac) -> tuple[np.ndarray, np.ndarray]:
+    """(Q,), (Q,) lower and upper bounds of the nonlinear parameters (natural units) in the fit."""
+    names = [name for _, name in fac.layout.theta_names]
+    rng = {**SCALAR_RANGE, **FIT_RANGE}
+    lo = np.array([rng[n][0] for n in names], dtype=np.float64).reshape(-1)
+    hi = np.array([rng[n][1] for n in names], dtype=np.float64).reshape(-1)
+    return lo, hi
+
+
+def clip(fac, p) -> bool:
+    """Project ``p`` (:class:`inverse.fitting.Params`) onto the ranges in place; True if it moved."""
+    lo, hi = theta_bounds(fac)
+    theta = np.clip(np.where(np.isnan(p.theta), lo, p.theta), lo, hi)  # NaN: to the lower bound
+    x = np.clip(np.nan_to_num(p.x, nan=0.0), 0.0, linear_upper(fac, theta)[:, None])
+    s = np.clip(np.nan_to_num(p.s, nan=0.0), 0.0, UNIT)
+    moved = bool(np.any(theta != p.theta) or np.any(x != p.x) or np.any(s != p.s))  # NaN != NaN: moved
+    p.theta[:], p.x[:], p.s[:] = theta, x, s
+    return moved
+
+
+def _side(value, lo, hi):
+    tol = ON_BOUND * max(hi - lo, 1.0) if np.isfinite(hi) else ON_BOUND
+    if value >= hi - tol:
+        return "upper"
+    if value <= lo + tol:
+        return "lower"
+    return None
+
+
+def at_bound(fac, p, free) -> list:
+    """Per surface, ``{name: side}`` of the fitted values on a bound (``"ks[0]": "upper"``).
+
+    Only fitted values count (held ones are the user's or the start's). ``r = 0``, ``t = 0`` or
+    ``ks = 0`` at the lower bound are listed too: they are real answers, but the σ of a value on
+    a bound is one-sided.
+    """
+    lay = fac.layout
+    ub = linear_upper(fac, p.theta)
+    lo_t, hi_t = theta_bounds(fac)
+    out = [dict() for _ in fac.models]
+
+    def band(name, c):
+        return f"{name}[{c}]"
+
+    for k, (s, name) in enumerate(lay.x_names):
+        for c in range(p.x.shape[1]):
+            if free.x[k, c] and (side := _side(p.x[k, c], 0.0, ub[k])):
+                out[s][band(name, c)] = side
+    for f in range(lay.n_factors):
+        s, name = f // 2, ("r", "t")[f % 2]
+        for c in range(p.s.shape[1]):
+            if free.s[f, c] and (side := _side(p.s[f, c], 0.0, UNIT)):
+                out[s][band(name, c)] = side
+    for q, (s, name) in enumerate(lay.theta_names):
+        if free.theta[q]:
+            lo, hi = np.log2(lo_t[q]), np.log2(hi_t[q])
+            side = _side(np.log2(max(p.theta[q], 1e-300)), lo, hi) if name in ("ns", "alpha") else _side(p.theta[q], lo_t[q], hi_t[q])
+            if side:
+                out[s][name] = side
+    return out

@@ -1,0 +1,79 @@
+"""One-sigma uncertainties of the fitted parameters that hold when the model is imperfect.
+
+The textbook covariance ``σ² (JᵀJ)⁻¹`` assumes independent Gaussian pixel noise around a
+correct model. A textured photograph breaks that: where the fit holds an albedo constant (or the
+recovered texture is imperfect), the residual is spatially correlated over whole texture
+features, edges misalign over runs of pixels, and ``σ² (JᵀJ)⁻¹`` then reports errors 100 times
+too small (docs/fit.md). So the covariance is the larger, per parameter, of
+
+- the **model-based** one, ``H⁻¹`` with ``H = JᵀWJ``, ``W = 1/σ_c²`` per band (σ_c from the
+  residual, never below :data:`inverse.fitting.NOISE_FLOOR` of the peak); and
+- the **cluster-robust sandwich** over image tiles, ``H⁻¹ M H⁻¹`` with ``M = T/(T−1) Σ_t g_t g_tᵀ``
+  and ``g_t = Σ_{i ∈ tile t} J_iᵀ W r_i`` (the gradient of the objective contributed by tile t):
+  the spread of the parameters that the residual's actual structure implies, correlations within
+  a tile included (Liang–Zeger; White's heteroscedastic sandwich for one-pixel tiles).
+
+When the model is right both agree (the sandwich is the noisier estimate); when it is not, the
+sandwich grows with the misfit that correlates with each parameter's image, which is what moves
+that parameter. A linear parameter's σ is never NaN: directions the data do not constrain get
+``inf`` (and are judged undetermined by the caller).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Target number of tiles across the image's shorter side (tile size = shorter side / this, ≥ 4 px).
+TILES_ACROSS = 12
+#: Smallest tile side in pixels.
+MIN_TILE = 4
+
+
+def tile_size(width: int, height: int) -> int:
+    """Side in pixels of the square tiles of the sandwich (about :data:`TILES_ACROSS` on the short side)."""
+    return max(MIN_TILE, int(min(width, height)) // TILES_ACROSS)
+
+
+def tile_index(rows: np.ndarray, width: int, height: int) -> tuple[np.ndarray, int]:
+    """Tile of each used pixel (flat index ``rows``), renumbered 0..T−1 over the tiles in use."""
+    side = tile_size(width, height)
+    nx = -(-width // side)
+    rows = np.asarray(rows)
+    tile = (rows // width // side) * nx + (rows % width) // side
+    used, inv = np.unique(tile, return_inverse=True)
+    return inv.reshape(-1), len(used)
+
+
+def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Standard deviations from the normal matrix ``H`` (n, n) and tile scores (n, T).
+
+    Returns
+    -------
+    model : (n,) ndarray
+        ``sqrt(diag(H⁻¹))``; ``inf`` where ``H`` is singular along the parameter.
+    robust : (n,) ndarray
+        ``sqrt(diag(H⁻¹ M H⁻¹))`` (``model`` where no scores are given); ``inf`` likewise.
+    """
+    n = H.shape[0]
+    model = np.full(n, np.inf)
+    robust = np.full(n, np.inf)
+    if n == 0:
+        return model, robust
+    dg = np.sqrt(np.maximum(np.diag(H), 0.0))
+    ok = dg > 0
+    if not ok.any():
+        return model, robust
+    Hs = H[np.ix_(ok, ok)] / np.outer(dg[ok], dg[ok])
+    w, V = np.linalg.eigh(Hs)
+    floor = 1e-14 * max(w.max(), 1e-300)
+    w = np.maximum(w, floor)
+    inv = (V / w) @ V.T  # scaled (H⁻¹ up to the diagonal scaling)
+    model[ok] = np.sqrt(np.maximum(np.diag(inv), 0.0)) / dg[ok]
+    if scores is None or scores.shape[1] < 2:
+        robust[:] = model
+        return model, robust
+    T = scores.shape[1]
+    G = scores[ok] / dg[ok, None]
+    B = inv @ G  # (n_ok, T)
+    var = np.einsum("it,it->i", B, B) * T / (T - 1.0)
+    robust[ok] = np.sqrt(np.maximum(var, 0.0)) / dg[ok]
+    return model, robust
