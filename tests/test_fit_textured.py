@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from inverse.factorization import Factorization
-from inverse.fitting import fit, params_of
+from inverse.fitting import Free, fit, params_of
 from inverse.models import get_model
 from inverse.ranges import at_bound, clip, linear_upper, phong_lobe_albedo
 from reconstruction.scene import Material, Scene, Surface
@@ -145,7 +145,8 @@ def test_plausible_ranges_are_kept_and_flagged():
     p.x[fac.layout.x_offset[1] + 1] = [16.1, 0.0, 0.0]
     p.theta[0] = 2.4
     assert clip(fac, p) and p.x[fac.layout.x_offset[1] + 1, 0] == pytest.approx(1 / phong_lobe_albedo(2.4))
-    assert at_bound(fac, p, res.free)[1]["ks[0]"] == "upper"
+    every = Free(np.ones_like(p.x, dtype=bool), np.ones_like(p.s, dtype=bool), np.ones_like(p.theta, dtype=bool))
+    assert at_bound(fac, p, every)[1]["ks[0]"] == "upper"
 
 
 def test_values_given_in_scene_json_are_held():
