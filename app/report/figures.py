@@ -20,7 +20,7 @@ def png_uri(rgb8: np.ndarray) -> str:
     arr = np.ascontiguousarray(rgb8)
     if arr.ndim == 3:
         arr = np.ascontiguousarray(arr[:, :, ::-1])
-    ok, buf = cv2.imencode(".png", arr)
+    ok, buf = cv2.imencode(".png", arr, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     if not ok:
         raise ValueError("could not encode a PNG")
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
