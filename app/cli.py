@@ -52,13 +52,16 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import errno
 
-    from hardware.workspace import WorkspaceError
+    from hardware.workspace import OptionError, WorkspaceError
 
     try:
         check_inputs(args)
         return int(args._run(args) or 0)
     except WorkspaceError as exc:
         print(f"reflab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OptionError as exc:  # a stage's bad option, named by its flag
+        print(f"reflab {args.command}: error: {exc.cli_text}", file=sys.stderr)
         return 2
     except OSError as exc:  # what no check foresaw (disk full, a folder made read-only meanwhile): one line
         if exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT):

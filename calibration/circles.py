@@ -40,15 +40,17 @@ class GridDetection:
     reason: str = ""
 
 
-def parse_grid(text: str) -> tuple[int, int]:
-    """``"COLSxROWS"`` -> (cols, rows), each ≥ 2; ValueError naming the value otherwise."""
+def parse_grid(text: str, option: str = "grid") -> tuple[int, int]:
+    """``"COLSxROWS"`` -> (cols, rows), each ≥ 2; an OptionError naming ``option`` otherwise."""
+    from hardware.workspace import OptionError
+
     parts = str(text).lower().split("x")
     try:
         cols, rows = (int(p) for p in parts)
     except ValueError:
-        raise ValueError(f"--grid: expected COLSxROWS such as 11x8, got {text!r}") from None
+        raise OptionError(option, f"expected COLSxROWS such as 11x8, got {text!r}") from None
     if cols < 2 or rows < 2:
-        raise ValueError(f"--grid: need at least 2 circles per row and column, got {text!r}")
+        raise OptionError(option, f"need at least 2 circles per row and column, got {text!r}")
     return cols, rows
 
 

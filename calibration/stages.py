@@ -4,7 +4,7 @@
 :func:`calibrate_lights` writes lights.json (and marks.json when it detects marks) from rod
 shadows. The CLI (``reflab calibrate``), the GUI and the demo call these; each checks its
 :class:`hardware.task.Task` between images and writes its file only once everything succeeded.
-Bad arguments raise ``ValueError`` naming the option (the option field's name), bad files
+Bad options raise :class:`hardware.workspace.OptionError` naming the options field, bad files
 :class:`hardware.workspace.WorkspaceError`.
 """
 from __future__ import annotations
@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from hardware.task import Task, ensure
+from hardware.workspace import OptionError
 
 
 @dataclass
@@ -126,12 +127,12 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
     ws = Workspace(check_folder(o.workspace, write=True, create=True))  # a first calibration may start it
     cols, rows = parse_grid(o.grid) if isinstance(o.grid, str) else (int(o.grid[0]), int(o.grid[1]))
     if not o.spacing > 0:
-        raise ValueError(f"--spacing must be a positive number of metres, got {o.spacing}")
+        raise OptionError("spacing", f"must be a positive number of metres, got {o.spacing}")
     paths = [Path(p) for p in o.images] if o.images else image_files(ws.captures_of("calibration"))
     if not paths:
         raise ValueError(f"no target images given and none in {ws.captures_of('calibration')}")
     if not 0 <= o.reference < len(paths):
-        raise ValueError(f"--reference {o.reference} is not an image index (0..{len(paths) - 1})")
+        raise OptionError("reference", f"{o.reference} is not an image index (0..{len(paths) - 1})")
     used, obs, areas, blobs, reasons, skipped, unreadable = [], [], [], [], "", [], []
     size = None
     for i, path in enumerate(paths):
@@ -160,8 +161,8 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
     if not blobs:
         raise ValueError(f"none of the {len(paths)} target images could be read")
     if not used and (np.median(blobs) != cols * rows or "grid size" in reasons):
-        raise ValueError(f"grid {cols}x{rows} ({cols * rows} circles) found in none of {len(paths)} images; "
-                         f"they show about {int(np.median(blobs))} dark blobs: check --grid (COLSxROWS)")
+        raise OptionError("grid", f"grid {cols}x{rows} ({cols * rows} circles) found in none of {len(paths)} images; "
+                                  f"they show about {int(np.median(blobs))} dark blobs: check the grid size (COLSxROWS)")
     if o.reference not in used:
         raise ValueError(f"the reference image {paths[o.reference]} has no detectable grid; "
                          "its pose is the one camera.json needs")
@@ -202,7 +203,7 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     height, marks = read_marks(marks_path) if o.marks else (None, [])
     detected, shots = [], None
     if images and o.marks:
-        raise ValueError("give either images to detect marks in or --marks, not both")
+        raise OptionError("marks", "give either images to detect marks in or a marks file, not both")
     geometric = lambda path: read_image(path, linear=False)  # noqa: E731 -- marks need no linear values
     if not o.marks:
         if marks_path.exists() and "marks" in read_json(marks_path):  # rod marks made (and corrected) before
@@ -210,7 +211,7 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
         if images:
             lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
             if len(lamps) != len(images):
-                raise ValueError(f"light: {len(lamps)} lamp indices for {len(images)} images")
+                raise OptionError("light", f"{len(lamps)} lamp indices for {len(images)} images")
             shots = [RodShot(str(p.relative_to(ws.root)) if p.is_relative_to(ws.root) else str(p), int(k))
                      for p, k in zip(images, lamps)]
         else:  # the lights session's shots: its manifest says which lamp lit each
@@ -225,25 +226,25 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     if o.rod_height is not None:
         height = o.rod_height
     if height is None or not height > 0:
-        raise ValueError(f"--rod-height must be a positive number of metres (got {height})")
+        raise OptionError("rod_height", f"must be a positive number of metres (got {height})")
     if not marks:
-        raise ValueError(f"no marks: give rod images or --marks (nothing in {marks_path})")
+        raise OptionError("marks", f"no marks: give rod images or a marks file (nothing in {marks_path})")
     # Written before locating, so that a user can correct a bad mark there and rerun with marks.
     written_marks = write_marks(marks_path, height, marks) if not o.marks else None
     if o.sheet and o.sheet_reflectance is None:
-        raise ValueError("--sheet needs --sheet-reflectance")
+        raise OptionError("sheet_reflectance", "needed with sheet images (the sheet's Lambertian reflectance)")
     if o.intensity and len(o.intensity) not in (1, 3):
-        raise ValueError(f"--intensity takes 1 or 3 values, got {len(o.intensity)}")
+        raise OptionError("intensity", f"takes 1 or 3 values, got {len(o.intensity)}")
     task.step(len(images), len(images) + 1, "locating the lamps")
     fits = locate_lamps(camera, marks, height, mark_sigma=o.mark_sigma)
     if [f.light for f in fits] != list(range(len(fits))):
         raise ValueError(f"lamp indices in the marks are {[f.light for f in fits]}; expected 0..{len(fits) - 1}")
     if o.sheet and len(o.sheet) != len(fits):
-        raise ValueError(f"--sheet: {len(o.sheet)} images for {len(fits)} lamps")
+        raise OptionError("sheet", f"{len(o.sheet)} images for {len(fits)} lamps")
     cards = {}
     if not o.sheet and o.sheet_reflectance is not None:  # the card in the rod shots, room light subtracted
         if o.sheet_region is None:
-            raise ValueError("--sheet-reflectance without --sheet images needs --sheet-region (the card on the table)")
+            raise OptionError("sheet_region", "needed with a sheet reflectance and no sheet images (the card on the table)")
         cards = card_intensities(ws.root, shots if shots is not None else rod_shots(ws.root), camera,
                                  {f.light: f.position for f in fits}, o.sheet_reflectance / np.pi, o.sheet_region,
                                  read_image)

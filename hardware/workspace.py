@@ -55,6 +55,22 @@ MANIFEST = "manifest.json"
 CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
 
 
+class OptionError(ValueError):
+    """A stage option with a bad value, named by its options field (``spacing``, ``rod_height``).
+
+    The message reads ``"<option>: <what is wrong>"`` in a library call or the GUI; the CLI shows
+    :attr:`cli_text`, the same with the command-line flag (``--rod-height: ...``).
+    """
+
+    def __init__(self, option: str, message: str):
+        self.option, self.message = option, message
+        super().__init__(f"{option}: {message}")
+
+    @property
+    def cli_text(self) -> str:
+        return f"--{self.option.replace('_', '-')}: {self.message}"
+
+
 class Workspace:
     """Paths of one scene's workspace: every file name of INTERFACES.md and docs/formats.md."""
 

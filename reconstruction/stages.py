@@ -19,7 +19,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from hardware.task import Task, ensure
-from hardware.workspace import Workspace, WorkspaceError, check_folder
+from hardware.workspace import OptionError, Workspace, WorkspaceError, check_folder
 
 
 @dataclass
@@ -85,7 +85,7 @@ def _reference_angle(ws) -> float:
 def _grid(target) -> tuple[int, int]:
     from calibration.circles import parse_grid
 
-    return parse_grid(target) if isinstance(target, str) else (int(target[0]), int(target[1]))
+    return parse_grid(target, "target") if isinstance(target, str) else (int(target[0]), int(target[1]))
 
 
 def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Task | None = None, *,
@@ -123,7 +123,7 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     if o.target is None:
         centre = np.asarray(o.turntable_centre, dtype=float).ravel()
         if centre.size != 2 or not np.all(np.isfinite(centre)):
-            raise ValueError(f"turntable centre: expected X,Y in metres, got {o.turntable_centre!r}")
+            raise OptionError("turntable_centre", f"expected X,Y in metres, got {o.turntable_centre!r}")
         centre = centre.tolist()
     ref_angle = _reference_angle(ws)
     reference = 0 if angles is None else int(np.argmin(np.abs((angles - ref_angle + 180.0) % 360.0 - 180.0)))
@@ -229,7 +229,7 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
         o = replace(o, marks=ws.marks)
     unknown = set(o.iors) - set(o.meshes)
     if unknown:
-        raise ValueError(f"ior: no imported mesh named {sorted(unknown)[0]!r}")
+        raise OptionError("ior", f"no imported mesh named {sorted(unknown)[0]!r}")
     existing = Scene.load(ws.scene) if ws.scene.exists() and not o.force else None
     if existing is not None and not o.meshes and not o.marks:
         return ReconstructResult(ws.scene)

@@ -16,6 +16,7 @@ from calibration.circles import detect_grid, parse_grid
 from calibration.tsai import CalibrationError, calibrate
 from hardware.sim import props as st
 from hardware.images import write_image
+from hardware.workspace import OptionError
 
 COLS, ROWS, SPACING, RADIUS = 11, 8, 0.015, 0.0045
 K_TRUE = np.array([[620.0, 0, 325.0], [0, 620.0, 236.0], [0, 0, 1]])
@@ -91,8 +92,9 @@ def test_too_few_views_and_degenerate_views_are_refused():
 def test_parse_grid_rejects_bad_sizes():
     assert parse_grid("11x8") == (11, 8)
     for bad in ("11", "11x", "x8", "1x8", "ax8"):
-        with pytest.raises(ValueError, match="--grid"):
+        with pytest.raises(OptionError, match="grid: ") as info:
             parse_grid(bad)
+        assert info.value.cli_text.startswith("--grid: ")  # what `reflab calibrate camera` prints
 
 
 @pytest.fixture(scope="module")

@@ -265,3 +265,13 @@ def test_turntable_poses_see_what_the_turned_objects_show():
         np.testing.assert_allclose(R[k] @ X.T + t[k][:, None], seen, atol=1e-12)
     R2, _ = turntable_poses(cam, angles, AXIS[:2], direction=-1.0)
     np.testing.assert_allclose(R2[1], cam.R @ rot_z(-30.0), atol=1e-12)
+
+
+def test_bad_options_name_their_flag_on_the_command_line_and_their_field_in_the_library(tmp_path, capsys):
+    from hardware.workspace import OptionError
+    from reconstruction.stages import ReconstructOptions, reconstruct
+
+    assert main(["reconstruct", str(tmp_path), "--target", "1x8"]) == 2
+    assert "--target: need at least 2 circles" in capsys.readouterr().err
+    with pytest.raises(OptionError, match="^ior: no imported mesh named 'pane'"):
+        reconstruct(ReconstructOptions(tmp_path, iors={"pane": 1.5}))

@@ -12,6 +12,13 @@ def _number(text: str, kind, what: str):
         raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
 
 
+def error_text(exc: Exception) -> str:
+    """A stage's error for the command line: an OptionError names the flag (``--rod-height: ...``)."""
+    from hardware.workspace import OptionError
+
+    return exc.cli_text if isinstance(exc, OptionError) else str(exc)
+
+
 def positive_int(text: str) -> int:
     """An integer >= 1 (depths, iteration caps)."""
     value = _number(text, int, "an integer >= 1")

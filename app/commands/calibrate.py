@@ -61,7 +61,9 @@ def run(args) -> int:
 
         if isinstance(exc, WorkspaceError):
             raise
-        print(f"reflab calibrate {args.what}: error: {exc}", file=sys.stderr)
+        from app.commands._args import error_text
+
+        print(f"reflab calibrate {args.what}: error: {error_text(exc)}", file=sys.stderr)
         return 2
 
 

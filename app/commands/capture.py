@@ -91,5 +91,7 @@ def run(args) -> int:
     except WorkspaceError:
         raise  # the CLI names the file and field, exit status 2
     except (CaptureError, GrblError, CameraError, ValueError) as exc:
-        print(f"reflab capture: error: {exc}", file=sys.stderr)
+        from app.commands._args import error_text
+
+        print(f"reflab capture: error: {error_text(exc)}", file=sys.stderr)
         return 1

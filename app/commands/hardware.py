@@ -8,8 +8,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-from app.devices import load_config, open_port  # noqa: F401  (light; app/gui imports load_config from here)
-
 HELP = "turntable and lamps over serial (GRBL 1.1): status | rotate DEG | lamp N on|off | unlock"
 
 
@@ -34,6 +32,7 @@ def describe(ctl) -> str:
 
 
 def run(args) -> int:
+    from app.devices import load_config, open_port
     from hardware.grbl import GrblAlarm, GrblController, GrblError
 
     config = load_config(args.config)

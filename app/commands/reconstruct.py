@@ -69,7 +69,7 @@ def options(args):
         if len(centre) != 2:
             raise ValueError(f"--turntable-centre: expected X,Y in metres, got {args.turntable_centre!r}")
     return ReconstructOptions(args.workspace, meshes, iors, args.marks and Path(args.marks),
-                              parse_grid(args.target) if args.target else None, args.spacing, centre, args.overlap,
+                              parse_grid(args.target, "target") if args.target else None, args.spacing, centre, args.overlap,
                               not args.free_poses, not args.no_fit, args.force)
 
 
@@ -79,7 +79,9 @@ def run(args) -> int:
     try:
         opts = options(args)
     except ValueError as exc:
-        print(f"reflab reconstruct: error: {exc}", file=sys.stderr)
+        from app.commands._args import error_text
+
+        print(f"reflab reconstruct: error: {error_text(exc)}", file=sys.stderr)
         return 2
     result = reconstruct(opts, log=lambda line: print(line, flush=True))
     if result.skipped:

@@ -25,13 +25,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", type=positive_int, default=3, help="maximum internal nodes per path (default 3)")
 
 
-def render_workspace(*args, **kwargs):
-    """:func:`inverse.stages.render_workspace` (kept here for callers of the old place)."""
-    from inverse.stages import render_workspace as render_model
-
-    return render_model(*args, **kwargs)
-
-
 def run(args) -> int:
     from inverse.stages import RenderOptions, render
 
