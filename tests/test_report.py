@@ -203,6 +203,7 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     # Lamp 0 is LAMP_SHIFT_MM from the truth; lamp 1 is where the marks put it.
     row = re.search(r"\b0\s+\[[^\]]+\]\s+\[[^\]]+\]\s+\[[^\]]+\].*?\[[^\]]+\]\s+([\d.]+)\s", text)
     assert row and float(row.group(1)) == pytest.approx(LAMP_SHIFT_MM, rel=1e-3)
+    assert re.search(r"intensity error \(%, worst band\)\s+0\s.*?\s0\.0\s+1\s", text)  # lights.json's intensities are the truth's
     assert re.search(r"shots registered\s+7 of 8\s+shots not registered\s+captures/turntable/0007\.exr\s", text)
     # The sparse points sit SURFACE_OFFSET_MM off the ground: its point-to-surface RMS says so.
     ground = re.search(r"ground\s+\S+\s+lambert\s+opaque\s+yes\s+(\d+)\s+([\d.]+)", text)

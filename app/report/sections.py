@@ -299,11 +299,16 @@ def lights_section(src: Sources) -> Section | None:
         if true_items:
             tp = _floats(true_items[k].get("position")) if k < len(true_items) else None
             err = float(np.linalg.norm(pos - tp)) * 1e3 if pos is not None and tp is not None else None
+            ti = _floats(true_items[k].get("intensity")) if k < len(true_items) else None
+            li = _floats(l.get("intensity"))
+            ierr = (100 * float(np.max(np.abs(li / ti - 1))) if li is not None and ti is not None and li.shape == ti.shape
+                    and np.all(ti > 0) else None)
             row += [num(tp.tolist() if tp is not None else None, 5), mm(err),
-                    num(err / float(np.linalg.norm(sd)), 2) if err is not None and sd is not None and np.linalg.norm(sd) > 0 else "–"]
+                    num(err / float(np.linalg.norm(sd)), 2) if err is not None and sd is not None and np.linalg.norm(sd) > 0 else "–",
+                    f"{ierr:.1f}" if ierr is not None else "–"]
         rows.append(row)
     head = ["lamp", "position (m)", "σ x, y, z (mm)", "intensity", "mark σ (px)", "outlier marks"]
-    sec.table(head + (["truth (m)", "error (mm)", "error / |σ|"] if true_items else []), rows)
+    sec.table(head + (["truth (m)", "error (mm)", "error / |σ|", "intensity error (%, worst band)"] if true_items else []), rows)
     if not any(isinstance(l.get("calibration"), dict) for l in items):
         sec.note("lights.json has no calibration blocks (written by hand or by another tool): no mark residuals.")
     marks = src.marks
@@ -712,6 +717,9 @@ def texture_section(src: Sources) -> Section | None:
                   [[i + 1, r.get("pixels_left_out"), num(r.get("rms")), num(r.get("texture_s"), 3), num(r.get("fit_s"), 3)]
                    for i, r in enumerate(rounds) if isinstance(r, dict)],
                   "fit.json texture_rounds: the fit refitted against the texture (docs/fit.md).")
+    if src.truth_dir.is_dir():
+        sec.note("truth/ holds no albedo maps: the texture is scored through the novel and relit views below "
+                 "(PSNR over the pixels of known albedo).")
     for e in as_list(idx.get("surfaces")):
         if not isinstance(e, dict):
             continue
