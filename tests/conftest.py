@@ -39,6 +39,15 @@ def lab_photo_workspace(root, width: int = 64, height: int = 48, *, textured: bo
     return lab, image
 
 
+@pytest.fixture(scope="module")
+def homogeneous_workspace(tmp_path_factory):
+    """The untextured 64x48 lab whose scene.json holds only what a user knows before fitting:
+    (root, image, true materials). Module-scoped: a test that changes input.exr writes it again."""
+    root = tmp_path_factory.mktemp("fitws")
+    lab, image = lab_photo_workspace(root, textured=False, known_only=True)
+    return root, image, [s.material for s in lab.scene]
+
+
 @pytest.fixture()
 def lab_workspace(tmp_path):
     """A 64x48 textured lab workspace with its photograph and the true materials: (root, lab, image)."""

@@ -10,13 +10,8 @@ from hardware.workspace import write_json
 
 
 @pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    """The untextured 64x48 lab; scene.json holds only what a user knows before fitting."""
-    from conftest import lab_photo_workspace
-
-    root = tmp_path_factory.mktemp("fitws")
-    lab, img = lab_photo_workspace(root, textured=False, known_only=True)
-    return root, img, [s.material for s in lab.scene]
+def workspace(homogeneous_workspace):
+    return homogeneous_workspace
 
 
 def test_fit_writes_materials_sigmas_trace_and_columns(workspace):

@@ -12,7 +12,11 @@ import pytest
 
 from app.cli import main
 from hardware.images import write_image
-from test_fit_cli import workspace  # noqa: F401 - the same 64x48 lab workspace (a fixture)
+
+
+@pytest.fixture(scope="module")
+def workspace(homogeneous_workspace):
+    return homogeneous_workspace  # the 64x48 lab of test_fit_cli (tests/conftest.py)
 
 
 def _noisy(img, seed=0):
