@@ -215,7 +215,8 @@ def camera_section(src: Sources) -> Section | None:
              if isinstance(cal.get("circle_radius_m"), (int, float)) else None),
             ("ellipse-centre bias correction", cal.get("bias_correction")),
             ("OpenCV cross-check RMS", f"{num(cc.get('rms_px'))} px (uncorrected centres)" if cc.get("rms_px") is not None else None),
-            ("Tsai", ", ".join(f"{k} {num(v, 6)}" for k, v in cam.get("tsai", {}).items()) if isinstance(cam.get("tsai"), dict) else None),
+            ("Tsai (f in mm, kappa1 in 1/mm²)", ", ".join(f"{k} {pm(v, as_dict(sig.get('tsai')).get(k), 6)}"
+                                                      for k, v in as_dict(cam.get("tsai")).items()) or None),
             ("reference view (input pose)", cal.get("reference_image")),
             ("calibration time", f"{num(cal.get('time_s'), 3)} s" if cal.get("time_s") is not None else None)])
     for w in as_list(cal.get("warnings")) if isinstance(cal.get("warnings"), list) else []:
