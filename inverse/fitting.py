@@ -1089,7 +1089,8 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         bad = outliers(pb, p, A, res, textured)
         if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
             first = FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace, [], rounds,
-                              pb.evaluations, iterations, message)
+                              pb.evaluations, iterations, message,
+                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations})
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
                                   task=task, held=held, t0=t0, passes=REJECT_PASSES if reject is True else int(reject),
                                   max_seconds=None if max_seconds is None else max_seconds - elapsed)
@@ -1164,7 +1165,14 @@ def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, 
     return dataclasses.replace(
         again, trace=first.trace + [[offset + t, r] for t, r in again.trace], time_s=time.perf_counter() - t0,
         evaluations=first.evaluations + again.evaluations, iterations=first.iterations + again.iterations,
-        rounds=first.rounds + again.rounds, stats={**again.stats, "rejected": rejected, "warnings": warnings})
+        rounds=first.rounds + again.rounds, stats={**again.stats, "rejected": rejected, "warnings": warnings,
+                                                   **_add_phases(first.stats, again.stats)})
+
+
+def _add_phases(first: dict, again: dict) -> dict:
+    """``phases_s`` and ``scan_evaluations`` of a fit and its refit, added up (each phase's total)."""
+    return {"phases_s": {k: round(v + again["phases_s"].get(k, 0.0), 6) for k, v in first["phases_s"].items()},
+            "scan_evaluations": first["scan_evaluations"] + again["scan_evaluations"]}
 
 
 def _hold(fac: Factorization, free: Free, held) -> None:

@@ -50,3 +50,24 @@ def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
     assert all(v >= 0 for v in phases.values())
     assert abs(sum(phases.values()) - res.time_s) < 0.05 * res.time_s
     assert 0 < res.stats["scan_evaluations"] < res.evaluations
+
+
+def test_phases_add_up_over_a_rejection_refit():
+    """A 3x3 speck is rejected and the fit repeated: phases_s and scan_evaluations count both fits."""
+    lab = build_lab(80, 60, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material for s in lab.scene]
+    fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
+    img = render(trees, truth, lab.lights.intensities)
+    ground = (trees.level == 1) & (trees.surface == 0)
+    pix = int(trees.pixel[ground][len(trees.pixel[ground]) // 2])
+    v, u = divmod(pix, 80)
+    img[v - 1:v + 2, u - 1:u + 2] += 0.3 * img.max()
+    start = [Material.from_json({"brdf": m.brdf, "ior": m.ior}, "scene.json", "material") for m in truth]
+    res = fit(fac, img, start, "ftbo")
+    assert res.stats["rejected"]["count"] == 9
+    once = fit(fac, img, start, "ftbo", reject=False)
+    assert res.stats["scan_evaluations"] == once.stats["scan_evaluations"] > 0  # the refit does not scan
+    assert res.stats["phases_s"]["structure"] > once.stats["phases_s"]["structure"] * 1.5  # two structure tests
+    assert sum(res.stats["phases_s"].values()) <= res.time_s
+    assert sum(res.stats["phases_s"].values()) > 0.8 * res.time_s
