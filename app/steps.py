@@ -152,34 +152,16 @@ def _calibrate_camera(workspace, task=None, *, rig=None, log=print, **options) -
 
 
 def _calibrate_lights(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
+    """Rod shots (when given a rig), then the lamps: without images or a marks file the stage
+    detects the rod in the lights session's single-lamp shots (its manifest names the lamp)."""
     from calibration.stages import LightsOptions, calibrate_lights
 
     stage, cap, recapture = _split(options, LightsOptions, True, "calibrate_lights")
     shots = capture(workspace, "lights", rig, task, log=log, recapture=recapture, **cap) if rig else None
-    ws = Workspace(workspace)
-    if not stage.get("images") and not stage.get("marks") and shots is not None:
-        # Detect marks in the rod shots taken now (one lamp on in each), merged into marks.json.
-        return _lights_from_shots(ws, shots, stage, task, log)
-    r = calibrate_lights(LightsOptions(ws.root, **stage), task)
-    return StepResult(f"lights.json written: {len(r.lamps)} lamps", r, shots)
-
-
-def _lights_from_shots(ws, shots, stage: dict, task, log) -> StepResult:
-    """Detect the rod in every shot taken with exactly one lamp on, then locate every lamp."""
-    from calibration.stages import LightsOptions, calibrate_lights
-
-    images, lamps = [], []
-    for rec in shots.shots:
-        on = [k for k, x in enumerate(rec.get("lamps", [])) if x]
-        if len(on) == 1:
-            images.append(shots.manifest_path.parent / rec["file"])
-            lamps.append(on[0])
-    if not images:
-        raise ValueError("step calibrate_lights: no rod shot with exactly one lamp on")
-    r = calibrate_lights(LightsOptions(ws.root, **dict(stage, images=images, light=lamps)), task)
+    r = calibrate_lights(LightsOptions(Path(workspace), **stage), task)
     for name, light, base, tip in r.detected:
         log(f"{name}: lamp {light}, foot ({base[0]:.1f}, {base[1]:.1f}), tip ({tip[0]:.1f}, {tip[1]:.1f})")
-    return StepResult(f"lights.json written: {len(r.lamps)} lamps from {len(images)} rod shots", r, shots)
+    return StepResult(f"lights.json written: {len(r.lamps)} lamps", r, shots)
 
 
 def _reconstruct(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:

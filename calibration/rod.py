@@ -16,7 +16,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.lamps import Mark, detect_rod_marks, lamp_intensity
-from hardware.workspace import WorkspaceError, read_json
+from hardware.workspace import Workspace, WorkspaceError, read_json
 
 
 @dataclass
@@ -37,7 +37,7 @@ def rod_shots(root) -> list[RodShot]:
         No manifest, or a manifest with no shot that has exactly one lamp on.
     """
     root = Path(root)
-    path = root / "captures" / "lights" / "manifest.json"
+    path = Workspace(root).manifest("lights")
     if not path.exists():
         raise WorkspaceError(path, expected="the manifest of `reflab capture lights` (or give rod images / --marks)",
                              got="missing")
