@@ -165,7 +165,7 @@ def test_fit_texture_results_on_the_simulated_lab(qtbot, lab_workspace):
 def test_rod_marks_clicked_on_a_shot_are_saved_as_marks_json(qtbot, tmp_path):
     from calibration.lamps import read_marks
 
-    window = open_window(qtbot, tmp_path, calibrate_lights={"rod_height": 0.12})
+    window = open_window(qtbot, tmp_path, calibrate_lights={"rod_height": 0.12, "angles": "0"})
     assert run(qtbot, window, "devices")[0] == "done"
     run(qtbot, window, "calibrate_lights")  # takes one shot per lamp (marks detected or not)
     window.go_to("calibrate_lights")

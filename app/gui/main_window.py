@@ -114,7 +114,8 @@ class MainWindow(QMainWindow):
         self.setCentralWidget(central)
         self.resize(1280, 860)
 
-        for name, values in (options or {}).items():
+        defaults = stages.sim_defaults() if camera == "sim" else {}
+        for name, values in list(defaults.items()) + list((options or {}).items()):
             self.set_options(name, **values)
         self.refresh_steps()
         for page in self.pages.values():
@@ -175,9 +176,7 @@ class MainWindow(QMainWindow):
         page.before_run()
         ctx = stages.Context(self.workspace, self.rig, page.options(), log=self.log_line.emit)
         worker = Worker(lambda task: step.run(ctx, task), name)
-        ctx.image = lambda img: worker.post("image", img)
         worker.progress.connect(self._progress)
-        worker.image.connect(lambda img: self.pages[name].preview.set_image(img))
         worker.succeeded.connect(lambda box: self._ended(name, "done", str(box.value)))
         worker.failed.connect(lambda msg, details: self._ended(name, "failed", msg))
         worker.cancelled.connect(lambda msg: self._ended(name, "cancelled", "stopped; Run again resumes"))
@@ -206,9 +205,22 @@ class MainWindow(QMainWindow):
             self.progress.setRange(0, 1000)
             self.progress.setValue(int(1000 * min(done / total, 1.0)))
         self.progress.setFormat(f"{message} ({done:.0f} of {total:.0f})" if message and total > 0 else message or "%p%")
+        self._show_shot(message)
         if message and message != self._last_message:
             self.log(message)
         self._last_message = message
+
+    def _show_shot(self, message: str) -> None:
+        """A capture steps its task with "<kind>: <file>": show that shot in the running page's live view."""
+        from hardware.capture import FOLDERS
+
+        kind, _, file = message.partition(": ")
+        if kind in FOLDERS and file and " " not in file:
+            path = self.workspace / "captures" / FOLDERS[kind] / file
+            if path.exists():
+                from hardware.images import read_image
+
+                self.pages[self.running].preview.set_image(read_image(path))
 
     def _ended(self, name: str, outcome: str, text: str) -> None:
         self.pages[name].set_status(f"{outcome}: {text}")

@@ -228,8 +228,8 @@ class CameraPage(StepPage):
     def build(self):
         self.add_option("grid", "Target circles (COLSxROWS)", QLineEdit("11x8"))
         self.add_option("spacing", "Circle spacing", spin(0.015, 0.001, 1.0, 0.001, 4, " m"))
-        self.add_option("angles", "Turntable angles (°)", QLineEdit("0"),
-                        "one shot per angle; the first is the input photograph's pose")
+        self.add_option("angles", "Turntable angles (°)", QLineEdit(""),
+                        "target on its wedge at each angle (empty: 0, 45, 90, 135, 225, 270, 315)")
         self.add_option("recapture", "", QCheckBox("capture again"))
         self.summary = text_label("", "camera_summary")
         self.views = QWidget()
@@ -283,7 +283,10 @@ class LightsPage(StepPage):
 
     def build(self):
         self.add_option("rod_height", "Rod height", spin(0.10, 0.005, 2.0, 0.005, 3, " m"))
-        self.add_option("angles", "Turntable angles (°)", QLineEdit("0"))
+        self.add_option("angles", "Turntable angles (°)", QLineEdit(""), "empty: 0, 90, 180, 270")
+        self.add_option("card_reflectance", "Grey card reflectance", spin(0.0, 0.0, 1.0, 0.01, 3),
+                        "the card's Lambertian reflectance, for each lamp's power (0: no card)")
+        self.add_option("card_region", "Card on the table x0, x1, y0, y1 (m)", QLineEdit(""))
         self.add_option("recapture", "", QCheckBox("capture again"))
         # marks editor
         editor = QWidget()
@@ -312,9 +315,9 @@ class LightsPage(StepPage):
         self.marks = {m["image"]: m for m in stages.read_marks_file(self.window.workspace).get("marks", [])}
         current = self.shots.currentRow()
         self.shots.clear()
-        for image, lamp in stages.rod_shots(self.window.workspace):
-            item = QListWidgetItem(f"{Path(image).name} (lamp {lamp})")
-            item.setData(Qt.ItemDataRole.UserRole, (image, lamp))
+        for shot in stages.rod_shots(self.window.workspace):
+            item = QListWidgetItem(f"{Path(shot.image).name} (lamp {shot.light})")
+            item.setData(Qt.ItemDataRole.UserRole, (shot.image, shot.light))
             self.shots.addItem(item)
         if self.shots.count():
             self.shots.setCurrentRow(min(max(current, 0), self.shots.count() - 1))

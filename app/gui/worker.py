@@ -57,7 +57,6 @@ class Worker(QObject):
 
     progress = Signal(float, float, str)
     log = Signal(str)
-    image = Signal(object)  # a frame the stage just took (numpy array), for the live preview
     succeeded = Signal(object)  # a Box holding fn's return value
     failed = Signal(str, str)  # one-line message, details
     cancelled = Signal(str)
