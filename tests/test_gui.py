@@ -286,3 +286,25 @@ def test_novel_view_orbits_the_input_camera_and_relights_linearly(lab_workspace)
     one_lamp, _ = novel_view(lab_workspace, 0.0, 0.0, [0.0, 1.0])
     other, _ = novel_view(lab_workspace, 0.0, 0.0, [1.0, 0.0])
     assert np.allclose(one_lamp + other, base, rtol=1e-6, atol=1e-9)
+
+
+def test_lamps_located_from_the_rod_shots_the_window_takes(qtbot, tmp_path):
+    """The lamp page on the simulated lab's rod and grey card (160x120): rod found in every shot,
+    lamps located near the lab's true lamps. The camera is the lab's true one (camera
+    calibration needs larger images than a quick test takes)."""
+    from calibration.lights import Lights
+    from hardware.sim.lab import build_lab
+
+    lab = build_lab(160, 120)
+    lab.camera.save(tmp_path / "camera.json")
+    window = MainWindow(tmp_path, size=(160, 120), live_preview_ms=0)
+    qtbot.addWidget(window)
+    outcome, status = run(qtbot, window, "calibrate_lights")  # connects the rig itself
+    assert outcome == "done", status
+    found = Lights.load(tmp_path / "lights.json")
+    for lamp, true in zip(found, lab.lights):
+        assert np.linalg.norm(lamp.position - true.position) < 0.02  # metres, lamps ~0.6 m away (seen: 4, 10 mm)
+        assert np.allclose(lamp.intensity, true.intensity, rtol=0.08)  # from the grey card (seen: 1%, 3%)
+    window.go_to("calibrate_lights")
+    assert window.findChild(QWidget, "rod_shots").count() == 8  # 4 angles x 2 lamps
+    assert window.findChild(QWidget, "lamp_table").rowCount() == 2

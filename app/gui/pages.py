@@ -286,7 +286,8 @@ class LightsPage(StepPage):
         self.add_option("angles", "Turntable angles (°)", QLineEdit(""), "empty: 0, 90, 180, 270")
         self.add_option("card_reflectance", "Grey card reflectance", spin(0.0, 0.0, 1.0, 0.01, 3),
                         "the card's Lambertian reflectance, for each lamp's power (0: no card)")
-        self.add_option("card_region", "Card on the table x0, x1, y0, y1 (m)", QLineEdit(""))
+        region = self.add_option("card_region", "Card on the table x0, x1, y0, y1 (m)", QLineEdit(""))
+        region.setMinimumWidth(220)
         self.add_option("recapture", "", QCheckBox("capture again"))
         # marks editor
         editor = QWidget()
