@@ -13,8 +13,10 @@ surface, on the side it leaves to.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -142,7 +144,8 @@ def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, pru
     triangles and normals, the iors, which r / t scene.json gives as 0, ``depth`` and
     ``prune_tol``: any change to one of them names another file, so a stale file is never read.
     A cache file that cannot be read (truncated, older format) is rebuilt and replaced. At most
-    :data:`CACHE_KEEP` files are kept (a novel view or a relighting adds one).
+    :data:`CACHE_KEEP` files are kept (a novel view or a relighting adds one), the least recently
+    used deleted first.
 
     Parameters
     ----------
@@ -174,6 +177,8 @@ def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, pru
             trees = None
         if trees is not None and trees.key == key and (trees.width, trees.height) == (camera.width, camera.height):
             trees.stats["cache"] = "reused"
+            with contextlib.suppress(OSError):  # least recently used goes first (a read-only workspace: no matter)
+                os.utime(path)
             trees.stats["load_s"] = time.perf_counter() - t0
             if log is not None:
                 log(f"trees: reused cache {path.name} ({len(trees)} nodes, {trees.stats['load_s']:.2f} s)")
@@ -193,7 +198,7 @@ def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, pru
 
 
 def _prune_cache(folder: Path, keep: int) -> None:
-    """Delete all but the ``keep`` most recently written trees files in ``folder``."""
+    """Delete all but the ``keep`` most recently written or reused trees files in ``folder``."""
     files = sorted(folder.glob("trees-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
     for old in files[keep:]:
         old.unlink(missing_ok=True)

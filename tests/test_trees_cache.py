@@ -84,3 +84,24 @@ def test_trees_cancelled_build_writes_nothing(tmp_path):
     with pytest.raises(Cancelled):
         trees_for_workspace(ws, *_load(ws), depth=3, task=task)
     assert not ws.cache.exists() or not list(ws.cache.glob("trees-*"))
+
+
+def test_trees_cache_keeps_the_file_in_use(tmp_path, monkeypatch):
+    """Relightings fill the cache; the workspace's own trees, reused in between, are not pruned."""
+    import time
+
+    import inverse.trees as trees_module
+    from calibration.lights import PointLight
+
+    monkeypatch.setattr(trees_module, "CACHE_KEEP", 2)
+    ws = Workspace(tmp_path / "ws")
+    write_lab(ws.root, build_lab(32, 24), materials=False)
+    scene, camera, lights = _load(ws)
+    assert trees_for_workspace(ws, scene, camera, lights).stats["cache"] == "built"
+    for dx in (0.01, 0.02, 0.03):
+        time.sleep(0.02)
+        moved = Lights([PointLight(lt.position + [dx, 0.0, 0.0], lt.intensity) for lt in lights])
+        assert trees_for_workspace(ws, scene, camera, moved).stats["cache"] == "built"
+        time.sleep(0.02)
+        assert trees_for_workspace(ws, scene, camera, lights).stats["cache"] == "reused"
+    assert len(list(ws.cache.glob("trees-*.npz"))) == 2
