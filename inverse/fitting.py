@@ -1058,7 +1058,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
     sig = uncertainty(pb, p, free, res)
-    absorbed = texture_absorbed(fac, p, A, textured)
+    absorbed = texture_absorbed(fac, p, materials, textured)
     if absorbed.any():
         # A free texture explains every pixel where it is seen directly: σ from the others only
         # (kd of a textured surface is its texture's mean: its σ stays the one from every pixel).
@@ -1102,26 +1102,46 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                       "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}})
 
 
-def texture_absorbed(fac: Factorization, p: Params, A, textured) -> np.ndarray:
-    """(R,) bool: used pixels where directly seen texture carries at least :data:`ABSORB_SHARE`
-    of the predicted light in some band.
+def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> np.ndarray:
+    """(R,) bool: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
+    predicted light in some band.
 
-    A texture free per texel (about one per pixel) can take up any residual there — a highlight,
-    a faint reflection — so those pixels say nothing about the other parameters once the texture
-    is free. Only pixels where texture is not seen directly (a reflection of it in a mirror, a
-    view through glass, untextured surfaces) tell a specular term from albedo.
+    A texture free per texel (about one per pixel) can take up any residual where it shows — a
+    highlight, a faint reflection — unless the same texel is pinned down elsewhere. Texture seen
+    directly is free; texture seen only in a mirror or through glass (the demo box's back face) is
+    free too; texture seen there AND directly (a floor in a mirror) is fixed by the direct view.
+    So only pixels without free texture tell a specular term from albedo. Which points are seen
+    directly: cells of twice the mean spacing of the surface's directly seen nodes.
     """
     if textured is None or not any(textured):
         return np.zeros(fac.n_rows, dtype=bool)
-    direct = np.array([bool(textured[s]) and fac.layout.x_names[i][1] == "kd" for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
-    direct &= ~fac.exponents.any(axis=1)  # no r or t on the path: seen directly
-    if not direct.any():
-        return np.zeros(fac.n_rows, dtype=bool)
-    y = fac.y(p.x, p.s)
+    from inverse.rendering import node_radiance
+
+    tr = fac.trees
+    surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
+    light = np.abs(node_radiance(tr, materials_of(fac, p, materials), fac._args[0]))
+    tex = np.asarray(textured, dtype=bool)[surf]
+    free_tex = tex & (level == 1)
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
+        direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
+        if not seen_else.any():
+            continue
+        if not direct.any():
+            free_tex |= seen_else
+            continue
+        ext = np.sort(np.ptp(pts[direct], axis=0))[::-1]
+        cell = 2.0 * np.sqrt(max(ext[0] * ext[1], 1e-12) / direct.sum())
+        key = np.floor(pts / cell).astype(np.int64)
+        both = direct | seen_else
+        lo = key[both].min(axis=0)
+        span = key[both].max(axis=0) - lo + 1
+        flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
+        free_tex |= seen_else & ~np.isin(flat, flat[direct])
+    npix = fac.width * fac.height
     out = np.zeros(fac.n_rows, dtype=bool)
     for c in range(BANDS):
-        total = A[c] @ y[c]
-        part = A[c] @ np.where(direct, y[c], 0.0)
+        total = np.bincount(tr.pixel, weights=light[:, c], minlength=npix)[fac.rows]
+        part = np.bincount(tr.pixel[free_tex], weights=light[free_tex, c], minlength=npix)[fac.rows]
         out |= part > ABSORB_SHARE * np.maximum(total, 1e-300)
     return out
 

@@ -195,5 +195,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         records.append(record)
         if progress is not None:
             progress(record)
-    result = dataclasses.replace(best, stats={**best.stats, "best_round": best_round, "rejected": rejected}, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
+    warnings = [w for w in start.stats.get("warnings", []) if "outlier" in w] + best.stats.get("warnings", [])
+    result = dataclasses.replace(best, stats={**best.stats, "best_round": best_round, "rejected": rejected,
+                                              "warnings": warnings}, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
     return result, records
