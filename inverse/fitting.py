@@ -617,12 +617,26 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
 def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
     """JᵀJ of θ with the linear parameters profiled out (Schur complement), natural units."""
     inner = Free(free.x & (p.x > 0), free.s & (p.s > 0) & (p.s < 1), free.theta)  # bounds active: held
-    H, labels = _normal_matrix(pb, p, inner, np.ones(BANDS), A, grad)
-    nq = int(free.theta.sum())
-    n_lin = len(labels) - nq
-    Hll, Hlq, Hqq = H[:n_lin, :n_lin], H[:n_lin, n_lin:], H[n_lin:, n_lin:]
+    # :func:`_normal_matrix`'s blocks, in monomial space: (A D)ᵀ(A D) = Dᵀ(AᵀA)D and (A D)ᵀ img =
+    # Dᵀ(Aᵀ img), so no (pixels × parameters) product is formed (640×480: 78 → 30 ms).
+    q = np.flatnonzero(free.theta)
+    img = grad.images(pb.fac.y(p.x, p.s))[q]  # (nq, 3, R)
+    Hqq = np.einsum("qcr,pcr->qp", img, img)
+    blocks, cross = [], []
+    for c in range(BANDS):
+        D, _ = pb.dy(p, c, inner)
+        if D.shape[1]:
+            blocks.append(D.T @ (A[c].T @ A[c]).toarray() @ D)
+            cross.append(D.T @ np.asarray(A[c].T @ img[:, c, :].T))
+    n_lin = sum(b.shape[0] for b in blocks)
     if n_lin == 0:
         return Hqq
+    Hll = np.zeros((n_lin, n_lin))
+    off = 0
+    for b in blocks:
+        Hll[off:off + len(b), off:off + len(b)] = b
+        off += len(b)
+    Hlq = np.concatenate(cross)
     w, V = np.linalg.eigh(Hll)
     keep = w > max(w.max(), 0.0) * 1e-13
     proj = V[:, keep].T @ Hlq
