@@ -69,6 +69,12 @@ def _cut_off(path: Path) -> str:
     return ""
 
 
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """The sRGB transfer curve (IEC 61966-2-1) for linear values in [0, 1] (float64)."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     """Invert the sRGB transfer curve (IEC 61966-2-1) for values in [0, 1] (float64)."""
     x = np.asarray(x, dtype=np.float64)
@@ -180,9 +186,7 @@ def to_display(img: np.ndarray, exposure: float | None = None) -> np.ndarray:
     img = np.nan_to_num(np.asarray(img, dtype=np.float64))
     if exposure is None:
         exposure = 1.0 / max(np.percentile(img, 99.5), 1e-12)
-    x = np.clip(img * exposure, 0, 1)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return (srgb * 255 + 0.5).astype(np.uint8)
+    return (linear_to_srgb(np.clip(img * exposure, 0, 1)) * 255 + 0.5).astype(np.uint8)
 
 
 def write_preview(path, img: np.ndarray, exposure: float | None = None) -> Path:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from hardware.images import linear_to_srgb
 from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
 
@@ -143,8 +144,7 @@ def _display(images: list) -> list:
     exposure = 1.0 / max(float(np.percentile(np.stack([im.mean(axis=2) for im in images]), 99.5)), 1e-12)
     out = []
     for im in images:
-        x = np.clip(np.nan_to_num(im.mean(axis=2)) * exposure, 0.0, 1.0)
-        out.append(np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055))
+        out.append(linear_to_srgb(np.clip(np.nan_to_num(im.mean(axis=2)) * exposure, 0.0, 1.0)))
     return out
 
 

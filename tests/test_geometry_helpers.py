@@ -1,4 +1,4 @@
-"""calibration/rotations.py: the one copy of the rotation helpers, against rotations known in closed form."""
+"""The one copy of each shared geometry helper (calibration/rotations.py, sRGB in hardware/images.py), against closed forms."""
 import numpy as np
 
 from calibration.rotations import axis_rotation, nearest_rotation, rodrigues, rotation_vector
@@ -24,3 +24,11 @@ def test_rodrigues_round_trip_and_nearest_rotation():
         Q = nearest_rotation(noisy)
         np.testing.assert_allclose(Q @ Q.T, np.eye(3), atol=1e-12)
         assert np.linalg.norm(Q - R[k]) < np.linalg.norm(noisy - R[k]) * 2
+
+
+def test_srgb_curves_invert_each_other():
+    from hardware.images import linear_to_srgb, srgb_to_linear
+
+    x = np.linspace(0.0, 1.0, 101)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-12)
+    np.testing.assert_allclose(linear_to_srgb([0.0, 0.0031308, 0.5, 1.0]), [0.0, 0.04044, 0.73536, 1.0], atol=1e-5)
