@@ -9,6 +9,7 @@ in all: how many determined parameters, the share within 1, 2, 3 σ, within 3σ 
 bar), the worst |error|/σ, and how often each parameter was reported undetermined.
 
     python docs/figures/fit_calibration.py --size 80x60 --realisations 20 --noise 0.01 [--json out.json]
+    python docs/figures/fit_calibration.py --size 160x120 --realisations 1 --noise 0 --verbose   # one fit per scene
 """
 from __future__ import annotations
 
@@ -59,6 +60,7 @@ def main(argv=None):
     ap.add_argument("--noise", type=float, default=0.01)
     ap.add_argument("--scenes", default=",".join(NAMES))
     ap.add_argument("--json")
+    ap.add_argument("--verbose", action="store_true", help="print every determined parameter of every fit")
     args = ap.parse_args(argv)
     W, H = (int(v) for v in args.size.split("x"))
     report, pooled = {}, []
@@ -73,11 +75,17 @@ def main(argv=None):
         truth = [s.material for s in ts.scene]
         z, undetermined, t0 = [], Counter(), time.perf_counter()
         for seed in range(args.realisations):
-            img = clean + np.random.default_rng(seed).normal(0.0, args.noise * clean.max(), clean.shape)
+            img = clean + (np.random.default_rng(seed).normal(0.0, args.noise * clean.max(), clean.shape) if args.noise else 0.0)
             fac = Factorization(trees, models, ts.lights.intensities)
             start = fit(fac, img, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)
             res, _ = fit_with_texture(trees, user, models, ts.lights.intensities, img, start, rounds=2, held=held)
             det, und = rows(res, fac, truth, user)
+            if args.verbose:
+                for r in det:
+                    print(f"  {user.names[r[0]]:7s} {r[1]:6s} fit {r[2]:.4f} true {r[3]:.4f} σ {r[4]:.3g} "
+                          f"|err|/σ {abs(r[2] - r[3]) / r[4]:.2f}")
+                print("  undetermined:", {n: u for n, u in zip(user.names, res.undetermined)},
+                      "rejected:", res.stats.get("rejected", {}).get("count"))
             undetermined.update(und)
             z += [(user.names[r[0]], r[1], float(r[2] - r[3]), float(r[4]), float(abs(r[3]))) for r in det]
             print(f"{name} seed {seed}: {len(det)} determined, worst |err|/σ "
