@@ -78,10 +78,10 @@ def test_texture_cg_cancelled_inside_its_iterations_then_rerun(lab_workspace):
     assert (root / "textures" / "index.json").exists() and r.result.stats["iterations"] > 2
 
 
-def test_fit_cancelled_between_iterations_then_rerun(lab_workspace):
+def test_fit_cancelled_between_iterations_then_rerun(homogeneous_workspace):
     from inverse.stages import FitOptions, fit
 
-    root, _, _ = lab_workspace
+    root, _, _ = homogeneous_workspace  # scene.json says only what a user knows: F-TBO iterates
     seen = []
     task = _cancel_at("F-TBO iteration", seen)
     with pytest.raises(Cancelled):
