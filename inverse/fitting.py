@@ -35,7 +35,6 @@ from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
 from inverse.factorization import BANDS, Factorization, one_blas_thread
 from inverse.ranges import at_bound, clip, linear_upper, theta_bounds
-from reconstruction.scene import INITIAL
 
 #: Nonlinear parameters searched in log2 (scale parameters spanning decades).
 LOG2 = frozenset({"ns", "alpha"})
@@ -1361,95 +1360,3 @@ def _finite(obj):
 def _sigma_list(sig, free) -> list:
     """Per-band sigma, None where the band is undetermined (JSON null, never NaN/inf)."""
     return [float(v) if f and np.isfinite(v) else None for v, f in zip(sig, free)]
-
-
-def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
-                  maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
-                  progress=None, task: Task | None = None) -> tuple[dict, FitResult]:
-    """Run the fit stage on a workspace and write its fit.json.
-
-    Parameters
-    ----------
-    workspace : path-like
-        Folder with camera.json, lights.json, scene.json (+ meshes) and the input image.
-    method : {"ftbo", "nftbo"}
-    depth : int
-        Maximum internal nodes per tree path.
-    saturation : float, optional
-        Pixel value at which the camera clips; default: detect a clipped plateau
-        (:func:`saturated_pixels`).
-    maxiter : int, optional
-        Outer iteration cap.
-    max_seconds : float, optional
-        Wall-clock budget of the fit itself (trees and factorization excluded).
-    texture_rounds : int
-        When some surface is textured: rounds of refitting against the recovered texture after
-        the homogeneous fit (:func:`inverse.texture_fit.fit_with_texture`); 0 keeps the
-        homogeneous fit, as the dissertation does.
-    progress : callable, optional
-        Called with each texture round's record.
-    task : hardware.task.Task, optional
-        Progress, pause and cancel (``Cancelled`` is raised before fit.json is written); its
-        deadline stops the fit like ``max_seconds``.
-
-    Returns
-    -------
-    report : dict
-        What was written to fit.json.
-    result : FitResult
-    """
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from hardware.images import read_image
-    from hardware.workspace import Workspace, write_json
-    from inverse.models import get_model
-    from inverse.trees import trees_for_workspace
-    from reconstruction.scene import Scene
-
-    ws = Workspace(workspace)
-    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
-    lights = Lights.load(ws.require(ws.lights, "reflab calibrate lights"))
-    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
-    image_path = ws.require(ws.input_image, "reflab capture input")
-    image = check_image(read_image(image_path), camera.width, camera.height, image_path)
-    saturated = saturated_pixels(image, saturation)
-    if saturated.all():
-        raise WorkspaceError(image_path, "pixels", "some pixels below the saturation level", got="every pixel saturated")
-    t0 = time.perf_counter()
-    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth)
-    t1 = time.perf_counter()
-    fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], lights.intensities, mask=~saturated)
-    t2 = time.perf_counter()
-    if fac.n_columns == 0:
-        raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
-                             got="no pixel sees a lit surface")
-    # What the user gave in scene.json is held (Material.defaulted names the rest).
-    held = [{n for n in s.material.params if n not in s.material.defaulted} for s in scene]
-    result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
-                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held)
-    rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
-    seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
-    if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
-        from inverse.texture_fit import MIN_SHARE, fit_with_texture
-
-        homogeneous_rms = [float(v) for v in result.rms]
-        result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
-                                           mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
-                                           maxiter=maxiter, progress=progress, task=task, held=held,
-                                           max_seconds=None if max_seconds is None else max_seconds - result.time_s)
-        rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
-    extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
-                       "saturated_pixels": int(saturated.sum()),
-                       "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
-             "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
-             "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
-    # Where the time went: trees, factorization, then the homogeneous fit's phases, then the texture rounds.
-    extra["phases_s"] = {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6), **homogeneous_phases,
-                         "texture_rounds": round(sum(r["texture_s"] + r["fit_s"] for r in rounds["rounds"]), 6) if rounds else 0.0}
-    extra["scan_evaluations"] = scan_evaluations
-    if rounds is not None:
-        extra["texture_rounds"] = rounds
-    report = fit_json(result, fac, scene, depth, extra)
-    ensure(task).check()  # a cancel during the last iteration: nothing written
-    write_json(ws.fit, report)
-    return report, result

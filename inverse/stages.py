@@ -59,7 +59,7 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     per outer iteration; its deadline, when it has one, stops the fit like ``max_seconds``.
     """
     from hardware.workspace import Workspace, check_folder
-    from inverse.fitting import fit_workspace
+    from inverse.fit_stage import fit_workspace
 
     task = ensure(task)
     o = options

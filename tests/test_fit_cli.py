@@ -95,7 +95,7 @@ def test_poor_fit_is_reported_and_exits_3(workspace, capsys):
 def test_fit_workspace_task_progress_and_cancel(workspace):
     """fit_workspace steps the task per iteration; a cancel raises Cancelled and writes no fit.json."""
     from hardware.task import Cancelled, Task
-    from inverse.fitting import fit_workspace
+    from inverse.fit_stage import fit_workspace
 
     root, img, truth = workspace
     write_image(root / "input.exr", img)

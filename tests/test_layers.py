@@ -125,8 +125,8 @@ def _cycles(graph: dict) -> list[list[str]]:
 
 
 #: Cycles being taken apart elsewhere, named so that no other joins them; remove an entry once it
-#: is gone (the test says so). fitting <-> texture_fit: the split of inverse/fitting.py (issue 12).
-KNOWN_CYCLES = [["inverse.fitting", "inverse.texture_fit"]]
+#: is gone (the test says so).
+KNOWN_CYCLES = []
 
 
 def test_no_import_cycle():
