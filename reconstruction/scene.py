@@ -51,9 +51,13 @@ class Material:
     def __getitem__(self, name: str) -> np.ndarray:
         return self.params[name]
 
-    def to_json(self) -> dict:
+    def to_json(self, given_only: bool = False) -> dict:
+        """Every parameter (fit.json), or with ``given_only`` those not :attr:`defaulted` (scene.json:
+        a value written there counts as given by the user, and the fit holds it)."""
         out = {"brdf": self.brdf}
         for k, v in self.params.items():
+            if given_only and k in self.defaulted:
+                continue
             out[k] = float(v) if np.ndim(v) == 0 else [float(x) for x in v]
         out["ior"] = self.ior
         return out
@@ -179,7 +183,8 @@ class Surface:
 
     def to_json(self) -> dict:
         obj = dict(self.extra)
-        obj.update(name=self.name, mesh=self.mesh_path, textured=self.textured, material=self.material.to_json())
+        obj.update(name=self.name, mesh=self.mesh_path, textured=self.textured,
+                   material=self.material.to_json(given_only=True))
         return obj
 
 

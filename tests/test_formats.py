@@ -105,6 +105,9 @@ def test_scene_round_trip_and_defaults(tmp_path):
     scene.save(tmp_path / "scene2.json", write_meshes=False)
     again = Scene.load(tmp_path / "scene2.json")
     assert again.names == ["floor", "sheet"] and again[1].textured is False
+    # a value scene.json did not give stays absent on saving: the fit holds given values only
+    assert again[0].material.defaulted == floor.material.defaulted and "kd" not in again[0].material.defaulted
+    assert again[1].material.defaulted == sheet.material.defaulted
 
 
 @pytest.mark.parametrize("surface, field, expected", [
