@@ -222,7 +222,7 @@ class DevicesPage(StepPage):
 
 # ====================================================================== camera calibration
 class CameraPage(StepPage):
-    preview_stretch = 2
+    preview_stretch = 1
     run_text = "Capture and calibrate"
 
     def build(self):
@@ -250,8 +250,8 @@ class CameraPage(StepPage):
         K, s = cam["K"], cal.get("sigma", {})
         pm = lambda key, v: f"{v:.2f} ± {s[key]:.2f}" if key in s else f"{v:.2f}"  # noqa: E731
         self.summary.setText(
-            f"fx {pm('fx', K[0][0])}  fy {pm('fy', K[1][1])}  cx {pm('cx', K[0][2])}  cy {pm('cy', K[1][2])}  "
-            f"k1 {cam['dist'][0]:.4f} — reprojection RMS <b>{cal.get('rms_px', float('nan')):.3f} px</b> over "
+            f"fx {pm('fx', K[0][0])} &nbsp; fy {pm('fy', K[1][1])}<br>cx {pm('cx', K[0][2])} &nbsp; cy {pm('cy', K[1][2])}"
+            f" &nbsp; k1 {cam['dist'][0]:.4f}<br>reprojection RMS <b>{cal.get('rms_px', float('nan')):.3f} px</b> over "
             f"{len(cal.get('views', []))} views" + (f"; skipped {len(cal['skipped'])}" if cal.get("skipped") else ""))
         rows = [[Path(v["image"]).name, f"{v['rms_px']:.3f}", f"{v['worst_px']:.3f}"] for v in cal.get("views", [])]
         bad = {(i, 1) for i, v in enumerate(cal.get("views", [])) if v["rms_px"] > 0.5}
