@@ -8,23 +8,17 @@ from inverse.factorization import Factorization
 from inverse.fitting import Free, fit, params_of
 from inverse.models import get_model
 from inverse.ranges import at_bound, clip, linear_upper, phong_lobe_albedo
-from reconstruction.scene import Material, Scene, Surface
+from hardware.sim.scenes import determined, user_materials
+from reconstruction.scene import Scene, Surface
 
 W, H = 80, 60
-
-
-def _known(scene):
-    """What a user knows: brdf, ior, and that a lambert surface does not mirror (r = 0)."""
-    return [Material.from_json({"brdf": s.material.brdf, "ior": s.material.ior,
-                                **({"r": 0.0} if s.material.brdf == "lambert" else {})}, "scene.json", f"s{i}")
-            for i, s in enumerate(scene)]
 
 
 def _fit_scene(ts, image):
     from inverse.texture_fit import fit_with_texture
     from inverse.trees import build_trees
 
-    init = _known(ts.scene)
+    init = user_materials(ts.scene)
     user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
     trees = build_trees(user, ts.camera, ts.lights, depth=3)
     models = [get_model(m.brdf) for m in init]
@@ -35,25 +29,10 @@ def _fit_scene(ts, image):
     return res, fac, user
 
 
-def _determined(res, fac, truth, user):
-    """(surface, name, fitted, true, sigma) of every fitted parameter not reported undetermined
-    (a textured surface's kd is its texture's mean, compared by the texture stage, not here)."""
-    p, t, sig, free, lay = res.params, params_of(fac, truth), res.sigma, res.free, fac.layout
-    out = []
-    for k, (s, n) in enumerate(lay.x_names):
-        out += [(s, f"{n}[{c}]", p.x[k, c], t.x[k, c], sig.x[k, c]) for c in range(3)
-                if free.x[k, c] and not (n == "kd" and user[s].textured)]
-    for f in range(lay.n_factors):
-        out += [(f // 2, f"{'rt'[f % 2]}[{c}]", p.s[f, c], t.s[f, c], sig.s[f, c]) for c in range(3) if free.s[f, c]]
-    out += [(s, n, p.theta[q], t.theta[q], sig.theta[q]) for q, (s, n) in enumerate(lay.theta_names) if free.theta[q]]
-    und = res.undetermined
-    return [r for r in out if r[1] not in und[r[0]] and r[1].split("[")[0] not in und[r[0]]]
-
-
 def _check(res, fac, truth, user):
     assert all(np.all(~np.isnan(a)) for a in (res.sigma.x, res.sigma.s, res.sigma.theta))
     assert not clip(fac, res.params.copy())  # inside every plausible range
-    rows = _determined(res, fac, truth, user)
+    rows = determined(res, fac, truth, user)
     bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3]) + 1e-9]
     assert not bad, [(user.names[r[0]], *r[1:]) for r in bad]
     return rows
@@ -115,7 +94,7 @@ def test_corrupted_pane_edge_pixels_are_rejected():
     bad = img.reshape(-1, 3).copy()
     bad[pick] *= rng.uniform(0.3, 2.0, (20, 1))
     fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
-    res = fit(fac, bad.reshape(img.shape), _known(lab.scene), "ftbo")
+    res = fit(fac, bad.reshape(img.shape), user_materials(lab.scene), "ftbo")
     t = params_of(fac, truth)
     assert np.abs(res.params.x - t.x)[res.free.x].max() < 1e-3  # measured 1.9e-4
     assert np.abs(res.params.s - t.s)[res.free.s].max() < 1e-3  # measured 3.3e-4
@@ -137,7 +116,7 @@ def test_plausible_ranges_are_kept_and_flagged():
     truth[1].params.update(ks=np.array([6.0, 0.2, 0.2]), ns=np.float64(4.0))  # box: red ks above 1/L(4) = 1.6
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
     fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
-    res = fit(fac, render(trees, truth, lab.lights.intensities), _known(lab.scene), "ftbo")
+    res = fit(fac, render(trees, truth, lab.lights.intensities), user_materials(lab.scene), "ftbo")
     ub = linear_upper(fac, res.params.theta)
     assert np.all(res.params.x <= ub[:, None] + 1e-12) and not clip(fac, res.params.copy())
     assert "upper" in res.stats["at_bound"][1].values()  # the box's red ks or kd, pushed to its bound
@@ -159,7 +138,7 @@ def test_values_given_in_scene_json_are_held():
     truth = [s.material for s in lab.scene]
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
     fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
-    init = _known(lab.scene)
+    init = user_materials(lab.scene)
     init[4].params["ns"] = np.float64(45.0)
     held = [set() for _ in init]
     held[4] = {"ns"}

@@ -24,33 +24,25 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from hardware.sim.scenes import NAMES, build, render  # noqa: E402
+from hardware.sim.scenes import NAMES, build, determined, render, user_materials  # noqa: E402
 from inverse.factorization import Factorization  # noqa: E402
-from inverse.fitting import fit, params_of  # noqa: E402
+from inverse.fitting import fit  # noqa: E402
 from inverse.models import get_model  # noqa: E402
 from inverse.texture_fit import fit_with_texture  # noqa: E402
 from inverse.trees import build_trees  # noqa: E402
-from reconstruction.scene import Material, Scene, Surface  # noqa: E402
-
-
-def known(scene):
-    return [Material.from_json({"brdf": s.material.brdf, "ior": s.material.ior,
-                                **({"r": 0.0} if s.material.brdf == "lambert" else {})}, "scene.json", f"s{i}")
-            for i, s in enumerate(scene)]
+from reconstruction.scene import Scene, Surface  # noqa: E402
 
 
 def rows(res, fac, truth, user):
-    p, t, sig, free, lay = res.params, params_of(fac, truth), res.sigma, res.free, fac.layout
-    out = []
-    for k, (s, n) in enumerate(lay.x_names):
-        out += [(s, f"{n}[{c}]", p.x[k, c], t.x[k, c], sig.x[k, c]) for c in range(3)
-                if free.x[k, c] and not (n == "kd" and user[s].textured)]
-    for f in range(lay.n_factors):
-        out += [(f // 2, f"{'rt'[f % 2]}[{c}]", p.s[f, c], t.s[f, c], sig.s[f, c]) for c in range(3) if free.s[f, c]]
-    out += [(s, n, p.theta[q], t.theta[q], sig.theta[q]) for q, (s, n) in enumerate(lay.theta_names) if free.theta[q]]
-    und = res.undetermined
-    keep = [r for r in out if r[1] not in und[r[0]] and r[1].split("[")[0] not in und[r[0]]]
-    return keep, [(user.names[r[0]], r[1]) for r in out if r not in keep]
+    """Determined (as :func:`hardware.sim.scenes.determined`) and the names of the others."""
+    det = determined(res, fac, truth, user)
+    lay, free = fac.layout, res.free
+    fitted = [(user.names[s], f"{n}[{c}]") for k, (s, n) in enumerate(lay.x_names) for c in range(3)
+              if free.x[k, c] and not (n == "kd" and user[s].textured)]
+    fitted += [(user.names[f // 2], f"{'rt'[f % 2]}[{c}]") for f in range(lay.n_factors) for c in range(3) if free.s[f, c]]
+    fitted += [(user.names[s], n) for q, (s, n) in enumerate(lay.theta_names) if free.theta[q]]
+    shown = {(user.names[r[0]], r[1]) for r in det}
+    return det, [f for f in fitted if f not in shown]
 
 
 def main(argv=None):
@@ -67,7 +59,7 @@ def main(argv=None):
     for name in args.scenes.split(","):
         ts = build(name, W, H)
         clean = render(ts)
-        init = known(ts.scene)
+        init = user_materials(ts.scene)
         user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
         trees = build_trees(user, ts.camera, ts.lights, depth=3)
         models = [get_model(m.brdf) for m in init]

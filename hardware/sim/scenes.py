@@ -15,35 +15,14 @@ functions of the surface point in [0.1, 0.9] with features of 1–3 cm.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from calibration.camera import Camera
 from calibration.lights import Lights, PointLight
-from hardware.sim.lab import _material, _rot_z, box_mesh, plane_mesh
-from reconstruction.scene import Mesh, Scene, Surface
+from hardware.sim.lab import SimLab, _material, _rot_z, box_mesh, plane_mesh
+from reconstruction.scene import Material, Mesh, Scene, Surface
 
 NAMES = ("shiny_box", "floor_mirror", "curved")
-
-
-@dataclass
-class TexturedScene:
-    """Camera, lamps, scene (true materials, kd = mean albedo) and the true albedo per surface."""
-
-    name: str
-    camera: Camera
-    lights: Lights
-    scene: Scene
-    textures: dict = field(default_factory=dict)
-
-    def albedo(self, surface_index: int, points: np.ndarray) -> np.ndarray:
-        """True albedo (N, 3) of a surface at world points (N, 3) (the renderer's ``albedo``)."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        tex = self.textures.get(int(surface_index))
-        if tex is None:
-            return np.broadcast_to(self.scene[surface_index].material["kd"], points.shape).copy()
-        return tex(points)
 
 
 def _pattern(points, scale: float, colours) -> np.ndarray:
@@ -84,8 +63,8 @@ def _mean(mesh: Mesh, fn) -> np.ndarray:
     return fn(mesh.sample_points(20000)).mean(axis=0)
 
 
-def build(name: str, width: int = 160, height: int = 120) -> TexturedScene:
-    """One of :data:`NAMES` at ``width`` x ``height``."""
+def build(name: str, width: int = 160, height: int = 120) -> SimLab:
+    """One of :data:`NAMES` at ``width`` x ``height`` (camera, lamps, true materials, true albedo)."""
     camera = Camera.look_at(640, 480, fov_x_deg=36.0, eye=(0.0, -0.38, 0.36), target=(0.0, 0.02, 0.02))
     camera = camera.scaled(width, height) if (width, height) != (640, 480) else camera
     ground = plane_mesh((-0.8, 0.8), (-0.5, 1.2))
@@ -113,11 +92,36 @@ def build(name: str, width: int = 160, height: int = 120) -> TexturedScene:
         textures = {1: tex}
     else:
         raise ValueError(f"unknown scene {name!r}; one of {NAMES}")
-    return TexturedScene(name, camera, Lights(lights), Scene(surfaces), textures)
+    return SimLab(camera, Lights(lights), Scene(surfaces), textures)
 
 
-def render(ts: TexturedScene, depth: int = 3) -> np.ndarray:
+def render(ts: SimLab, depth: int = 3) -> np.ndarray:
     """The photograph of ``ts`` by the independent reference renderer (noise-free, float64)."""
     from hardware.sim.reference import render_reference
 
     return render_reference(ts.scene, ts.camera, ts.lights, depth=depth, albedo=ts.albedo)
+
+
+def user_materials(scene: Scene) -> list:
+    """What a user knows before fitting: brdf, ior, and that a lambert surface does not mirror."""
+    return [Material.from_json({"brdf": s.material.brdf, "ior": s.material.ior,
+                                **({"r": 0.0} if s.material.brdf == "lambert" else {})}, "scene.json", f"s{i}")
+            for i, s in enumerate(scene)]
+
+
+def determined(result, fac, truth: list, scene: Scene) -> list:
+    """(surface, name, fitted, true, σ) of every parameter ``result`` (a FitResult) fitted and did
+    not report undetermined; a textured surface's kd (its texture's mean) is left to the texture
+    stage. ``fac``: the scene's Factorization, ``truth``: the true materials."""
+    from inverse.fitting import params_of
+
+    p, t, sig, free, lay = result.params, params_of(fac, truth), result.sigma, result.free, fac.layout
+    out = []
+    for k, (s, n) in enumerate(lay.x_names):
+        out += [(s, f"{n}[{c}]", p.x[k, c], t.x[k, c], sig.x[k, c]) for c in range(3)
+                if free.x[k, c] and not (n == "kd" and scene[s].textured)]
+    for f in range(lay.n_factors):
+        out += [(f // 2, f"{'rt'[f % 2]}[{c}]", p.s[f, c], t.s[f, c], sig.s[f, c]) for c in range(3) if free.s[f, c]]
+    out += [(s, n, p.theta[q], t.theta[q], sig.theta[q]) for q, (s, n) in enumerate(lay.theta_names) if free.theta[q]]
+    und = result.undetermined
+    return [r for r in out if r[1] not in und[r[0]] and r[1].split("[")[0] not in und[r[0]]]
