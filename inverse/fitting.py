@@ -17,10 +17,15 @@ linear parameters are per band, θ is shared by the bands of a surface.
 Parameters the image does not determine — no signal in their columns (a surface never seen, no
 reflection or transmission through a surface), or a one-sigma uncertainty larger than
 :data:`RESOLVE` of their scale (a hidden highlight, ks ≈ 0 leaving ns free) — are kept at their
-initial value, out of the fit, and named in ``undetermined``. One-sigma uncertainties come from
-the Jacobian at the optimum (``σ² (JᵀJ)⁻¹``, σ per band from the residual, never below
-:data:`NOISE_FLOOR` of the image peak). :func:`diagnose` says in words whether the fitted model
-explains the image (``status``, ``warnings``).
+initial value, out of the fit, and named in ``undetermined``; so are values the user gave
+(``held``). The reported one-sigma uncertainties hold when the model is imperfect: the larger of
+``σ² (JᵀJ)⁻¹`` (σ per band from the residual, never below :data:`NOISE_FLOOR` of the image
+peak) and a cluster-robust sandwich over image tiles (:mod:`inverse.uncertainty`), and on
+textured scenes from the pixels a free texture cannot explain (:func:`texture_absorbed`); a fitted
+value whose σ spans its scale is reported undetermined too. Every value stays in its plausible
+range (:mod:`inverse.ranges`); outlier pixels are left out and counted (:func:`outliers`).
+:func:`diagnose` says in words whether the fitted model explains the image (``status``,
+``warnings``). The stage on a workspace is :func:`inverse.fit_stage.fit_workspace`.
 """
 from __future__ import annotations
 
