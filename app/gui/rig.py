@@ -2,7 +2,7 @@
 
 ``port`` is a serial port or ``sim`` (hardware/sim/device.py's board on a pseudo-terminal);
 ``camera`` is ``sim`` (the simulated lab at the board's true angle and lamps), ``opencv:N`` or
-``folder:PATH`` (hardware/cameras.py). Every use of the controller or the camera holds
+``folder:PATH`` (hardware/cameras.py), opened by app/devices.py. Every use of the controller or the camera holds
 :attr:`Rig.lock`, so the live preview never talks to the camera while a capture does; the
 preview only *tries* the lock and skips a frame when a step holds it.
 """
