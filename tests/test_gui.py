@@ -308,3 +308,23 @@ def test_lamps_located_from_the_rod_shots_the_window_takes(qtbot, tmp_path):
     window.go_to("calibrate_lights")
     assert window.findChild(QWidget, "rod_shots").count() == 8  # 4 angles x 2 lamps
     assert window.findChild(QWidget, "lamp_table").rowCount() == 2
+
+
+def test_camera_calibrated_from_the_target_shots_the_window_takes(qtbot, tmp_path):
+    """The camera page on the simulated lab's circle target (320x240): the flat reference shot and
+    the target on its wedge at the turntable's angles; intrinsics and pose against the lab's camera."""
+    from calibration.camera import Camera
+    from hardware.sim.lab import build_lab
+
+    window = MainWindow(tmp_path, size=(320, 240), live_preview_ms=0)
+    qtbot.addWidget(window)
+    outcome, status = run(qtbot, window, "calibrate_camera", timeout=300_000)
+    assert outcome == "done", status
+    true, found = build_lab(320, 240).camera, Camera.load(tmp_path / "camera.json")
+    assert found.K[0, 0] == pytest.approx(true.K[0, 0], rel=0.01)  # seen 0.23%
+    assert np.linalg.norm(found.center - true.center) < 0.005  # metres (seen 0.9 mm): the flat shot is the input pose
+    views = read_json(tmp_path / "camera.json")["calibration"]["views"]
+    window.go_to("calibrate_camera")
+    table = window.findChild(QWidget, "camera_views")
+    assert table.rowCount() == len(views) >= 4
+    assert [table.item(i, 1).text() for i in range(table.rowCount())] == [f"{v['rms_px']:.3f}" for v in views]
