@@ -67,7 +67,9 @@ def run(args) -> int:
           f" ({result.message})")
     for item in report["surfaces"]:
         und = ", ".join(item["undetermined"]) or "none"
-        print(f"  {item['name']}: {_material_text(item['material'])}; undetermined: {und}")
+        bound = ", ".join(f"{k} {v}" for k, v in item.get("at_bound", {}).items() if v == "upper")
+        print(f"  {item['name']}: {_material_text(item['material'])}; undetermined: {und}"
+              + (f"; at the upper bound of its range: {bound}" if bound else ""))
     print(f"reflab fit: wrote {r.path}")
     status = report["status"]
     for text in report["warnings"]:
