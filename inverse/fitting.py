@@ -459,6 +459,11 @@ class FitResult:
     stats: dict = field(default_factory=dict)
 
 
+def _step_message(what: str, trace: list) -> str:
+    """The task's progress message: the iteration and the error so far (a GUI draws it live)."""
+    return f"{what}, RMS per band [{', '.join(f'{v:.4g}' for v in trace[-1][1])}]" if trace else what
+
+
 def _trace_point(t0, rms):
     return [round(time.perf_counter() - t0, 6), [float(v) for v in rms]]
 
@@ -497,7 +502,7 @@ def _ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True)
     lam, message, it = 1e-3, f"stopped after {maxiter} iterations", 0
     lo, hi = srch.lo[q], srch.hi[q]
     for it in range(1, maxiter + 1):
-        pb.step(it, maxiter, "F-TBO iteration")
+        pb.step(it, maxiter, _step_message("F-TBO iteration", trace))
         if pb.out_of_time():
             it -= 1
             message = BUDGET_MESSAGE
@@ -726,7 +731,7 @@ def _nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=5000):
     message, it, since_restart, direction, prev = f"stopped after {maxiter} iterations", 0, n, None, None
     stalls = 0
     for it in range(1, maxiter + 1):
-        pb.step(it, maxiter, "NF-TBO iteration")
+        pb.step(it, maxiter, _step_message("NF-TBO iteration", trace))
         if pb.out_of_time():
             it -= 1
             message = BUDGET_MESSAGE

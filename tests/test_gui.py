@@ -141,6 +141,12 @@ def test_fit_texture_results_on_the_simulated_lab(qtbot, lab_workspace):
         outcome, status = run(qtbot, window, step)
         assert outcome == "done", status
     fit = read_json(lab_workspace / "fit.json")
+    # the curve was drawn live, one point per iteration, from the errors fit.json's trace records
+    live = window.page("fit").live
+    assert len(live) >= 2
+    traced = {tuple(float(f"{v:.4g}") for v in rms) for _, rms in fit["trace"]}
+    assert all(tuple(point[1:]) in traced for point in live)
+    assert [p[0] for p in live] == sorted(p[0] for p in live)
     table = window.findChild(QWidget, "fit_table")
     ground_kd = next(s for s in fit["surfaces"] if s["name"] == "ground")["material"]["kd"]
     shown = [table.item(i, 2).text() for i in range(table.rowCount())

@@ -8,6 +8,8 @@ Object names are part of INTERFACES.md's contract (GUI): ``steps``, ``page_<step
 """
 from __future__ import annotations
 
+import re
+import time
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer, Signal, Slot
@@ -20,6 +22,10 @@ from app.gui import stages
 from app.gui.pages import PAGES
 from app.gui.rig import Rig
 from app.gui.worker import Worker
+
+
+#: "…, RMS per band [a, b, c]" in a stage's progress message (the fit's iterations).
+RMS_IN_MESSAGE = re.compile(r"RMS per band \[([^\]]+)\]")
 
 
 class MainWindow(QMainWindow):
@@ -182,6 +188,7 @@ class MainWindow(QMainWindow):
         worker.cancelled.connect(lambda msg: self._ended(name, "cancelled", "stopped; Run again resumes"))
         worker.finished.connect(lambda: self._thread_done(name))
         self.worker, self.running = worker, name
+        self._started = time.monotonic()
         page.set_status("running…")
         self.progress.setValue(0)
         self.progress.setFormat(f"{step.title}: starting")
@@ -206,7 +213,10 @@ class MainWindow(QMainWindow):
             self.progress.setValue(int(1000 * min(done / total, 1.0)))
         self.progress.setFormat(f"{message} ({done:.0f} of {total:.0f})" if message and total > 0 else message or "%p%")
         self._show_shot(message)
-        if message and message != self._last_message:
+        rms = RMS_IN_MESSAGE.search(message or "")
+        if rms and hasattr(self.pages[self.running], "live_point"):  # the fit's error as it falls
+            self.pages[self.running].live_point(time.monotonic() - self._started, [float(v) for v in rms.group(1).split(",")])
+        if message and message.split(",")[0] != self._last_message.split(",")[0]:  # one log line per phase
             self.log(message)
         self._last_message = message
 
@@ -288,8 +298,6 @@ class MainWindow(QMainWindow):
     def _tick_preview(self) -> None:
         """Take one frame off the UI thread; a slow camera (the simulated one renders the lab) is
         asked at most every other frame time, so the live view never eats more than half a core."""
-        import time
-
         if (not self.rig.connected or self.running is not None or self._preview is not None or not self.isVisible()
                 or time.monotonic() < self._preview_next):
             return

@@ -729,10 +729,23 @@ class FitPage(StepPage):
         self.curve.setObjectName("fit_curve")
         self.tab(self.curve, "Error against time")
         self.previous: list = []
+        self.live: list = []
 
     def before_run(self) -> None:
-        """Keep the earlier fit's curve to draw beside the new one."""
+        """Keep the earlier fit's curve to draw beside the new one; start the live one."""
         self.previous = fit_trace(read_json(self.ws.fit)) if self.ws.fit.exists() else []
+        self.live = []
+        self.tabs.setCurrentWidget(self.curve)
+
+    def live_point(self, seconds: float, rms: list) -> None:
+        """One iteration's error, seconds since Run (trees included), drawn as it comes."""
+        self.live.append((seconds, *rms[:3]))
+        pts = np.asarray(self.live, float)
+        colours = ("#d02020", "#20a020", "#2040d0")
+        self.curve.set_series([(f"{band} band (running)", colour, pts[:, [0, 1 + b]])
+                               for b, (band, colour) in enumerate(zip("RGB", colours)) if pts.shape[1] > 1 + b]
+                              + [(f"{band}, earlier fit", QColor(colour).lighter(170), trace)
+                                 for band, colour, trace in zip("RGB", colours, self.previous)])
 
     def refresh(self):
         while self.materials_layout.count():
