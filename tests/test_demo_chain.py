@@ -39,7 +39,7 @@ def test_demo_runs_readmes_commands():
     assert documented[1:] == [argv for _, argv in commands("demo-workspace")]
 
 
-@pytest.mark.slow  # the whole acquisition: 57 simulated shots, structure from motion, fit, texture (about 3 min idle)
+@pytest.mark.slow  # the whole acquisition: 57 simulated shots, structure from motion, fit, texture (140 s measured)
 def test_readme_chain_on_the_simulated_lab(tmp_path):
     ws = tmp_path / "lab"
     for argv in readme_commands():
