@@ -334,3 +334,11 @@ def test_camera_calibrated_from_the_target_shots_the_window_takes(qtbot, tmp_pat
     table = window.findChild(QWidget, "camera_views")
     assert table.rowCount() == len(views) >= 4
     assert [table.item(i, 1).text() for i in range(table.rowCount())] == [f"{v['rms_px']:.3f}" for v in views]
+
+
+def test_a_missing_serial_port_fails_the_devices_step_with_its_name(qtbot, tmp_path):
+    window = MainWindow(tmp_path, port=str(tmp_path / "ttyUSB9"), camera="sim", size=SIZE, live_preview_ms=0)
+    qtbot.addWidget(window)
+    outcome, status = run(qtbot, window, "devices")
+    assert outcome == "failed" and status.startswith("failed: cannot open") and "ttyUSB9" in status
+    assert not window.rig.connected and not (tmp_path / "hardware.json").exists()
