@@ -195,7 +195,7 @@ class DevicesPage(StepPage):
         lamps = QGroupBox("Lamps")
         ll = QHBoxLayout(lamps)
         self.lamp_boxes = []
-        for k in range(2):
+        for k in range(len(self.window.rig.config.lamps)):  # one switch per configured lamp
             c = QCheckBox(f"lamp {k}")
             c.setObjectName(f"lamp_{k}")
             c.clicked.connect(lambda on, k=k: self.window.hardware_action("lamp", k, on))
@@ -852,7 +852,7 @@ class ResultsPage(StepPage):
         controls.addRow("orbit (°)", self.azimuth)
         controls.addRow("raise (°)", self.elevation)
         self.dimmers = []
-        for k in range(2):
+        for k in range(len(self.window.rig.config.lamps)):  # a dimmer per lamp of the rig
             s = QSlider(Qt.Orientation.Horizontal)
             s.setObjectName(f"dim_lamp_{k}")
             s.setRange(0, 200)
