@@ -342,3 +342,21 @@ def test_a_missing_serial_port_fails_the_devices_step_with_its_name(qtbot, tmp_p
     outcome, status = run(qtbot, window, "devices")
     assert outcome == "failed" and status.startswith("failed: cannot open") and "ttyUSB9" in status
     assert not window.rig.connected and not (tmp_path / "hardware.json").exists()
+
+
+def test_a_paused_sweep_holds_and_cancel_ends_it(qtbot, tmp_path):
+    window = open_window(qtbot, tmp_path, sweep={"count": 8})
+    assert run(qtbot, window, "devices")[0] == "done"
+    window.run_step("sweep")
+    with qtbot.waitSignal(window.worker.progress, timeout=30_000):  # the first shot is taken
+        pass
+    qtbot.mouseClick(window.findChild(QPushButton, "pause"), Qt.MouseButton.LeftButton)
+    taken = window.worker.task.done  # shots written when the pause was asked
+    assert window.worker.task.paused and window.findChild(QPushButton, "pause").text() == "Resume"
+    with qtbot.waitSignal(window.step_finished, timeout=30_000) as blocker:
+        qtbot.mouseClick(window.findChild(QPushButton, "cancel"), Qt.MouseButton.LeftButton)
+    assert blocker.args == ["sweep", "cancelled"]
+    shots = read_json(tmp_path / "captures/turntable/manifest.json")["shots"]
+    assert 1 <= taken <= len(shots) <= taken + 1 < 8  # held after the shot it was taking when paused
+    pause = window.findChild(QPushButton, "pause")
+    assert not pause.isEnabled() and not pause.isChecked() and pause.text() == "Pause"

@@ -91,6 +91,11 @@ class MainWindow(QMainWindow):
         self.cancel_button.setObjectName("cancel")
         self.cancel_button.setEnabled(False)
         self.cancel_button.clicked.connect(self.cancel)
+        self.pause_button = QPushButton("Pause")
+        self.pause_button.setObjectName("pause")
+        self.pause_button.setCheckable(True)
+        self.pause_button.setEnabled(False)
+        self.pause_button.toggled.connect(self.pause)
         self.log_pane = QPlainTextEdit()
         self.log_pane.setObjectName("log")
         self.log_pane.setReadOnly(True)
@@ -103,6 +108,7 @@ class MainWindow(QMainWindow):
         top.setStretchFactor(1, 1)
         bar = QHBoxLayout()
         bar.addWidget(self.progress, 1)
+        bar.addWidget(self.pause_button)
         bar.addWidget(self.cancel_button)
         bottom = QWidget()
         bl = QVBoxLayout(bottom)
@@ -194,6 +200,7 @@ class MainWindow(QMainWindow):
         self.progress.setFormat(f"{step.title}: starting")
         self.progress.setRange(0, 0)  # busy until the stage reports progress
         self.cancel_button.setEnabled(True)
+        self.pause_button.setEnabled(True)
         for p in self.pages.values():
             p.run_button.setEnabled(False)
         self.refresh_steps()
@@ -201,11 +208,23 @@ class MainWindow(QMainWindow):
         worker.start()
         return True
 
+    def pause(self, paused: bool) -> None:
+        """Hold the running step at its next check (a turntable move holds at once), or let it go on."""
+        if self.worker is None:
+            return
+        if paused:
+            self.worker.task.pause()
+            self.log(f"{self.running} paused: Pause again to go on")
+        else:
+            self.worker.task.resume()
+            self.log(f"{self.running} goes on")
+        self.pause_button.setText("Resume" if paused else "Pause")
+
     def cancel(self) -> None:
         if self.worker is not None:
             self.log(f"cancelling {self.running}…")
             self.cancel_button.setEnabled(False)
-            self.worker.cancel()
+            self.worker.cancel()  # also ends a pause
 
     def _progress(self, done: float, total: float, message: str) -> None:
         if total > 0:
@@ -247,6 +266,11 @@ class MainWindow(QMainWindow):
         self.progress.setValue(1000 if outcome == "done" else 0)
         self.progress.setFormat(f"{outcome}")
         self.cancel_button.setEnabled(False)
+        self.pause_button.blockSignals(True)
+        self.pause_button.setChecked(False)
+        self.pause_button.setText("Pause")
+        self.pause_button.blockSignals(False)
+        self.pause_button.setEnabled(False)
         for p in self.pages.values():
             p.run_button.setEnabled(True)
         self.refresh_steps()
