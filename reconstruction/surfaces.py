@@ -28,6 +28,8 @@ from reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
 
 #: Points within this distance of a box's side face count as that face's (metres).
 SIDE_BAND = 0.004
+#: How far (metres) a fitted footprint may reach beyond the box's outermost point on each axis.
+REACH_MARGIN = 0.004
 #: Boxes at least this tall have sides that carry points of their own (five bands: a tile's do not).
 TALL = 5 * SIDE_BAND
 #: Box corner labels in the order of :func:`box_mesh`'s vertices.
@@ -185,7 +187,11 @@ def fit_resting_box(points: np.ndarray, normal: np.ndarray, offset: float,
         dg = g2 - x[:2]
         gl = np.stack([c * dg[:, 0] + s * dg[:, 1], -s * dg[:, 0] + c * dg[:, 1]], axis=1)
         inside = np.maximum(-_box_sdf(np.c_[gl, np.zeros(len(gl))], np.r_[half[:2], 1.0]), 0.0)
-        return np.concatenate([_box_sdf(local, half), 10.0 * inside])
+        # Nothing else holds a footprint that only top-face points see (a still ground has no
+        # points): it could grow freely (a 120 mm tile came out 296 mm wide in one run of two).
+        reach = np.r_[local[:, :2].max(axis=0), -local[:, :2].min(axis=0)]  # each edge's outermost point
+        beyond = np.maximum(np.r_[half[:2], half[:2]] - reach - REACH_MARGIN, 0.0)
+        return np.concatenate([_box_sdf(local, half), 10.0 * inside, 10.0 * beyond])
 
     scale = np.r_[0.01, 0.01, 0.1, 0.01, 0.01, 0.01]
     sol = least_squares(residual, x0, loss="soft_l1", f_scale=5e-4, x_scale=scale)
