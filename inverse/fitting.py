@@ -884,7 +884,7 @@ def uncertainty(pb: Problem, p: Params, free: Free, res, robust: bool = True, ke
     only these pixels inform (:func:`texture_absorbed` leaves out what a free texture explains).
     Never NaN.
     """
-    from inverse.uncertainty import covariance, tile_index
+    from inverse.uncertainty import COARSE_FACTOR, coarser, covariance, tile_index
 
     n_free = free.count()
     dof = max(BANDS * pb.fac.n_rows - n_free, 1)
@@ -899,6 +899,11 @@ def uncertainty(pb: Problem, p: Params, free: Free, res, robust: bool = True, ke
     if not labels:
         return sig
     model, sandwich = covariance(H, scores)
+    if scores is not None:
+        group, n_big = coarser(pb.fac.rows, pb.fac.width, pb.fac.height, COARSE_FACTOR)
+        big = np.zeros((scores.shape[0], n_big))
+        np.add.at(big.T, group, scores.T)
+        sandwich = np.fmax(sandwich, covariance(H, big)[1])
     sd = np.fmax(model, sandwich)
     sd = np.where(np.isnan(sd), np.inf, sd)
     for (kind, i, c), v in zip(labels, sd):

@@ -24,6 +24,10 @@ import numpy as np
 
 #: Target number of tiles across the image's shorter side (tile size = shorter side / this, ≥ 4 px).
 TILES_ACROSS = 12
+#: The sandwich is also taken over tiles this many times larger (about 4 across the short side),
+#: the larger σ kept: misfit coherent over a whole surface (reconstructed geometry, a texture
+#: regressed on noisy texels) is one cluster at the fine scale and shows only at the coarse one.
+COARSE_FACTOR = 3
 #: Smallest tile side in pixels.
 MIN_TILE = 4
 
@@ -41,6 +45,19 @@ def tile_index(rows: np.ndarray, width: int, height: int) -> tuple[np.ndarray, i
     tile = (rows // width // side) * nx + (rows % width) // side
     used, inv = np.unique(tile, return_inverse=True)
     return inv.reshape(-1), len(used)
+
+
+def coarser(rows: np.ndarray, width: int, height: int, factor: int) -> tuple[np.ndarray, int]:
+    """(T,) the tile of ``factor`` x ``factor`` fine tiles (:func:`tile_index`) holding each fine tile, and their count."""
+    side = tile_size(width, height)
+    rows = np.asarray(rows)
+    fine, n_fine = tile_index(rows, width, height)
+    big = side * factor
+    coarse = (rows // width // big) * (-(-width // big)) + (rows % width) // big
+    used, inv = np.unique(coarse, return_inverse=True)
+    out = np.zeros(n_fine, dtype=np.int64)
+    out[fine] = inv.reshape(-1)
+    return out, len(used)
 
 
 def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
