@@ -7,7 +7,7 @@ features, edges misalign over runs of pixels, and ``σ² (JᵀJ)⁻¹`` then rep
 too small (docs/fit.md). So the covariance is the larger, per parameter, of
 
 - the **model-based** one, ``H⁻¹`` with ``H = JᵀWJ``, ``W = 1/σ_c²`` per band (σ_c from the
-  residual, never below :data:`inverse.fitting.NOISE_FLOOR` of the peak); and
+  residual, never below :data:`inverse.problem.NOISE_FLOOR` of the peak); and
 - the **cluster-robust sandwich** over image tiles, ``H⁻¹ M H⁻¹`` with ``M = T/(T−1) Σ_t g_t g_tᵀ``
   and ``g_t = Σ_{i ∈ tile t} J_iᵀ W r_i`` (the gradient of the objective contributed by tile t):
   the spread of the parameters that the residual's actual structure implies, correlations within
@@ -21,6 +21,9 @@ that parameter. A linear parameter's σ is never NaN: directions the data do not
 from __future__ import annotations
 
 import numpy as np
+
+from inverse.factorization import BANDS
+from inverse.problem import NOISE_FLOOR, Free, Params, Problem
 
 #: Target number of tiles across the image's shorter side (tile size = shorter side / this, ≥ 4 px).
 TILES_ACROSS = 12
@@ -94,3 +97,101 @@ def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndar
     var = np.einsum("it,it->i", B, B) * T / (T - 1.0)
     robust[ok] = np.sqrt(np.maximum(var, 0.0)) / dg[ok]
     return model, robust
+
+
+def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None, res=None, tiles=None, keep=None):
+    """JᵀWJ of the free parameters (natural units) with band weights; and the label of each row.
+
+    ``A``, ``grad`` from ``fac.matrices_and_grad(p.theta)`` when the caller has them. With the
+    residual ``res`` (3, R) and ``tiles`` = (tile of each used pixel, T), also the per-tile
+    gradients ``g_t = Σ_{i∈t} J_iᵀ W r_i`` (n, T) of :func:`inverse.uncertainty.covariance`.
+    ``keep`` (R,) bool: only these pixels inform (the others' rows count as zero).
+    """
+    fac = pb.fac
+    if A is None:
+        A, grad = fac.matrices_and_grad(p.theta)
+    y = fac.y(p.x, p.s)
+    q = np.flatnonzero(free.theta)
+    img = grad.images(y)[q] if len(q) else np.zeros((0, BANDS, fac.n_rows))  # (nq, 3, R)
+    if keep is not None:
+        img = img * keep
+        res = None if res is None else res * keep
+    blocks, labels = [], []
+    for c in range(BANDS):
+        D, lab = pb.dy(p, c, free)
+        blocks.append(D)
+        labels += [(kind, i, c) for kind, i in lab]
+    n_lin = sum(b.shape[1] for b in blocks)
+    n = n_lin + len(q)
+    H = np.zeros((n, n))
+    scores = None
+    if res is not None:
+        from scipy.sparse import csr_matrix
+
+        tile, n_tiles = tiles
+        P = csr_matrix((np.ones(len(tile)), (np.arange(len(tile)), tile)), shape=(len(tile), n_tiles))
+        wr = weights[:, None] * res  # (3, R)
+        scores = np.zeros((n, n_tiles))
+        if len(q):
+            scores[n_lin:] = np.asarray((P.T @ np.einsum("qcr,cr->rq", img, wr)).T)
+    off = 0
+    for c in range(BANDS):
+        D = blocks[c]
+        k = D.shape[1]
+        AD = A[c] @ D  # (R, k): image derivatives of band c's linear parameters
+        if keep is not None:
+            AD = AD * keep[:, None]
+        if scores is not None and k:
+            scores[off:off + k] = np.asarray((P.T @ (AD * wr[c][:, None])).T)
+        H[off:off + k, off:off + k] = weights[c] * (AD.T @ AD)
+        if len(q):
+            cross = weights[c] * (AD.T @ img[:, c, :].T)
+            H[off:off + k, n_lin:] = cross
+            H[n_lin:, off:off + k] = cross.T
+        off += k
+    if len(q):
+        H[n_lin:, n_lin:] = np.einsum("c,qcr,pcr->qp", weights, img, img)
+    labels += [("theta", i, -1) for i in q]
+    if res is not None:
+        return H, labels, scores
+    return H, labels
+
+
+def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=None) -> Params:
+    """One-sigma uncertainties (natural units) of the free parameters; inf where unconstrained.
+
+    The noise of band c is estimated from its residual, but never below :data:`NOISE_FLOOR` of
+    the image peak; the model-based covariance is ``(JᵀWJ)⁻¹`` with ``W = 1/σ_c²``. With
+    ``robust`` each σ is the larger of that and the cluster-robust sandwich over image tiles
+    (:mod:`inverse.uncertainty`), which holds when the model is imperfect. ``keep`` (R,) bool:
+    only these pixels inform (:func:`inverse.determined.texture_absorbed` leaves out what a free texture explains).
+    Never NaN.
+    """
+    n_free = free.count()
+    dof = max(BANDS * pb.fac.n_rows - n_free, 1)
+    var = np.sum(res * res, axis=1) / max(dof / BANDS, 1.0)
+    var = np.maximum(var, (NOISE_FLOOR * pb.peak) ** 2)
+    sig = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+    if robust:
+        tiles = tile_index(pb.fac.rows, pb.fac.width, pb.fac.height)
+        H, labels, scores = normal_matrix(pb, p, free, 1.0 / var, res=res, tiles=tiles, keep=keep)
+    else:
+        (H, labels), scores = normal_matrix(pb, p, free, 1.0 / var, keep=keep), None
+    if not labels:
+        return sig
+    model, sandwich = covariance(H, scores)
+    if scores is not None:
+        group, n_big = coarser(pb.fac.rows, pb.fac.width, pb.fac.height, COARSE_FACTOR)
+        big = np.zeros((scores.shape[0], n_big))
+        np.add.at(big.T, group, scores.T)
+        sandwich = np.fmax(sandwich, covariance(H, big)[1])
+    sd = np.fmax(model, sandwich)
+    sd = np.where(np.isnan(sd), np.inf, sd)
+    for (kind, i, c), v in zip(labels, sd):
+        if kind == "x":
+            sig.x[i, c] = v
+        elif kind == "s":
+            sig.s[i, c] = v
+        else:
+            sig.theta[i] = v
+    return sig

@@ -1,7 +1,7 @@
 """The fit's speed-ups keep its answers: the coarse scan from a poor start, the phase timings."""
 import numpy as np
 
-import inverse.fitting as fitting
+import inverse.ftbo as ftbo
 from hardware.sim.lab import build_lab
 from inverse.factorization import Factorization
 from inverse.fitting import Problem, fit, params_of
@@ -25,9 +25,9 @@ def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
             m.params["ns"] = np.float64(2.0**14)
 
     full = fit(fac, img, start, "ftbo")
-    monkeypatch.setattr(fitting, "COARSE_MIN_ROWS", 10_000)
+    monkeypatch.setattr(ftbo, "COARSE_MIN_ROWS", 10_000)
     pb = Problem(fac, img, [m.transparent for m in truth])
-    coarse = fitting._coarse(pb)
+    coarse = ftbo.coarse_problem(pb)
     assert coarse.fac.n_rows == 80 * 60 and coarse.scan_share == 0.25
     np.testing.assert_array_equal(coarse.noise, pb.noise)
 

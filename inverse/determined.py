@@ -1,0 +1,183 @@
+"""Which parameters the image determines.
+
+Parameters with no signal in their columns (a surface never seen, no reflection or transmission
+through a surface) are out of the fit from the start (:func:`structural_free`); those whose
+one-sigma exceeds :data:`RESOLVE` of their scale (a hidden highlight, ks ≈ 0 leaving ns free) are
+held at their initial value round by round (:func:`unresolved`), and so are values the user gave
+(:func:`hold`); all are named in fit.json's ``undetermined`` (:func:`undetermined_names`). On
+textured scenes only the pixels that a free texture cannot explain inform the other parameters
+(:func:`texture_absorbed`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from inverse.factorization import BANDS, Factorization
+from inverse.problem import SCAN_POINTS, Free, Params, Problem, materials_of
+
+
+#: A parameter whose one-sigma exceeds this fraction of its scale (its value or initial value for
+#: x, the range [0, 1] for r and t, a factor 2 for a log2 parameter) is undetermined.
+RESOLVE = 1.0
+#: A fitted shininess is reported undetermined when its final (robust) one-sigma exceeds this many
+#: log2 units (a factor √2): the linearised σ of a log-scale parameter understates its long tail.
+RESOLVE_THETA = 0.5
+#: Within this (relative) distance of a bound a parameter counts as pinned there.
+BOUND_TOL = 1e-3
+#: Column signal below this fraction of the image peak counts as none.
+SIGNAL_FLOOR = 1e-9
+#: A pixel where directly seen texture carries at least this share of the light says nothing about
+#: the other parameters once the texture is free (:func:`texture_absorbed`).
+ABSORB_SHARE = 0.02
+
+
+def structural_free(pb: Problem, p: Params) -> Free:
+    """Parameters with signal in their columns (exact zeros left out).
+
+    Signal counts at the initial θ or anywhere on the global scan's grid (:mod:`inverse.ftbo`): a start
+    at ns = 2^14 hides every highlight that a broader lobe would show.
+    """
+    fac, lay, srch = pb.fac, pb.fac.layout, pb.search
+    floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
+    live = np.zeros((fac.n_columns, BANDS), dtype=bool)
+    th_free = np.zeros(lay.n_theta, dtype=bool)
+    u0 = srch.to_u(p.theta)
+    for k in range(SCAN_POINTS + 1 if lay.n_theta else 1):  # the initial θ, then the scan grid
+        u = u0 if k == 0 else pb.scan_lo + (pb.scan_hi - pb.scan_lo) * (k - 1) / (SCAN_POINTS - 1)
+        A, grad = fac.matrices_and_grad(srch.to_theta(u))
+        now = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor  # (C, 3)
+        live |= now
+        if lay.n_theta:
+            # θ acts through the columns of its surface's x: only those with signal count.
+            img = grad.images(now.T.astype(np.float64))
+            th_free |= np.abs(img).max(axis=(1, 2)) > floor
+            if th_free.all() and k > 0:
+                break
+    x_free = np.zeros((lay.n_x, BANDS), dtype=bool)
+    np.logical_or.at(x_free, fac.col_x, live)
+    s_free = np.zeros((lay.n_factors, BANDS), dtype=bool)
+    for f in np.flatnonzero(fac.exponents.any(axis=0)):
+        s_free[f] = live[fac.exponents[:, f] > 0].any(axis=0)
+    for i, transparent in enumerate(pb.transparent):
+        if not transparent:
+            s_free[2 * i + 1] = False
+    return Free(x_free, s_free, th_free)
+
+
+def unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A, theta_resolve=RESOLVE,
+                bounds_hold: bool = True) -> Free:
+    """Free parameters whose one-sigma exceeds :data:`RESOLVE` of their scale.
+
+    ``A`` = ``fac.matrices(p.theta)``, the system at the fitted θ. With ``bounds_hold`` a value
+    pinned at a bound counts as determined whatever its σ (the fit's rounds); without, it is
+    judged by its σ like any other (the final report: ks = 0 ± 3000 is undetermined).
+    """
+    fac = pb.fac
+    # Scale of x: its value, but at most 1 (albedo units) — a ks of 1e9 under a faint lobe tail
+    # must not count as resolved relative to itself — and at least its initial value.
+    xs = np.maximum(np.maximum(np.minimum(np.abs(p.x), 1.0), np.abs(init.x)), 1e-3)
+    # A parameter pinned at a bound is held there by the data (moving inside would show), even
+    # where the linearisation is blind to it (t² has zero slope at t = 0) — but only if its
+    # columns show at the fitted θ (ks = 0 under a held ns = 2^14 is seen by no pixel).
+    live = np.stack([abs(A[c]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > SIGNAL_FLOOR * max(pb.peak, 1e-300)
+    seen = np.zeros_like(free.x)
+    np.logical_or.at(seen, fac.col_x, live)
+    bad_x = free.x & ~(sig.x <= RESOLVE * xs) & ((p.x > BOUND_TOL * xs) | ~seen | (not bounds_hold))
+    bad_s = free.s & ~(sig.s <= RESOLVE) & (((p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)) | (not bounds_hold))
+    # A shininess pinned at its lower bound is a lobe as broad as diffuse light: it trades with kd
+    # and fits misfit, not a highlight (docs/fit.md).
+    pinned = pb.search.log & (pb.search.to_u(p.theta) <= pb.search.lo + 1e-6)
+    bad_t = free.theta & (~(theta_resolution(pb, p, sig) <= theta_resolve) | pinned)
+    return Free(bad_x, bad_s, bad_t)
+
+
+def theta_resolution(pb: Problem, p: Params, sig: Params) -> np.ndarray:
+    """σ of each θ relative to its scale: in log2 units for :data:`LOG2` names, else of the range."""
+    srch = pb.search
+    return np.where(srch.log, sig.theta / np.maximum(p.theta * np.log(2.0), 1e-300),
+                    sig.theta / np.maximum(srch.hi - srch.lo, 1e-300))
+
+
+def hold(fac: Factorization, free: Free, held) -> None:
+    """Take the user-given parameters (per surface, a set of names) out of ``free`` in place."""
+    lay = fac.layout
+    for k, (s, name) in enumerate(lay.x_names):
+        if name in held[s]:
+            free.x[k] = False
+    for q, (s, name) in enumerate(lay.theta_names):
+        if name in held[s]:
+            free.theta[q] = False
+    for i in range(len(fac.models)):
+        if "r" in held[i]:
+            free.s[2 * i] = False
+        if "t" in held[i]:
+            free.s[2 * i + 1] = False
+
+
+def undetermined_names(fac: Factorization, free: Free, materials, loose: Free | None = None) -> list:
+    """Per surface, the names of the parameters held at their initial value ("ks[2]" for one band),
+    and of those fitted whose (robust) σ exceeds their scale (``loose``)."""
+    lay, out = fac.layout, []
+    if loose is None:
+        loose = Free(np.zeros_like(free.x), np.zeros_like(free.s), np.zeros_like(free.theta))
+    for i, (model, mat) in enumerate(zip(fac.models, materials)):
+        names = []
+        for j, name in enumerate(model.linear):
+            k = lay.x_offset[i] + j
+            names += _band_names(name, ~free.x[k] | loose.x[k])
+        names += _band_names("r", ~free.s[2 * i] | loose.s[2 * i])
+        names += _band_names("t", ~free.s[2 * i + 1] | loose.s[2 * i + 1])
+        names += [name for j, name in enumerate(model.nonlinear)
+                  if not free.theta[lay.theta_offset[i] + j] or loose.theta[lay.theta_offset[i] + j]]
+        out.append(names)
+    return out
+
+
+def _band_names(name, held) -> list:
+    if held.all():
+        return [name]
+    return [f"{name}[{c}]" for c in np.flatnonzero(held)]
+
+
+def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> np.ndarray:
+    """(R,) bool: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
+    predicted light in some band.
+
+    A texture free per texel (about one per pixel) can take up any residual where it shows — a
+    highlight, a faint reflection — unless the same texel is pinned down elsewhere. Texture seen
+    directly is free; texture seen only in a mirror or through glass (the demo box's back face) is
+    free too; texture seen there AND directly (a floor in a mirror) is fixed by the direct view.
+    So only pixels without free texture tell a specular term from albedo. Which points are seen
+    directly: cells of twice the mean spacing of the surface's directly seen nodes.
+    """
+    if textured is None or not any(textured):
+        return np.zeros(fac.n_rows, dtype=bool)
+    from inverse.rendering import node_radiance
+
+    tr = fac.trees
+    surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
+    light = np.abs(node_radiance(tr, materials_of(fac, p, materials), fac._args[0]))
+    tex = np.asarray(textured, dtype=bool)[surf]
+    free_tex = tex & (level == 1)
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
+        direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
+        if not seen_else.any():
+            continue
+        if not direct.any():
+            free_tex |= seen_else
+            continue
+        ext = np.sort(np.ptp(pts[direct], axis=0))[::-1]
+        cell = 2.0 * np.sqrt(max(ext[0] * ext[1], 1e-12) / direct.sum())
+        key = np.floor(pts / cell).astype(np.int64)
+        both = direct | seen_else
+        lo = key[both].min(axis=0)
+        span = key[both].max(axis=0) - lo + 1
+        flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
+        free_tex |= seen_else & ~np.isin(flat, flat[direct])
+    npix = fac.width * fac.height
+    out = np.zeros(fac.n_rows, dtype=bool)
+    for c in range(BANDS):
+        total = np.bincount(tr.pixel, weights=light[:, c], minlength=npix)[fac.rows]
+        part = np.bincount(tr.pixel[free_tex], weights=light[free_tex, c], minlength=npix)[fac.rows]
+        out |= part > ABSORB_SHARE * np.maximum(total, 1e-300)
+    return out

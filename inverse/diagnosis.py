@@ -1,0 +1,113 @@
+"""Does the fitted model explain the image: the diagnosis in words and the outlier pixels."""
+from __future__ import annotations
+
+import numpy as np
+
+from inverse.factorization import BANDS
+from inverse.problem import Params, Problem
+
+
+#: The diagnosis flags a pixel whose residual exceeds this many image-noise σ plus DIAG_FLOOR of the peak.
+DIAG_SIGMAS = 6.0
+DIAG_FLOOR = 1e-4
+#: A pixel is an outlier, left out and the fit repeated, when its residual exceeds this many image-noise σ
+#: (plus DIAG_FLOOR of the peak); only when such pixels are at most REJECT_SHARE of those used (more
+#: is a misfit for the diagnosis, not outliers).
+REJECT_SIGMAS = 6.0
+REJECT_SHARE = 0.01
+#: Passes of rejection and refit at most.
+REJECT_PASSES = 4
+
+
+def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple[str, list]:
+    """Does the fitted model explain the image? A safety net for a wrong basin or a bad scene.
+
+    A pixel is *unexplained* when its residual in some band exceeds :data:`DIAG_SIGMAS` times the
+    noise σ estimated from the image itself (:func:`inverse.photograph.image_noise`) plus :data:`DIAG_FLOOR` of the
+    peak, plus — on textured surfaces — the diffuse radiance that their homogeneous ``kd`` predicts
+    there (albedo variation is the texture stage's job, not a misfit). With Gaussian noise no pixel
+    gets there; a highlight left in the wrong place, a missing reflection or wrong geometry does.
+
+    Parameters
+    ----------
+    pb : Problem
+    p : Params
+        The fitted parameters.
+    A : list of CSR
+        ``fac.matrices(p.theta)``.
+    res : (3, R) ndarray
+        Model minus image.
+    textured : list of bool, optional
+        Per surface (default: none).
+    names : list of str, optional
+        Surface names for the messages.
+
+    Returns
+    -------
+    status : {"ok", "poor fit", "texture pending"}
+        "texture pending" instead of "poor fit" when some surface is textured: its albedo may vary
+        by more than the allowance, so only ``reflab texture`` can tell. :func:`inverse.fitting.fit` turns "ok"
+        into "not converged" when a method stopped at its cap.
+    warnings : list of str
+        Plain-language diagnosis (empty when ``status == "ok"``).
+    """
+    fac = pb.fac
+    n_surf = len(fac.models)
+    textured = [False] * n_surf if textured is None else [bool(t) for t in textured]
+    names = [f"surface {i}" for i in range(n_surf)] if names is None else list(names)
+    tol = np.broadcast_to((DIAG_SIGMAS * pb.noise + DIAG_FLOOR * pb.peak)[:, None], res.shape).copy()
+    diffuse = np.array([textured[s] and fac.layout.x_names[i][1] == "kd"
+                        for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
+    if diffuse.any():
+        y = fac.y(p.x, p.s)
+        tol += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
+    bad = np.any(np.abs(res) > tol, axis=0)
+    if not bad.any():
+        return "ok", []
+    # Which surface each unexplained pixel sees first (its primary hit).
+    tr = fac.trees
+    first = np.full(fac.width * fac.height, -1, dtype=np.int64)
+    primary = np.asarray(tr.level) == 1
+    first[np.asarray(tr.pixel)[primary]] = np.asarray(tr.surface)[primary]
+    where = first[fac.rows[bad]]
+    counts = np.bincount(where[where >= 0], minlength=n_surf)
+    share = float(np.sum(res[:, bad] ** 2) / max(np.sum(res**2), 1e-300))
+    parts = ", ".join(f"{names[i]} {int(counts[i])}" for i in np.argsort(-counts) if counts[i])
+    rms = ", ".join(f"{v:.3g}" for v in pb.rms(res))
+    noise = ", ".join(f"{v:.3g}" for v in pb.noise)
+    pending = any(textured)
+    return ("texture pending" if pending else "poor fit"), [
+        f"the fitted {'homogeneous ' if pending and fac.albedo is None else ''}model"
+        f"{' (with the recovered texture)' if fac.albedo is not None else ''} does not explain {int(bad.sum())} of {fac.n_rows} pixels (residual above "
+        f"{DIAG_SIGMAS:g} times the image noise [{noise}]{' plus textured albedo' if diffuse.any() else ''}); "
+        f"they hold {100 * share:.0f}% of the squared residual; first seen surface: {parts or 'none'}",
+        f"RMS residual per band [{rms}]: "
+        + ("texture (run reflab texture and compare its re-render), or " if pending else "")
+        + "a wrong basin (try another starting shininess in scene.json), a wrong BRTDF model, "
+        "or geometry, lights or camera that do not match the image"]
+
+
+def outliers(pb: Problem, p: Params, A, res, textured=None) -> np.ndarray:
+    """Flat pixel indices whose residual exceeds :data:`REJECT_SIGMAS` σ in some band (σ the image
+    noise or 1.4826 × the median absolute residual, the larger).
+
+    The same test as :func:`diagnose`'s (plus :data:`DIAG_FLOOR` of the peak, plus on textured
+    surfaces the diffuse radiance their homogeneous kd predicts), at a lower threshold.
+    """
+    fac = pb.fac
+    textured = [False] * len(fac.models) if textured is None else [bool(t) for t in textured]
+    # The scale: the image noise, or the residual's own robust spread when larger (an outlier that
+    # pulled the fit leaves every pixel a little off, far below its own residual).
+    spread = 1.4826 * np.median(np.abs(res), axis=1) if res.size else np.zeros(BANDS)
+    tol = np.broadcast_to((REJECT_SIGMAS * np.maximum(pb.noise, spread) + DIAG_FLOOR * pb.peak)[:, None], res.shape).copy()
+    diffuse = np.array([textured[s] and fac.layout.x_names[i][1] == "kd" for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
+    if diffuse.any() and fac.albedo is None:
+        y = fac.y(p.x, p.s)
+        tol += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
+    excess = np.max(np.abs(res) / tol, axis=0)
+    over = excess > 1.0
+    if over.sum() > REJECT_SHARE * fac.n_rows:
+        # Too many to be outliers — unless a few strong ones pulled the fit so that the rest
+        # misfit a little: take the worst (over half the largest excess) first, refit, repeat.
+        over &= excess > 0.5 * excess.max()
+    return fac.rows[over]

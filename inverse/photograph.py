@@ -1,0 +1,83 @@
+"""The input photograph of the fit: its checks, its saturated pixels, its noise (METHOD.md §3)."""
+from __future__ import annotations
+
+import numpy as np
+
+from hardware.images import clip_level
+from hardware.workspace import WorkspaceError
+from inverse.factorization import BANDS
+
+
+#: At least this many pixel values at the image maximum make a clipped (saturated) plateau.
+PLATEAU = 3
+
+
+def check_image(image, width: int, height: int, path="input image") -> np.ndarray:
+    """Validate the input photograph against the camera and return it as float64 (H, W, 3).
+
+    Raises
+    ------
+    WorkspaceError
+        Size different from camera.json, or not a photograph (:func:`hardware.images.check_radiance`:
+        NaN, mostly negative, all black); noise-level negative values are kept.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[:2] != (height, width):
+        raise WorkspaceError(path, "size", f"{width}x{height} RGB as in camera.json",
+                             got=f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else image.shape)
+    from hardware.images import check_radiance
+
+    return check_radiance(image, path)
+
+
+def saturated_pixels(image, level: float | None = None) -> np.ndarray:
+    """Pixels (H*W,) bool with any band at the saturation level.
+
+    Parameters
+    ----------
+    image : (H, W, 3) array_like
+    level : float, optional
+        Clipping level. By default the image maximum counts as clipped when at least
+        :data:`PLATEAU` pixel values sit exactly on it (a sensor or 16-bit file clips to a plateau;
+        a rendered or unclipped highlight has one brightest value).
+    """
+    flat = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)
+    if level is None:
+        level = clip_level(flat, PLATEAU)
+        if level is None:
+            return np.zeros(len(flat), dtype=bool)
+    return np.any(flat >= level, axis=1)
+
+
+def image_noise(image, used=None) -> np.ndarray:
+    """Gaussian noise σ per band estimated from one image (Immerkær 1996, median form).
+
+    The 3×3 mask ``[1 −2 1; −2 4 −2; 1 −2 1]`` (a product of two second differences) cancels
+    shading that is locally linear or quadratic along rows and columns, and sends white noise of
+    σ to σ·6; the median of its absolute response over 0.6745 is robust to edges and highlights.
+
+    Parameters
+    ----------
+    image : (H, W, 3) array_like
+    used : (H, W) bool, optional
+        Pixels to trust (e.g. not saturated); a mask response counts only where all 9 are used.
+
+    Returns
+    -------
+    (3,) ndarray
+        0 where no 3×3 window is available.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    if img.shape[0] < 3 or img.shape[1] < 3:
+        return np.zeros(BANDS)
+    row = img[:, :-2] - 2.0 * img[:, 1:-1] + img[:, 2:]
+    resp = row[:-2] - 2.0 * row[1:-1] + row[2:]  # (H-2, W-2, 3)
+    ok = np.ones(resp.shape[:2], dtype=bool)
+    if used is not None:
+        u = np.asarray(used, dtype=bool)
+        for dv in range(3):
+            for du in range(3):  # 9 shifted views of the mask, not a pixel loop
+                ok &= u[dv:dv + resp.shape[0], du:du + resp.shape[1]]
+    if not ok.any():
+        return np.zeros(BANDS)
+    return np.median(np.abs(resp[ok]), axis=0) / (0.6745 * 6.0)
