@@ -34,10 +34,20 @@ class Mark:
         self.tip = np.asarray(self.tip, dtype=np.float64).reshape(2)
 
 
-def read_marks(path) -> tuple[float, list[Mark]]:
-    """Read marks.json (INTERFACES.md): ``(rod_height, marks)``, validated field by field."""
+def read_marks(path, rod_height: float | None = None) -> tuple[float, list[Mark]]:
+    """Read marks.json (INTERFACES.md): ``(rod_height, marks)``, validated field by field.
+
+    A file without ``rod_height`` (marks made before the rod was measured) takes ``rod_height``
+    when it is given (``--rod-height``); the field is required otherwise.
+    """
     obj = read_json(path)
-    height = as_float(req(obj, "rod_height", path), path, "rod_height", positive=True)
+    if "rod_height" in obj:
+        height = as_float(obj["rod_height"], path, "rod_height", positive=True)
+    elif rod_height is None:
+        raise WorkspaceError(path, "rod_height", "the rod's height in metres (in this file, or --rod-height)",
+                             got="missing")
+    else:
+        height = rod_height
     marks = []
     for where, item in object_items(req(obj, "marks", path), path, "marks", "marks",
                                     "an object with image, light, base, tip"):

@@ -70,12 +70,16 @@ def detect_marks(root, shots: list[RodShot], read_image) -> list[Mark]:
     ------
     ValueError
         Naming the image where the rod or its shadow was not found.
+    WorkspaceError
+        Naming an image (or its lamps-off frame) that cannot be read.
     """
     marks = []
     for shot in shots:
         try:
             room = read_image(Path(root) / shot.room) if shot.room is not None else None
             base, tip = detect_rod_marks(read_image(Path(root) / shot.image), room=room)
+        except WorkspaceError:  # an unreadable file: the caller may do without this shot
+            raise
         except ValueError as exc:
             raise ValueError(f"{shot.image}: {exc}; mark it by hand in marks.json and rerun with --marks") from None
         marks.append(Mark(shot.image, shot.light, base, tip))

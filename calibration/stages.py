@@ -72,7 +72,9 @@ class LightsOptions:
     for every image, or a list with one per image), merges them into marks.json and uses every
     mark there; with ``marks`` it reads that file instead; with neither it detects them in the
     single-lamp shots of captures/lights/ (the lamp of each from its manifest) and merges them into
-    marks.json likewise (calibration/rod.py). Intensity comes from ``sheet`` images (one per lamp,
+    marks.json likewise (calibration/rod.py), or, without a lights session, uses the marks already in
+    marks.json. A shot that cannot be read is skipped (``LightsResult.unreadable``) while its lamp
+    keeps two others. ``rod_height`` overrides, or fills in, marks.json's. Intensity comes from ``sheet`` images (one per lamp,
     of a sheet of Lambertian ``sheet_reflectance``), else, with ``sheet_reflectance`` and
     ``sheet_region`` alone, from that card lying in the rod shots (each lamp's frame minus the
     lamps-off frame at its angle), else ``intensity`` (data sheet), else the previous lights.json,
@@ -112,6 +114,7 @@ class LightsResult:
     lamps: list  # LampReport per lamp
     marks_path: Path | None = None  # marks.json when this run wrote it
     detected: list = field(default_factory=list)  # (image name, light, base, tip) of marks detected now
+    unreadable: list = field(default_factory=list)  # (image name, message) of rod shots skipped: cannot be read
 
 
 def calibrate_camera(options: CameraOptions, task: Task | None = None) -> CameraResult:
@@ -192,7 +195,7 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     from calibration.lights import Lights, PointLight
     from calibration.rod import RodShot, card_intensities, detect_marks, rod_shots
     from hardware.images import read_image
-    from hardware.workspace import Workspace, check_folder, read_json
+    from hardware.workspace import Workspace, WorkspaceError, check_folder, read_json
 
     task = ensure(task)
     o = options
@@ -200,28 +203,35 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
     images = [Path(p) for p in o.images or []]
     marks_path = Path(o.marks) if o.marks else ws.marks
-    height, marks = read_marks(marks_path) if o.marks else (None, [])
-    detected, shots = [], None
+    height, marks = read_marks(marks_path, o.rod_height) if o.marks else (None, [])
+    detected, shots, unreadable = [], None, []
     if images and o.marks:
         raise OptionError("marks", "give either images to detect marks in or a marks file, not both")
     geometric = lambda path: read_image(path, linear=False)  # noqa: E731 -- marks need no linear values
     if not o.marks:
         if marks_path.exists() and "marks" in read_json(marks_path):  # rod marks made (and corrected) before
-            height, marks = read_marks(marks_path)
+            height, marks = read_marks(marks_path, o.rod_height)
         if images:
             lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
             if len(lamps) != len(images):
                 raise OptionError("light", f"{len(lamps)} lamp indices for {len(images)} images")
             shots = [RodShot(str(p.relative_to(ws.root)) if p.is_relative_to(ws.root) else str(p), int(k))
                      for p, k in zip(images, lamps)]
-        else:  # the lights session's shots: its manifest says which lamp lit each
-            shots = rod_shots(ws.root)
+        elif ws.manifest("lights").exists() or not marks:
+            shots = rod_shots(ws.root)  # the lights session's shots: its manifest says which lamp lit each
+        # (no images and no session: the marks of marks.json, made by hand, are used as they are)
         found = []
-        for i, shot in enumerate(shots):
+        for i, shot in enumerate(shots or []):
             task.step(i, len(shots) + 1, f"detecting the rod in {Path(shot.image).name}")
-            found += detect_marks(ws.root, [shot], geometric)
+            try:
+                found += detect_marks(ws.root, [shot], geometric)
+            except WorkspaceError as exc:  # a cut-off file: the lamp's other shots may do without it
+                unreadable.append((shot.image, str(exc), shot.light))
         names = {m.image for m in found}
         marks = [m for m in marks if m.image not in names] + found
+        for image, message, light in unreadable:
+            if sum(m.light == light for m in marks) < 2:
+                raise ValueError(f"{message}; without it lamp {light} has fewer than 2 rod shots: retake it")
         detected = [(m.image, m.light, m.base, m.tip) for m in found]
     if o.rod_height is not None:
         height = o.rod_height
@@ -273,4 +283,5 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
     task.check()
     out = Lights(lights).save(ws.lights)
     task.step(1, 1, f"wrote {out}")
-    return LightsResult(out, Lights(lights), reports, written_marks, detected)
+    return LightsResult(out, Lights(lights), reports, written_marks, detected,
+                        [(image, message) for image, message, _ in unreadable])

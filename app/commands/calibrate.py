@@ -72,8 +72,8 @@ def _camera(args) -> int:
 
     r = calibrate_camera(CameraOptions(args.workspace, args.grid, args.spacing, args.images, args.radius,
                                        args.reference, args.pixel_size, not args.no_bias_correction))
-    for path, why in r.unreadable:
-        print(f"warning: skipping {path}: {why}", file=sys.stderr)
+    for _, why in r.unreadable:
+        print(f"warning: skipping {why}", file=sys.stderr)  # the message names the file
     for path, why in r.skipped:
         print(f"skipping {path}: {why}")
     res, cam = r.calibration, r.camera
@@ -106,6 +106,8 @@ def _lights(args) -> int:
     r = calibrate_lights(LightsOptions(args.workspace, args.images, args.rod_height, args.marks, args.light,
                                        args.mark_sigma, args.intensity, args.sheet, args.sheet_reflectance,
                                        args.sheet_region))
+    for _, why in r.unreadable:
+        print(f"warning: skipping {why}", file=sys.stderr)  # the message names the file
     for name, light, base, tip in r.detected:
         print(f"  {name}: lamp {light}, foot ({base[0]:.1f}, {base[1]:.1f}), tip ({tip[0]:.1f}, {tip[1]:.1f})")
     if r.marks_path is not None:
