@@ -1,8 +1,9 @@
 """`reflab fit` and `reflab texture` on linear images as a real lab makes them (issue 18).
 
 A dark- or ambient-frame subtraction leaves small negative values where noise meets black: that
-is data. Refused, with one line naming the file and nothing written: NaN, mostly negative, all
-zero, an 8-bit image (not linear). Truth: the parameters that rendered the image.
+is data (and fit.json's σ stays a number or null, never NaN). Refused, with one line naming the
+file and nothing written: NaN, mostly negative, all zero, an 8-bit image (not linear). Truth: the
+parameters that rendered the image.
 """
 import json
 
@@ -31,9 +32,15 @@ def test_noise_level_negatives_are_data(workspace, capsys):
     assert noisy.min() < 0 and np.mean(noisy < 0) < 0.5
     write_image(root / "input.exr", noisy)
     assert main(["fit", str(root), "--texture-rounds", "0"]) in (0, 3)
-    fit = json.loads((root / "fit.json").read_text())
+    text = (root / "fit.json").read_text()
+    fit = json.loads(text)
     kd = {s["name"]: s["material"]["kd"] for s in fit["surfaces"]}
     np.testing.assert_allclose(kd["ground"], truth[0]["kd"], rtol=0.03)
+    # σ is a number or null (undetermined), never NaN: a pane's ks on this homogeneous scene was NaN.
+    assert "NaN" not in text and "Infinity" not in text
+    sigmas = [v for s in fit["surfaces"] for v in s["sigma"].values()]
+    values = [x for v in sigmas for x in (v if isinstance(v, list) else [v])]
+    assert values and all(x is None or (isinstance(x, float) and np.isfinite(x) and x >= 0) for x in values), values
     assert main(["texture", str(root)]) == 0
     assert (root / "textures").is_dir()
     capsys.readouterr()
