@@ -132,6 +132,9 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
     if not o.spacing > 0:
         raise OptionError("spacing", f"must be a positive number of metres, got {o.spacing}")
     paths = [Path(p) for p in o.images] if o.images else image_files(ws.captures_of("calibration"))
+    if not paths and not ws.root.exists():
+        raise WorkspaceError(ws.root, expected="an existing workspace folder (check the path), or target images given",
+                             got="no such folder")
     if not paths:
         raise ValueError(f"no target images given and none in {ws.captures_of('calibration')}")
     if not 0 <= o.reference < len(paths):
