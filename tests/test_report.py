@@ -213,7 +213,8 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     # The fit's tile ns is 10 below the truth, with its sigma.
     assert re.search(r"\b50 ± 2\s+truth 60, error -10\s", text)
     assert re.search(r"\[0\.25, 0\.25, 0\.25\]\s+at its bound: ks\[0\] upper", text)
-    assert "Where the fit's time went" in text
+    assert "Where the fit's time went" in text and re.search(r"\bmethod\s+F-TBO\s", text)
+    assert "whose re-render includes this texture" in text  # the texture's residual: the fit's maps
     assert re.search(r"outlier pixels left out of the fit\s+2 \(residual above 8 σ", text)
     # Novel and relit views against truth/ (true materials and a recovered texture): PSNR shown and sane.
     psnrs = re.findall(r"view PSNR against truth\s+([\d.]+) dB over the (\d+) % of pixels of known albedo, ([\d.]+) dB over all", text)

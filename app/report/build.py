@@ -117,7 +117,7 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     views = render_views(src, depth) if render else {}
     parts = [("captures", "Captures", S.captures_section, ()), ("camera", "Camera", S.camera_section, ()),
              ("lights", "Lights", S.lights_section, ()), ("geometry", "Geometry", S.geometry_section, ()),
-             ("fit", "Fit", S.fit_section, (model,)), ("texture", "Texture", S.texture_section, ()),
+             ("fit", "Fit", S.fit_section, (model,)), ("texture", "Texture", S.texture_section, (model,)),
              ("views", "Novel and relit views", S.views_section, (views,)),
              ("error", "Error against run time", S.error_section, ())]
     sections = []

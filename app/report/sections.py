@@ -15,6 +15,8 @@ import numpy as np
 from app.report import figures as F
 from app.report.data import Sources, as_dict, as_list
 
+#: fit.json's method, as the docs name it.
+METHOD_NAMES = {"ftbo": "F-TBO", "nftbo": "NF-TBO"}
 #: The photometric parameters shown per surface, in this order.
 MATERIAL_KEYS = ("kd", "ks", "ns", "alpha", "sigma", "r", "t", "ior")
 
@@ -263,12 +265,14 @@ def _residual_field(residuals, cam, views) -> str | None:
     biggest = float(np.concatenate(lengths).max())
     typical = float(np.percentile(np.concatenate(lengths), 95)) or biggest
     scale = 0.04 * (cam.get("width") or 640) / typical  # the 95th percentile drawn 4 % of the width long
+    # residuals_px holds one list per view of calibration.views, in the same order.
+    names = [str(v.get("image", i)).rsplit("/", 1)[-1] for i, v in enumerate(views)] if len(views) == len(residuals) else None
     for i, rows in enumerate(residuals):
         a = _floats(rows)
         if a is None or a.ndim != 2 or a.shape[1] != 4:
             continue
         ax.quiver(a[:, 0], a[:, 1], a[:, 2] * scale, a[:, 3] * scale, angles="xy", scale_units="xy", scale=1,
-                  color=F.COLOURS[i % len(F.COLOURS)], width=0.003)
+                  color=F.COLOURS[i % len(F.COLOURS)], width=0.003, label=names[i] if names else f"view {i}")
     ax.set_xlim(0, cam.get("width") or 1)
     ax.set_ylim(cam.get("height") or 1, 0)
     ax.set_aspect("equal")
@@ -276,6 +280,7 @@ def _residual_field(residuals, cam, views) -> str | None:
     ax.set_ylabel("v (px)", fontsize=8)
     ax.tick_params(labelsize=7)
     ax.set_title(f"residuals × {num(scale, 3)} (95 % under {num(typical, 3)} px, longest {num(biggest, 3)} px)", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1), frameon=False, title="view", title_fontsize=7)
     return F.figure_uri(fig)
 
 
@@ -347,20 +352,25 @@ def _marks_figure(src: Sources, marks: dict, items: list) -> str | None:
     ax.set_aspect("equal")
     ax.set_title("marks in the image (px)", fontsize=9)
     ax.tick_params(labelsize=7)
-    x0 = 0
+    x0, ticks, names = 0, [], []
     for k, l in enumerate(items):
         errs = _floats((l.get("calibration") or {}).get("mark_errors_px"))
         if errs is None:
             continue
-        errs = errs.reshape(len(errs), -1)
+        errs = errs.reshape(len(errs), -1)  # one row per mark of this lamp: foot, tip
         x = np.arange(len(errs)) + x0
         for j, name in enumerate(["foot", "tip"][: errs.shape[1]]):
             bx.bar(x + (j - 0.5) * 0.4, errs[:, j], 0.4, color=F.COLOURS[k % len(F.COLOURS)],
                    alpha=1.0 if j else 0.5, label=f"lamp {k} {name}")
+        # Each mark named by its image (marks.json lists a lamp's marks in the order of its errors).
+        images = [str(m.get("image", "")).rsplit("/", 1)[-1].rsplit(".", 1)[0] for m in ms if m.get("light") == k]
+        ticks += x.tolist()
+        names += images if len(images) == len(errs) else [str(i) for i in range(len(errs))]
         x0 += len(errs) + 1
     if x0:
+        bx.set_xticks(ticks, names, rotation=90 if len(ticks) > 12 else 0, fontsize=7)
         bx.set_ylabel("reprojection error (px)", fontsize=8)
-        bx.set_xlabel("mark", fontsize=8)
+        bx.set_xlabel("mark (its image)", fontsize=8)
         bx.legend(fontsize=7)
         bx.tick_params(labelsize=7)
         bx.grid(axis="y", alpha=0.3)
@@ -522,7 +532,7 @@ def _top_view(src: Sources, meshes, true_meshes, points, sfm) -> str:
     """Surfaces, sparse points, shots and lamps from above, zoomed on what is smaller than the table."""
     from matplotlib.patches import Polygon
 
-    fig, (ax,) = F.new_figure(6.4, 5.2)
+    fig, (ax,) = F.new_figure(7.8, 5.2)  # the legend beside the map
     focus = []  # what the view is zoomed on: everything but surfaces larger than BIG
     big = 0.6
     for i, (name, m) in enumerate(meshes.items()):
@@ -568,7 +578,7 @@ def _top_view(src: Sources, meshes, true_meshes, points, sfm) -> str:
     ax.set_ylabel("y (m)", fontsize=8)
     ax.tick_params(labelsize=7)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1), frameon=False)  # beside the map, hiding nothing
     return F.figure_uri(fig)
 
 
@@ -586,7 +596,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
     for w in as_list(fit.get("warnings")):
         sec.note(str(w), "warn")
     image = as_dict(fit.get("image"))
-    sec.kv([("method", fit.get("method")), ("depth", fit.get("depth")),
+    sec.kv([("method", _method(fit)), ("depth", fit.get("depth")),
             ("image", f"{image.get('file')} {image.get('width')} × {image.get('height')}, {image.get('saturated_pixels')} saturated pixels masked"
              if image else None),
             ("RMS residual per band", num(fit.get("rms"))), ("image noise σ per band", num(fit.get("noise"))),
@@ -630,12 +640,19 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
         rows.append(row)
     sec.table(["surface", "BRDF"] + list(keys), rows,
               "value ± σ (one standard deviation, per band R, G, B where there are three); undetermined: the image "
-              "does not constrain it, left at its initial value" + (f"; truth: {truth_file}." if truth else "."))
+              "does not fix it: either held at its initial or user-given value (no σ), or fitted with a σ that spans "
+              "its plausible range (value and σ shown, docs/fit.md)" + (f"; truth: {truth_file}." if truth else "."))
     if model and model.get("image") is not None:
         _model_images(sec, src, fit, model)
     elif model and model.get("error"):
         sec.note(f"re-render of the model failed: {model['error']}", "bad")
     return sec
+
+
+def _method(fit: dict):
+    """fit.json's method as the docs name it (F-TBO, NF-TBO); another value as written."""
+    m = fit.get("method")
+    return METHOD_NAMES.get(m, m) if isinstance(m, str) else m
 
 
 def _phases_figure(phases: dict) -> str:
@@ -697,7 +714,7 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
 
 
 # ---------------------------------------------------------------------- texture
-def texture_section(src: Sources) -> Section | None:
+def texture_section(src: Sources, model: dict | None = None) -> Section | None:
     idx = src.textures
     if idx is None:
         return None
@@ -718,6 +735,9 @@ def texture_section(src: Sources) -> Section | None:
                   [[i + 1, r.get("pixels_left_out"), num(r.get("rms")), num(r.get("texture_s"), 3), num(r.get("fit_s"), 3)]
                    for i, r in enumerate(rounds) if isinstance(r, dict)],
                   "fit.json texture_rounds: the fit refitted against the texture (docs/fit.md).")
+    if model and model.get("textured") and model.get("image") is not None:
+        sec.note("The texture's residual in the image: the fit section's difference and unexplained-pixel maps, "
+                 "whose re-render includes this texture.")
     if src.truth_dir.is_dir():
         sec.note("truth/ holds no albedo maps: the texture is scored through the novel and relit views below "
                  "(PSNR over the pixels of known albedo).")
@@ -795,10 +815,11 @@ def error_section(src: Sources) -> Section | None:
                for p in fit["trace"] if isinstance(p, (list, tuple)) and len(p) >= 2]
         raw = [r for r in raw if isinstance(r[0], (int, float)) and r[1] is not None]
         pts = [(t, e) for t, e, _ in raw]
-        method = str(fit.get("method", "")).upper()
+        method = _method(fit)
         for phase in dict.fromkeys(ph for _, _, ph in raw):
             sel = [(t, e) for t, e, ph in raw if ph == phase]
-            photometric.append({"label": f"fit ({method}{', ' + phase if phase else ''})", "points": sel})
+            what = ", ".join(str(w) for w in (method, phase) if w)
+            photometric.append({"label": f"fit ({what})" if what else "fit", "points": sel})
         rounds = as_dict(fit.get("texture_rounds")).get("rounds")
         if isinstance(rounds, list) and rounds and pts:
             t_end = pts[-1][0]
@@ -873,9 +894,24 @@ def _error_plot(panels) -> str:
                             rotation=90, fontsize=7, color="0.3", ha="right", va="center")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):
+            _plain_log_labels(axis)
         ax.set_xlabel("run time (s)", fontsize=8)
         ax.set_ylabel(ylabel, fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.tick_params(which="both", labelsize=7)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
     return F.figure_uri(fig)
+
+
+def _plain_log_labels(axis) -> None:
+    """Label a log axis (already holding its data) in plain numbers at 1, 2, 5 × 10^k, and at 3 × 10^k
+    too where it spans less than a decade. Matplotlib's default labels every minor tick as
+    'a × 10^b' on an axis spanning under two decades, where they overlap."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    lo, hi = sorted(axis.get_view_interval())
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    threes = FuncFormatter(lambda v, _: f"{v:g}" if v > 0 and round(v / 10 ** math.floor(math.log10(v)), 6) == 3 else "")
+    axis.set_minor_formatter(threes if lo > 0 and hi / lo < 10 else NullFormatter())
