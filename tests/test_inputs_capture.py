@@ -33,9 +33,10 @@ def workspace(tmp_path):
     return tmp_path
 
 
-def test_capture_of_another_size_is_refused_before_it_starts(workspace, capsys):
+@pytest.mark.parametrize("kind", ["input", "sweep", "lights"])
+def test_capture_of_another_size_is_refused_before_it_starts(workspace, kind, capsys):
     before = snapshot(workspace)
-    assert main(["capture", "input", str(workspace), *SIM, "--size", "80x60", "--overwrite"]) == 2
+    assert main(["capture", kind, str(workspace), *SIM, "--size", "80x60", "--overwrite"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "camera.json" in err[0] and "64x48" in err[0] and "80x60" in err[0]
     assert snapshot(workspace) == before
