@@ -99,7 +99,7 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
         try:
             img = _read_exr(path)
         except RuntimeError:
-            raise WorkspaceError(path, expected="a readable OpenEXR image") from None
+            raise WorkspaceError(path, expected="a readable OpenEXR image", got="a damaged or cut-off file") from None
         if img.shape[2] >= 3:
             img = img[:, :, :3]
         return _checked(path, np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img)

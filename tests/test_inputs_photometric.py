@@ -2,8 +2,8 @@
 
 A dark- or ambient-frame subtraction leaves small negative values where noise meets black: that
 is data (and fit.json's σ stays a number or null, never NaN). Refused, with one line naming the
-file and nothing written: NaN, mostly negative, all zero, an 8-bit image (not linear). Truth: the
-parameters that rendered the image.
+file and nothing written: NaN, mostly negative, all zero, an 8-bit image (not linear), a cut-off
+file. Truth: the parameters that rendered the image.
 """
 import json
 
@@ -46,7 +46,7 @@ def test_noise_level_negatives_are_data(workspace, capsys):
     capsys.readouterr()
 
 
-@pytest.mark.parametrize("case", ["nan", "negative", "zero", "8-bit"])
+@pytest.mark.parametrize("case", ["nan", "negative", "zero", "8-bit", "cut-off"])
 def test_what_cannot_be_a_photograph_is_refused(workspace, case, tmp_path, capsys):
     root, img, _ = workspace
     for name in ("input.exr", "input.png"):
@@ -58,13 +58,15 @@ def test_what_cannot_be_a_photograph_is_refused(workspace, case, tmp_path, capsy
         before[path] = path.stat().st_mtime_ns
     else:
         bad = {"nan": np.where(np.arange(img.size).reshape(img.shape) % 7 == 0, np.nan, img),
-               "negative": img - np.percentile(img, 80), "zero": np.zeros_like(img)}[case]
-        path = write_image(root / "input.exr", bad, allow_nan=True)
+               "negative": img - np.percentile(img, 80), "zero": np.zeros_like(img)}.get(case)
+        path = write_image(root / "input.exr", img if case == "cut-off" else bad, allow_nan=True)
+        if case == "cut-off":  # the copy from the camera's card was interrupted
+            path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
         before[path] = path.stat().st_mtime_ns
     for command in ("fit", "texture"):
         assert main([command, str(root)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and path.name in err[0], err
-        assert {"nan": "NaN", "negative": "negative", "zero": "black", "8-bit": "8-bit"}[case] in err[0]
+        assert {"nan": "NaN", "negative": "negative", "zero": "black", "8-bit": "8-bit", "cut-off": "cut-off"}[case] in err[0]
         assert {p: p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()} == before
     path.unlink()
