@@ -75,6 +75,12 @@ def test_jpeg_photos_and_a_cut_off_file(photos, tmp_path, capsys):
     report = json.loads((ws / "camera.json").read_text())["calibration"]
     assert len(report["views"]) == 5 and report["skipped"] == [str(paths[2])]
     assert sorted(p.name for p in ws.iterdir()) == ["camera.json", "captures"]
+    # The cut-off photo as the reference view: its pose cannot be done without. One line, nothing replaced.
+    before = (ws / "camera.json").read_bytes()
+    assert main(["calibrate", "camera", str(ws), "--grid", "11x8", "--reference", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "03.jpg" in err[0] and "cut-off" in err[0], err
+    assert (ws / "camera.json").read_bytes() == before
 
 
 def test_frontal_reference_view_without_roll(photos, tmp_path, capsys):
