@@ -73,19 +73,20 @@ class LightsOptions:
     mark there; with ``marks`` it reads that file instead; with neither it detects them in the
     single-lamp shots of captures/lights/ (the lamp of each from its manifest) and merges them into
     marks.json likewise (calibration/rod.py), or, without a lights session, uses the marks already in
-    marks.json. A shot that cannot be read is skipped (``LightsResult.unreadable``) while its lamp
-    keeps two others. ``rod_height`` overrides, or fills in, marks.json's. Intensity comes from ``sheet`` images (one per lamp,
-    of a sheet of Lambertian ``sheet_reflectance``), else, with ``sheet_reflectance`` and
-    ``sheet_region`` alone, from that card lying in the rod shots (each lamp's frame minus the
-    lamps-off frame at its angle), else ``intensity`` (data sheet), else the previous lights.json,
-    else 1.
+    marks.json. ``light`` None: each image's lamp from the lights session's manifest where it is one
+    of its shots, else 0. A shot that cannot be read is skipped (``LightsResult.unreadable``) while
+    its lamp keeps two others. ``rod_height`` overrides, or fills in, marks.json's. Intensity comes
+    from ``sheet`` images (one per lamp, of a sheet of Lambertian ``sheet_reflectance``), else,
+    with ``sheet_reflectance`` and ``sheet_region`` alone, from that card lying in the rod shots
+    (each lamp's frame minus the lamps-off frame at its angle), else ``intensity`` (data sheet),
+    else the previous lights.json, else 1.
     """
 
     workspace: Path
     images: list | None = None
     rod_height: float | None = None
     marks: Path | None = None
-    light: int | list = 0
+    light: int | list | None = None
     mark_sigma: float | None = None
     intensity: list | None = None
     sheet: list | None = None
@@ -215,11 +216,16 @@ def calibrate_lights(options: LightsOptions, task: Task | None = None) -> Lights
         if marks_path.exists() and "marks" in read_json(marks_path):  # rod marks made (and corrected) before
             height, marks = read_marks(marks_path, o.rod_height)
         if images:
-            lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
-            if len(lamps) != len(images):
-                raise OptionError("light", f"{len(lamps)} lamp indices for {len(images)} images")
-            shots = [RodShot(str(p.relative_to(ws.root)) if p.is_relative_to(ws.root) else str(p), int(k))
-                     for p, k in zip(images, lamps)]
+            names = [str(p.resolve().relative_to(ws.root.resolve())) if p.resolve().is_relative_to(ws.root.resolve())
+                     else str(p) for p in images]
+            if o.light is None:  # a shot of the lights session: its lamp (and room frame) from the manifest
+                session = {s.image: s for s in rod_shots(ws.root)} if ws.manifest("lights").exists() else {}
+                shots = [session.get(name, RodShot(name, 0)) for name in names]
+            else:
+                lamps = list(o.light) if isinstance(o.light, (list, tuple)) else [o.light] * len(images)
+                if len(lamps) != len(images):
+                    raise OptionError("light", f"{len(lamps)} lamp indices for {len(images)} images")
+                shots = [RodShot(name, int(k)) for name, k in zip(names, lamps)]
         elif ws.manifest("lights").exists() or not marks:
             shots = rod_shots(ws.root)  # the lights session's shots: its manifest says which lamp lit each
         # (no images and no session: the marks of marks.json, made by hand, are used as they are)

@@ -2,10 +2,10 @@
 
 The rod shots of a lights session (captures/lights/ and its manifest, as `reflab capture lights`
 plans them; 8-bit PNG, as a camera writes them): no image names and no lamp indices on the
-command line, each shot's lamp from the manifest; one cut-off shot is skipped with a warning
-while its lamp keeps two others. A marks.json made by hand without `rod_height`: --rod-height
-fills it in. Truth: the lamps that lit the rendered rods (Mitsuba's point emitter), and for the
-hand-made marks the projected true foot and shadow tip.
+command line, each shot's lamp from the manifest (also for shots named on the command line); one
+cut-off shot is skipped with a warning while its lamp keeps two others. A marks.json made by hand
+without `rod_height`: --rod-height fills it in. Truth: the lamps that lit the rendered rods
+(Mitsuba's point emitter), and for the hand-made marks the projected true foot and shadow tip.
 """
 import hashlib
 import json
@@ -137,4 +137,17 @@ def test_rod_height_fills_a_marks_json_made_without_it(tmp_path, capsys):
     capsys.readouterr()
     obj = json.loads((ws / "marks.json").read_text())
     assert obj["rod_height"] == H and obj["marks"] == marks
+    assert np.all(lamp_errors(ws) < 0.01), lamp_errors(ws)
+
+
+def test_rod_shots_named_on_the_command_line_take_their_lamp_from_the_manifest(session_images, tmp_path,
+                                                                               monkeypatch, capsys):
+    ws = tmp_path / "ws"
+    write_session(ws, session_images)
+    monkeypatch.chdir(tmp_path)  # the shots named as a user types them, relative to where they are
+    shots = [f"ws/captures/lights/{i:04d}.png" for i in (0, 1, 3, 4, 6, 7)]
+    assert main(["calibrate", "lights", "ws", *shots, "--rod-height", str(H)]) == 0
+    capsys.readouterr()
+    marks = json.loads((ws / "marks.json").read_text())["marks"]
+    assert [(m["image"], m["light"]) for m in marks] == [(s[3:], k) for s, k in zip(shots, [0, 1] * 3)]
     assert np.all(lamp_errors(ws) < 0.01), lamp_errors(ws)

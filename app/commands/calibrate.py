@@ -40,7 +40,8 @@ def add_arguments(parser) -> None:
                          "WORKSPACE/captures/lights/, each with the lamp its manifest says was on")
     li.add_argument("--rod-height", type=float, default=None, help="rod height in metres (default: marks.json's)")
     li.add_argument("--marks", type=Path, default=None, help="marks.json to use instead of detecting marks")
-    li.add_argument("--light", type=int, default=0, help="lamp index of the images given (default 0)")
+    li.add_argument("--light", type=int, default=None, help="lamp index of the images given (default: the lamp "
+                    "captures/lights/manifest.json gives for a shot of the lights session, else 0)")
     li.add_argument("--mark-sigma", type=float, default=None,
                     help="marking noise in px for the covariance (default: from the residuals)")
     li.add_argument("--intensity", type=float, nargs="+", default=None,
