@@ -51,6 +51,9 @@ IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
 #: The file in each capture folder that lists its shots (docs/hardware.md).
 MANIFEST = "manifest.json"
 
+#: Scoring view -> the file of its camera or lamps (INTERFACES.md, "The simulated lab's truth").
+VIEWS = {"novel": "novel_camera.json", "relit": "relit_lights.json"}
+
 #: Capture kind -> folder under WORKSPACE/captures (INTERFACES.md).
 CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
 
@@ -90,6 +93,8 @@ class Workspace:
     hardware = property(lambda self: self.root / "hardware.json")
     truth = property(lambda self: self.root / "truth")
     report = property(lambda self: self.root / "report.html")
+    report_json = property(lambda self: self.root / "report.json")  # report.html's summary
+    truth_materials = property(lambda self: self.root / "truth.json")  # the simulated lab's true materials
     texture_index = property(lambda self: self.textures / "index.json")
     cache = property(lambda self: self.root / "cache")
     logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
@@ -112,6 +117,14 @@ class Workspace:
         """The default output of ``reflab render`` (render.exr, or albedo.exr for the albedo AOV)."""
         return self.root / ("albedo.exr" if aov == "albedo" else "render.exr")
 
+    def view(self, which: str) -> tuple[Path, Path]:
+        """A view that scores the recovered model (INTERFACES.md, "The simulated lab's truth"): ``novel``
+        -> (novel_camera.json, novel.exr), ``relit`` -> (relit_lights.json, relit.exr); in truth/
+        (``Workspace(ws.truth).view(...)``) the truth, in the workspace the model's render."""
+        if which not in VIEWS:
+            raise ValueError(f"view must be one of {sorted(VIEWS)}, got {which!r}")
+        return self.root / VIEWS[which], self.root / f"{which}.exr"
+
     def trees_cache(self, key: str) -> Path:
         """Cached pixel-intensity trees named by their inputs' hash (inverse.trees.trees_for_workspace)."""
         return self.cache / f"trees-{key}.npz"
@@ -120,9 +133,13 @@ class Workspace:
     def input_image(self) -> Path:
         """The input photograph: input.exr, else a 16-bit PNG/TIFF named input.*."""
         for suffix in IMAGE_SUFFIXES:
-            if (self.root / f"input{suffix}").exists():
-                return self.root / f"input{suffix}"
-        return self.root / "input.exr"
+            if self.input_file(suffix).exists():
+                return self.input_file(suffix)
+        return self.input_file()
+
+    def input_file(self, suffix: str = ".exr") -> Path:
+        """Where the input photograph goes in the format of ``suffix`` (``input_image`` finds it)."""
+        return self.root / f"input{suffix}"
 
     def require(self, path: Path, made_by: str) -> Path:
         """Return ``path`` or stop with a message naming the stage that makes it."""

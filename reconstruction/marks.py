@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
-from hardware.workspace import WorkspaceError, as_array, read_json
+from hardware.workspace import Workspace, WorkspaceError, as_array, read_json
 from reconstruction.scene import Material, Scene
 
 
@@ -96,7 +96,8 @@ def _first_hit(scene: Scene, camera: Camera, uv: np.ndarray) -> int:
 
 def apply_options(root, scene: Scene, specs: list[dict], pointed: list[dict], camera: Camera, path) -> Scene:
     """Rename the pointed surfaces and set what the user knows (brdf, ior, textured, r = 0 when matte); save scene.json."""
-    root = Path(root)
+    ws = Workspace(root)
+    root = ws.root
     surfaces = list(scene.surfaces)
     renames = {}
     for p in pointed:
@@ -112,19 +113,19 @@ def apply_options(root, scene: Scene, specs: list[dict], pointed: list[dict], ca
         if p["name"] != old and p["name"] in [s.name for s in surfaces]:
             raise WorkspaceError(path, f"{p['where']}.name", f"a name no other surface has", got=p["name"])
         s = surfaces[k]
-        mesh_path = f"meshes/{p['name']}.ply"
+        mesh_path = ws.mesh(p["name"]).relative_to(root).as_posix()
         if p["name"] != old:
             (root / s.mesh_path).unlink(missing_ok=True)
-            s.mesh.save(root / mesh_path)
+            s.mesh.save(ws.mesh(p["name"]))
         material = Material.from_json(dict({"brdf": p["brdf"], "ior": p["ior"]}, **({"r": [0.0] * 3} if p["matte"] else {})),
-                                      root / "scene.json", p["name"])
+                                      ws.scene, p["name"])
         s.name, s.mesh_path, s.material, s.textured = p["name"], mesh_path, material, p["textured"]
     for spec in specs:
         names = [s.name for s in surfaces]
         if spec.get("matte") and spec["name"] in names:
             s = surfaces[names.index(spec["name"])]
             s.material = Material.from_json({"brdf": spec["brdf"], "ior": spec["ior"], "r": [0.0] * 3},
-                                            root / "scene.json", spec["name"])
+                                            ws.scene, spec["name"])
     out = Scene(surfaces, root)
-    out.save(root / "scene.json", write_meshes=False)
+    out.save(ws.scene, write_meshes=False)
     return out

@@ -20,10 +20,12 @@ def test_demo_end_to_end(tmp_path, capsys):
     ws = tmp_path / "demo"
     assert main(["demo", str(ws), "--from-truth", "--size", "64x48"]) == 0
     out = capsys.readouterr().out
-    assert "stage fit: exit 0" in out and "stage texture: exit 0" in out
+    # The steps the GUI runs (app/steps.py), not the subcommands.
+    assert "step fit: fit.json written" in out and "step texture: textures written" in out
+    assert "step results: model re-rendered" in out
     assert "materials from fit.json" in out and "recovered texture" in out
     # One camera, one lamp set: fit builds the trees, texture and render reuse the workspace's cache.
-    assert out.count("trees: built") == 1 and out.count("trees: reused cache") == 2
+    assert read_json(ws / "fit.json")["trees"]["cache"] == "built" and out.count("trees: reused cache") == 2
     # The photograph is the true lab: the forward model with true materials and texture agrees.
     lab = build_lab(64, 48)
     photo = read_image(ws / "input.exr")

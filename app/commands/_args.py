@@ -62,6 +62,17 @@ def image_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def name_value(kind, what: str):
+    """The argument type ``NAME=VALUE`` -> (NAME, kind(VALUE)); ``what`` names VALUE in the message."""
+    def parse(text: str) -> tuple[str, object]:
+        name, sep, value = text.partition("=")
+        if not sep or not name or not value:
+            raise argparse.ArgumentTypeError(f"expected NAME={what}, got {text!r}")
+        return name, _number(value, kind, f"NAME={what}")
+
+    return parse
+
+
 def float_list(text: str) -> list[float]:
     """Comma-separated numbers."""
     try:

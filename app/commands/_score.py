@@ -10,9 +10,9 @@ albedo the recovered model knows (its albedo AOV is finite there).
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
+
+from hardware.workspace import Workspace
 
 #: Turntable angle (degrees) of the novel view's camera about the vertical axis through the origin.
 NOVEL_TURN = -25.0
@@ -22,9 +22,9 @@ RELIT = [((0.30, -0.25, 0.50), (0.20, 0.19, 0.17)), ((-0.25, 0.35, 0.55), (0.30,
 
 def _turned(camera, degrees: float):
     from calibration.camera import Camera
+    from calibration.rotations import axis_rotation
 
-    a = np.radians(degrees)
-    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    Rz = axis_rotation((0.0, 0.0, 1.0), degrees)
     C = Rz @ camera.center
     R = camera.R @ Rz.T
     return Camera(camera.width, camera.height, camera.K.copy(), camera.dist.copy(), R, -R @ C)
@@ -37,18 +37,19 @@ def write_truth(root, size, *, depth: int = 3, grain: float = 0.2) -> dict:
     from hardware.sim.lab import build_lab, write_lab
     from hardware.sim.reference import render_reference
 
-    folder = Path(root) / "truth"
+    truth = Workspace(Workspace(root).truth)
     lab = build_lab(*size, grain=grain)
-    write_lab(folder, lab, materials=True)
+    write_lab(truth.root, lab, materials=True)
     novel = _turned(lab.camera, NOVEL_TURN)
-    novel.save(folder / "novel_camera.json")
+    novel.save(truth.view("novel")[0])
     relit = Lights([PointLight(p, i) for p, i in RELIT])
-    relit.save(folder / "relit_lights.json")
+    relit.save(truth.view("relit")[0])
     images = {}
     for name, cam, lights in (("novel", novel, lab.lights), ("relit", lab.camera, relit)):
         images[name] = render_reference(lab.scene, cam, lights, depth, albedo=lab.albedo)
-        write_image(folder / f"{name}.exr", images[name])
-        write_preview(folder / f"{name}.png", images[name])
+        image_path = truth.view(name)[1]
+        write_image(image_path, images[name])
+        write_preview(image_path.with_suffix(".png"), images[name])
     return {"lab": lab, "novel_camera": novel, "relit_lights": relit, "images": images, "depth": depth}
 
 
@@ -98,11 +99,12 @@ def view_psnr(root, truth: dict, which: str) -> dict:
     from inverse.stages import render_workspace
     from hardware.images import read_image
 
-    root = Path(root)
-    kw = {"camera": root / "truth" / "novel_camera.json"} if which == "novel" else {"lights": root / "truth" / "relit_lights.json"}
-    albedo, _ = render_workspace(root, aov="albedo", depth=truth["depth"], **kw)
+    ws = Workspace(root)
+    pose = Workspace(ws.truth).view(which)[0]
+    albedo, _ = render_workspace(ws.root, aov="albedo", depth=truth["depth"],
+                                 **({"camera": pose} if which == "novel" else {"lights": pose}))
     known = np.all(np.isfinite(albedo), axis=2)
-    image = read_image(root / f"{which}.exr")
+    image = read_image(ws.view(which)[1])
     return {"psnr_db": psnr(image, truth["images"][which], known), "known_pct": float(100 * known.mean()),
             "psnr_all_db": psnr(image, truth["images"][which], np.ones_like(known))}
 
@@ -114,20 +116,20 @@ def score_stage(stage: str, root, truth: dict) -> str:
     from hardware.workspace import read_json
     from reconstruction.scene import Scene
 
-    root, lab = Path(root), truth["lab"]
+    ws, lab = Workspace(root), truth["lab"]
     if stage == "calibrate camera":
-        e = camera_error(Camera.load(root / "camera.json"), lab.camera)
+        e = camera_error(Camera.load(ws.camera), lab.camera)
         return (f"focal {e['focal_pct']:.3f} %, camera centre {e['centre_mm']:.2f} mm, rotation {e['rotation_deg']:.3f} deg, "
                 f"principal point {e['principal_px']:.2f} px")
     if stage == "calibrate lights":
         return "; ".join(f"lamp {e['lamp']} {e['position_mm']:.1f} mm ({e['of_distance_pct']:.2f} % of its distance), "
-                         f"intensity {e['intensity_pct']:.1f} %" for e in lights_error(Lights.load(root / "lights.json"), lab.lights))
+                         f"intensity {e['intensity_pct']:.1f} %" for e in lights_error(Lights.load(ws.lights), lab.lights))
     if stage == "reconstruct":
-        errs = geometry_error(Scene.load(root / "scene.json"), lab.scene)
+        errs = geometry_error(Scene.load(ws.scene), lab.scene)
         return ", ".join(f"{n} missing" if e is None else f"{n} {e['rms_mm']:.2f} mm RMS (max {e['max_mm']:.1f})"
                          for n, e in errs.items())
     if stage == "fit":
-        fit = read_json(root / "fit.json")
+        fit = read_json(ws.fit)
         want = {s.name: s.material for s in lab.scene}
         parts = [f"re-render RMS {np.round(fit['rms'], 4).tolist()}"]
         for item in fit.get("surfaces", []):
@@ -139,6 +141,6 @@ def score_stage(stage: str, root, truth: dict) -> str:
                                                         for k in keys))
         return "; ".join(parts) + " (true in brackets)"
     if stage in ("render novel", "render relit"):
-        e = view_psnr(root, truth, stage.split()[1])
+        e = view_psnr(ws.root, truth, stage.split()[1])
         return f"PSNR {e['psnr_db']:.1f} dB over the {e['known_pct']:.0f} % of pixels of known albedo ({e['psnr_all_db']:.1f} dB over all)"
     return ""

@@ -45,8 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def commands(workspace, size=(480, 360), quick: bool = False) -> list[tuple[str, list[str]]]:
     """The stepwise commands of the demo, (stage, argv of `reflab`), as README lists them."""
     from hardware.sim.props import LabProps
+    from hardware.workspace import Workspace
 
     ws, props = str(workspace), LabProps()
+    truth = Workspace(Workspace(workspace).truth)
     sim = ["--port", "sim", "--camera", "sim"]  # later captures take camera.json's size
     x0, x1, y0, y1 = props.card
     inset = 0.005  # the card's region, inside its edges
@@ -63,8 +65,8 @@ def commands(workspace, size=(480, 360), quick: bool = False) -> list[tuple[str,
         ("input", ["capture", "input", ws, *sim]),
         ("fit", ["fit", ws] + (["--texture-rounds", "1"] if quick else [])),
         ("texture", ["texture", ws]),
-        ("render novel", ["render", ws, "--camera", f"{ws}/truth/novel_camera.json", "-o", f"{ws}/novel.exr"]),
-        ("render relit", ["render", ws, "--lights", f"{ws}/truth/relit_lights.json", "-o", f"{ws}/relit.exr"]),
+        ("render novel", ["render", ws, "--camera", str(truth.view("novel")[0]), "-o", str(Workspace(ws).view("novel")[1])]),
+        ("render relit", ["render", ws, "--lights", str(truth.view("relit")[0]), "-o", str(Workspace(ws).view("relit")[1])]),
         ("report", ["report", ws]),
     ]
 
@@ -76,13 +78,14 @@ def run(args) -> int:
         return run_from_truth(args)
     from app.cli import main
     from app.commands import _score as score
+    from hardware.workspace import Workspace
 
     root = Path(args.workspace)
     size = args.size or (480, 360)
     start = time.perf_counter()
     t0 = time.perf_counter()
     truth = score.write_truth(root, size, depth=args.depth)
-    print(f"[demo] wrote the truth to {root / 'truth'} ({time.perf_counter() - t0:.1f} s)")
+    print(f"[demo] wrote the truth to {Workspace(root).truth} ({time.perf_counter() - t0:.1f} s)")
     if args.truth_only:
         return 0
     rows = []

@@ -10,22 +10,25 @@ docs/reconstruction.md describes the files and the marks format.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
+
+from app.commands._args import float_list, name_value
 
 HELP = "recover geometry from the turntable sweep (pycolmap) and model surfaces: scene.json + meshes/"
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("workspace", metavar="WORKSPACE")
-    parser.add_argument("--mesh", action="append", default=[], metavar="NAME=PATH",
+    parser.add_argument("--mesh", action="append", default=[], metavar="NAME=PATH", type=name_value(Path, "PATH"),
                         help="import a mesh (PLY/OBJ, metres, world frame) as surface NAME; repeatable")
-    parser.add_argument("--ior", action="append", default=[], metavar="NAME=INDEX",
+    parser.add_argument("--ior", action="append", default=[], metavar="NAME=INDEX", type=name_value(float, "INDEX"),
                         help="refraction index of an imported surface (its mesh must then be closed)")
     parser.add_argument("--marks", metavar="FILE", help="corners marked in the turntable shots and what the user knows "
                                                         "per surface (default: WORKSPACE/marks.json when it has "
                                                         "'surfaces'; docs/reconstruction.md)")
     parser.add_argument("--target", metavar="COLSxROWS", help="circle target lying on the turntable, to fix the frame")
     parser.add_argument("--spacing", type=float, default=0.015, help="circle spacing of --target in metres (0.015)")
-    parser.add_argument("--turntable-centre", metavar="X,Y",
+    parser.add_argument("--turntable-centre", metavar="X,Y", type=float_list,
                         help="where the turntable axis meets the ground (metres), to fix the scale without a target")
     parser.add_argument("--overlap", type=int, default=5, help="each shot is matched with the next N shots (5)")
     parser.add_argument("--free-poses", action="store_true",
@@ -35,55 +38,20 @@ def add_arguments(parser) -> None:
     parser.add_argument("--force", action="store_true", help="redo structure from motion and every surface")
 
 
-def _pairs(items, option):
-    out = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep or not name or not value:
-            raise ValueError(f"{option}: expected NAME=VALUE, got {item!r}")
-        out[name] = value
-    return out
-
-
 def options(args):
-    """The stage's options from the command's arguments (ValueError naming the bad flag)."""
-    from pathlib import Path
-
+    """The stage's options from the command's arguments; the stage checks them (OptionError naming the flag)."""
     from calibration.circles import parse_grid
     from reconstruction.stages import ReconstructOptions
 
-    meshes = {k: Path(v) for k, v in _pairs(args.mesh, "--mesh").items()}
-    try:
-        iors = {k: float(v) for k, v in _pairs(args.ior, "--ior").items()}
-    except ValueError as exc:
-        raise ValueError(f"--ior: {exc}") from None
-    unknown = set(iors) - set(meshes)
-    if unknown:
-        raise ValueError(f"--ior: no --mesh named {sorted(unknown)[0]!r}")
-    centre = None
-    if args.turntable_centre is not None:
-        try:
-            centre = tuple(float(v) for v in args.turntable_centre.split(","))
-        except ValueError:
-            centre = ()
-        if len(centre) != 2:
-            raise ValueError(f"--turntable-centre: expected X,Y in metres, got {args.turntable_centre!r}")
-    return ReconstructOptions(args.workspace, meshes, iors, args.marks and Path(args.marks),
-                              parse_grid(args.target, "target") if args.target else None, args.spacing, centre, args.overlap,
-                              not args.free_poses, not args.no_fit, args.force)
+    return ReconstructOptions(args.workspace, dict(args.mesh), dict(args.ior), args.marks and Path(args.marks),
+                              parse_grid(args.target, "target") if args.target else None, args.spacing,
+                              args.turntable_centre, args.overlap, not args.free_poses, not args.no_fit, args.force)
 
 
 def run(args) -> int:
     from reconstruction.stages import reconstruct
 
-    try:
-        opts = options(args)
-    except ValueError as exc:
-        from app.commands._args import error_text
-
-        print(f"reflab reconstruct: error: {error_text(exc)}", file=sys.stderr)
-        return 2
-    result = reconstruct(opts, log=lambda line: print(line, flush=True))
+    result = reconstruct(options(args), log=lambda line: print(line, flush=True))
     if result.skipped:
         print(f"{result.scene_path} exists: nothing to reconstruct (--marks or --mesh add surfaces, --force redoes it)")
         return 0

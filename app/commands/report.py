@@ -24,7 +24,7 @@ def run(args) -> int:
 
     from app.report.build import build_report
     from app.report.data import summary_text
-    from hardware.workspace import WorkspaceError, write_json
+    from hardware.workspace import Workspace, WorkspaceError, write_json
 
     root = Path(args.workspace)
     if not root.is_dir():
@@ -41,6 +41,6 @@ def run(args) -> int:
         rows = bench(scene, camera, lights, depth=args.depth)
         summary["benchmark"] = {"machine": machine(), "depth": args.depth, "rows": rows}
         print(f"[benchmark] {machine()}\n{table(rows)}")
-    print(f"wrote {write_json(root / 'report.json', summary)}")
+    print(f"wrote {write_json(Workspace(root).report_json, summary)}")
     print(f"wrote {html}")
     return 0

@@ -242,10 +242,11 @@ class MainWindow(QMainWindow):
     def _show_shot(self, message: str) -> None:
         """A capture steps its task with "<kind>: <file>": show that shot in the running page's live view."""
         from hardware.capture import FOLDERS
+        from hardware.workspace import Workspace
 
         kind, _, file = message.partition(": ")
         if kind in FOLDERS and file and " " not in file:
-            path = self.workspace / "captures" / FOLDERS[kind] / file
+            path = Workspace(self.workspace).captures_of(kind) / file
             if path.exists():
                 from hardware.images import read_image
 

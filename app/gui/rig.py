@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hardware.workspace import Workspace
+
 
 class RigError(RuntimeError):
     """The rig is not connected, or a device refused (the message says which)."""
@@ -27,6 +29,7 @@ class Rig:
         self.log = log or (lambda msg: None)
         self.lock = threading.RLock()
         self.devices = None  # app.devices.Rig while connected
+        self._shown = (None, None)  # (file, mtime, size) and image of a tethered camera's newest shot
 
     # ------------------------------------------------------------------ connection
     @property
@@ -43,7 +46,7 @@ class Rig:
 
         if self.devices is not None:
             return self.devices.config
-        path = self.workspace / "hardware.json"
+        path = Workspace(self.workspace).hardware
         return load_config(path if path.exists() else None)
 
     def connect(self) -> str:
@@ -86,18 +89,43 @@ class Rig:
             return self.status()
 
     def preview(self, blocking: bool = False):
-        """One frame from the camera, or None when a step holds the rig (never waits for it)."""
+        """One frame from the camera, or None when a step holds the rig (never waits for it).
+
+        A tethered camera (``folder:``) has no live view: its newest image in the folder stands in,
+        so a preview never fires its shutter nor waits for a shot."""
+        from hardware.cameras import FolderCamera
+
         if not self.lock.acquire(blocking=blocking):
             return None
         try:
             if self.camera is None:
                 return None
+            if isinstance(self.camera, FolderCamera):
+                return self._newest(self.camera.folder)
             return np.asarray(self.camera.capture(None))
         finally:
             self.lock.release()
+
+    def _newest(self, folder: Path):
+        """The newest complete image in ``folder`` (read again only when it changes), or None."""
+        from hardware.cameras import FOLDER_SUFFIXES
+        from hardware.images import read_image
+        from hardware.workspace import WorkspaceError
+
+        files = [p for p in folder.iterdir() if p.suffix.lower() in FOLDER_SUFFIXES and not p.name.startswith(".")]
+        if not files:
+            return None
+        path = max(files, key=lambda p: p.stat().st_mtime)
+        key = (path, path.stat().st_mtime, path.stat().st_size)
+        if self._shown[0] != key:
+            try:
+                self._shown = (key, read_image(path))
+            except WorkspaceError:  # still being written: the last one shown stays
+                return self._shown[1]
+        return self._shown[1]
 
     def write_config(self) -> Path:
         """WORKSPACE/hardware.json: the configuration the captures of this workspace use."""
         from hardware.workspace import write_json
 
-        return write_json(self.workspace / "hardware.json", self.config.to_json())
+        return write_json(Workspace(self.workspace).hardware, self.config.to_json())

@@ -11,10 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from hardware.workspace import Workspace
-
-#: Capture kinds and their folders under captures/ (hardware/capture.py FOLDERS).
-CAPTURE_FOLDERS = ("calibration", "lights", "turntable", "input")
+from hardware.workspace import CAPTURE_FOLDERS, Workspace
 
 
 class Sources:
@@ -29,6 +26,10 @@ class Sources:
 
     def path(self, rel) -> Path:
         return self.root / rel
+
+    def rel(self, path: Path) -> Path:
+        """A path the Workspace object gave, relative to the workspace (what :meth:`json` and :meth:`image` take)."""
+        return path.relative_to(self.root)
 
     def json(self, rel) -> dict | None:
         """The JSON object at ``rel`` (relative to the workspace), None when absent or unreadable."""
@@ -63,19 +64,19 @@ class Sources:
         return self._images[path]
 
     # ------------------------------------------------------------------ the stages' files
-    camera = property(lambda self: self.json("camera.json"))
-    lights = property(lambda self: self.json("lights.json"))
-    marks = property(lambda self: self.json("marks.json"))
-    sfm = property(lambda self: self.json("sfm.json"))
-    scene = property(lambda self: self.json("scene.json"))
-    fit = property(lambda self: self.json("fit.json"))
-    textures = property(lambda self: self.json("textures/index.json"))
+    camera = property(lambda self: self.json(self.rel(self.ws.camera)))
+    lights = property(lambda self: self.json(self.rel(self.ws.lights)))
+    marks = property(lambda self: self.json(self.rel(self.ws.marks)))
+    sfm = property(lambda self: self.json(self.rel(self.ws.sfm)))
+    scene = property(lambda self: self.json(self.rel(self.ws.scene)))
+    fit = property(lambda self: self.json(self.rel(self.ws.fit)))
+    textures = property(lambda self: self.json(self.rel(self.ws.texture_index)))
 
     def manifests(self) -> dict[str, dict]:
         """captures/<folder>/manifest.json for each capture folder that has a readable one."""
         out = {}
-        for folder in CAPTURE_FOLDERS:
-            m = self.json(f"captures/{folder}/manifest.json")
+        for kind, folder in CAPTURE_FOLDERS.items():
+            m = self.json(self.rel(self.ws.manifest(kind)))
             if m is not None:
                 out[folder] = m
         return out
@@ -83,18 +84,19 @@ class Sources:
     # ------------------------------------------------------------------ the simulated lab's truth
     @property
     def truth_dir(self) -> Path:
-        return self.root / "truth"
+        return self.ws.truth
 
     def truth(self, name: str) -> dict | None:
         """truth/<name> (INTERFACES.md, "The simulated lab's truth"), None when there is none."""
-        return self.json(f"truth/{name}")
+        return self.json(self.rel(self.ws.truth / name))
 
     def truth_materials(self) -> tuple[dict[str, dict], str]:
         """True material per surface name and the file they came from: truth/scene.json, else the older
         truth.json beside the workspace's files; ({}, "") without either."""
-        obj, source = self.truth("scene.json"), "truth/scene.json"
+        truth = Workspace(self.ws.truth)
+        obj, source = self.json(self.rel(truth.scene)), self.rel(truth.scene).as_posix()
         if obj is None:
-            obj, source = self.json("truth.json") or {}, "truth.json"
+            obj, source = self.json(self.rel(self.ws.truth_materials)) or {}, self.rel(self.ws.truth_materials).as_posix()
         out = {}
         for s in obj.get("surfaces", []) if isinstance(obj.get("surfaces"), list) else []:
             if isinstance(s, dict) and isinstance(s.get("material"), dict):
