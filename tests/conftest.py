@@ -1,4 +1,4 @@
-"""Shared fixtures: the simulated lab written as a workspace with its photograph.
+"""Shared fixtures: the simulated lab written as a workspace with its photograph, and target views.
 
 ``lab_photo_workspace(root, width, height, ...)`` writes what several tests start from: the
 simulated lab's camera.json, lights.json, scene.json + meshes (with the true materials, or with
@@ -54,3 +54,30 @@ def lab_workspace(tmp_path):
     root = tmp_path / "ws"
     lab, image = lab_photo_workspace(root)
     return root, lab, image
+
+
+@pytest.fixture(scope="session")
+def target_views():
+    """Six 640x480 views of the 11x8 circle target (15 mm spacing, 4.5 mm radius) rendered by the
+    simulated lab, with their true cameras: (images, cameras)."""
+    import numpy as np
+
+    from calibration.camera import Camera
+    from hardware.sim import props
+
+    K = np.array([[620.0, 0, 325.0], [0, 620.0, 236.0], [0, 0, 1]])
+    poses = props.random_target_poses(6, 11, 8, 0.015, seed=4, distance=0.28)
+    cams = [Camera(640, 480, K, np.array([-0.25, 0.08, 0, 0, 0]), R, t) for R, t in poses]
+    return props.render_targets(cams, 11, 8, 0.015, 0.0045, spp=1, noise=0.005), cams
+
+
+@pytest.fixture()
+def target_workspace(tmp_path, target_views):
+    """A workspace holding only :func:`target_views` in captures/calibration/ (00.exr ... 05.exr)."""
+    from hardware.images import write_image
+    from hardware.workspace import Workspace
+
+    ws = Workspace(tmp_path / "ws")
+    for i, image in enumerate(target_views[0]):
+        write_image(ws.captures_of("calibration") / f"{i:02d}.exr", image)
+    return ws.root

@@ -3,9 +3,12 @@ half-written output, and the same call run again finishes (hardware/task.py).
 
 The cancel comes from the task's own progress callback at a chosen step, or from a check count
 inside a loop (texture CG), or from another thread (structure from motion, whose COLMAP calls
-take a cancellation token); where it fired is asserted from the steps reported, not by timing.
+take a cancellation token); where it fired is asserted from the steps reported. The user's cancel
+comes from another thread (the GUI's button) while the stage computes: each long stage is run so
+and must end within a second of it (:func:`test_each_long_stage_stops_within_a_second`).
 """
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -30,6 +33,106 @@ def _cancel_at(prefix: str, seen: list):
 
     task = Task(progress)
     return task
+
+
+def _cancel_from_another_thread(run, prefix: str):
+    """Run ``run(task)`` in a worker thread and cancel it from this one as soon as it reports a step
+    starting with ``prefix``: (seconds from ``cancel()`` to the stage's end, what it raised)."""
+    reached = threading.Event()
+    task = Task(lambda done, total, message: reached.set() if message.startswith(prefix) else None)
+    out = {}
+
+    def work():
+        try:
+            run(task)
+        except Exception as exc:  # noqa: BLE001 - handed to the test
+            out["raised"] = exc
+        out["end"] = time.perf_counter()
+
+    worker = threading.Thread(target=work, daemon=True)
+    worker.start()
+    assert reached.wait(120), f"the stage never reported a step {prefix!r}"
+    start = time.perf_counter()
+    task.cancel()
+    worker.join(60)
+    assert not worker.is_alive(), "the stage did not stop within a minute of the cancel"
+    return out["end"] - start, out.get("raised")
+
+
+def _fixture(name: str):
+    """A workspace-making step: the root of the named fixture."""
+    def prepare(request, tmp_path):
+        value = request.getfixturevalue(name)
+        return value[0] if isinstance(value, tuple) else value
+
+    return prepare
+
+
+def _random_sweep(request, tmp_path):
+    """A workspace whose sweep is noise: structure from motion extracts features, then fails."""
+    from calibration.camera import Camera
+    from hardware.images import write_image
+
+    ws = Workspace(tmp_path / "ws")
+    Camera.look_at(320, 240, 50.0, (0, -0.4, 0.4), (0, 0, 0)).save(ws.camera)
+    rng = np.random.default_rng(1)
+    for i in range(6):
+        write_image(ws.captures_of("sweep") / f"{i:04d}.exr", rng.random((240, 320, 3)).astype(np.float32))
+    return ws.root
+
+
+def _capture_sweep(root, task):
+    from app import steps
+    from app.devices import Rig, SimOptions
+
+    with Rig("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
+        steps.step("sweep").run(root, task, rig=rig, count=5)
+
+
+def _stage(module: str, function: str, options: str, **kw):
+    """``run(root, task)`` of a stage function: ``module.function(module.options(root, **kw), task)``."""
+    import importlib
+
+    def run(root, task):
+        mod = importlib.import_module(module)
+        return getattr(mod, function)(getattr(mod, options)(root, **kw), task)
+
+    return run
+
+
+#: Each long stage: how its workspace is made, the step after which the cancel comes, its run.
+LONG_STAGES = {
+    "trees (render)": (_fixture("lab_workspace"), "trees: level 2", _stage("inverse.stages", "render", "RenderOptions")),
+    "texture CG": (_fixture("lab_workspace"), "texture: conjugate gradient",
+                   _stage("inverse.stages", "texture", "TextureOptions")),
+    "fit iterations": (_fixture("homogeneous_workspace"), "F-TBO iteration",
+                       _stage("inverse.stages", "fit", "FitOptions", texture_rounds=0)),
+    "structure from motion (reconstruct)": (_random_sweep, "structure from motion: features",
+                                            _stage("reconstruction.stages", "reconstruct", "ReconstructOptions",
+                                                   turntable_centre=(0.0, 0.0))),
+    "captures": (lambda request, tmp_path: tmp_path / "ws", "sweep: 0001", _capture_sweep),
+    "target detection (calibrate camera)": (_fixture("target_workspace"), "detecting the target in 01",
+                                            _stage("calibration.stages", "calibrate_camera", "CameraOptions")),
+}
+
+
+@pytest.mark.parametrize("stage", list(LONG_STAGES))
+def test_each_long_stage_stops_within_a_second(stage, request, tmp_path):
+    """Cancelled from another thread mid-way, the stage raises Cancelled within a second and writes
+    nothing half-done: only finished parts that a re-run reuses stay (a capture's shots and manifest,
+    trees cached before a fit or texture was cancelled) and COLMAP's log."""
+    prepare, prefix, run = LONG_STAGES[stage]
+    root = prepare(request, tmp_path)
+    before = set(root.rglob("*")) if root.exists() else set()
+    seconds, raised = _cancel_from_another_thread(lambda task: run(root, task), prefix)
+    assert isinstance(raised, Cancelled), f"{stage}: ended with {raised!r}, not Cancelled"
+    assert seconds < 1.0, f"{stage}: stopped {seconds:.2f} s after the cancel"
+    assert not _leftovers(root)
+    ws = Workspace(root)
+    made = {p for p in root.rglob("*") if p.is_file() and p not in before}
+    kept = {p for p in made if p.parent in (ws.captures_of("sweep"), ws.cache, ws.logs)}
+    assert not made - kept if stage != "captures" else made == kept, sorted(made)
+    print(f"{stage}: stopped {seconds:.3f} s after the cancel")
 
 
 def test_trees_cancelled_between_levels_then_rebuilt(lab_workspace):
@@ -153,3 +256,15 @@ def test_capture_cancelled_after_two_shots_then_resumed(tmp_path):
     manifest = read_json(ws.manifest("sweep"))
     assert manifest["status"] == "complete" and len(manifest["shots"]) == 5
     assert [s["file"] for s in manifest["shots"][:2]] == ["0000.exr", "0001.exr"]
+
+
+def test_calibrate_camera_cancelled_while_detecting_then_rerun(target_workspace, target_views):
+    from calibration.stages import CameraOptions, calibrate_camera
+
+    ws, seen = Workspace(target_workspace), []
+    with pytest.raises(Cancelled):
+        calibrate_camera(CameraOptions(ws.root), _cancel_at("detecting the target in 02", seen))
+    assert seen[-1] == "detecting the target in 02.exr" and not ws.camera.exists() and not _leftovers(ws.root)
+    r = calibrate_camera(CameraOptions(ws.root))
+    assert r.path == ws.camera and ws.camera.exists() and len(r.views) == 6
+    assert abs(r.camera.K[0, 0] / target_views[1][0].K[0, 0] - 1) < 0.01
