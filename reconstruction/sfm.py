@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from calibration.rotations import axis_rotation
 from hardware.images import linear_to_srgb
 from hardware.task import Task, ensure
 from hardware.workspace import WorkspaceError
@@ -170,9 +171,7 @@ def turntable_poses(camera: Camera, angles, centre_xy, direction: float = 1.0) -
     vertical axis through ``centre_xy`` are seen as if the camera had turned the other way:
     ``x = R (Rz(a) (X - c) + c) + t``.
     """
-    a = np.radians(direction * np.asarray(angles, dtype=np.float64))
-    Rz = np.zeros((len(a), 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a), 1.0
+    Rz = axis_rotation((0.0, 0.0, 1.0), direction * np.asarray(angles, dtype=np.float64))
     c = np.array([centre_xy[0], centre_xy[1], 0.0])
     R = camera.R @ Rz
     t = camera.t + (camera.R @ (c[None] - Rz @ c).T).T

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.commands import _score as score
+from app import demo_score as score
 from app.commands.demo import commands
 from calibration.camera import Camera
 from calibration.lights import Lights

@@ -73,11 +73,11 @@ def commands(workspace, size=(480, 360), quick: bool = False) -> list[tuple[str,
 
 def run(args) -> int:
     if args.from_truth:
-        from app.commands._demo_truth import run_from_truth
+        from app.demo_from_truth import run_from_truth
 
         return run_from_truth(args)
     from app.cli import main
-    from app.commands import _score as score
+    from app import demo_score as score
     from hardware.workspace import Workspace
 
     root = Path(args.workspace)

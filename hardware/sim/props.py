@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.camera import Camera
-from calibration.rotations import look_rotation
+from calibration.rotations import axis_rotation, look_rotation
 from calibration.target import target_points  # noqa: F401  (re-exported for the twin's users)
 
 
@@ -278,13 +278,11 @@ class LabProps:
 
 
 def _rz(deg: float) -> np.ndarray:
-    a = np.radians(deg)
-    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return axis_rotation((0.0, 0.0, 1.0), deg)
 
 
 def _rx(deg: float) -> np.ndarray:
-    a = np.radians(deg)
-    return np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    return axis_rotation((1.0, 0.0, 0.0), deg)
 
 
 def target_placement(props: LabProps, role: str, angle: float, centre=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
