@@ -139,7 +139,7 @@ def _band_names(name, held) -> list:
     return [f"{name}[{c}]" for c in np.flatnonzero(held)]
 
 
-def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> np.ndarray:
+def texture_absorbed(fac: Factorization, p: Params, materials, textured, pinned: bool = True) -> np.ndarray:
     """(R,) bool: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
     predicted light in some band.
 
@@ -148,7 +148,9 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> np.n
     directly is free; texture seen only in a mirror or through glass (the demo box's back face) is
     free too; texture seen there AND directly (a floor in a mirror) is fixed by the direct view.
     So only pixels without free texture tell a specular term from albedo. Which points are seen
-    directly: cells of twice the mean spacing of the surface's directly seen nodes.
+    directly: cells of twice the mean spacing of the surface's directly seen nodes. With
+    ``pinned=False`` every textured node counts as free (for the textured surface's own lobe,
+    whose pinning view carries the same lobe: :func:`inverse.fitting.fit`).
     """
     if textured is None or not any(textured):
         return np.zeros(fac.n_rows, dtype=bool)
@@ -158,8 +160,8 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> np.n
     surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
     light = np.abs(node_radiance(tr, materials_of(fac, p, materials), fac._args[0]))
     tex = np.asarray(textured, dtype=bool)[surf]
-    free_tex = tex & (level == 1)
-    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
+    free_tex = tex & (level == 1) if pinned else tex
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)) if pinned else ():
         direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
         if not seen_else.any():
             continue

@@ -17,7 +17,8 @@ def lab_photo_workspace(root, width: int = 64, height: int = 48, *, textured: bo
     """Write the lab and its photograph into ``root``; returns (lab, image).
 
     ``known_only``: scene.json keeps only brdf and ior (and r = 0 for the Lambertian paper ground),
-    what a user knows before fitting.
+    what a user knows before fitting; untextured, it also says no surface is textured (a textured
+    surface's lobe seen once is undetermined, docs/fit.md).
     """
     from hardware.images import write_image
     from hardware.sim.lab import build_lab, write_lab
@@ -34,6 +35,7 @@ def lab_photo_workspace(root, width: int = 64, height: int = 48, *, textured: bo
         scene = json.loads((root / "scene.json").read_text())
         for item, m in zip(scene["surfaces"], truth):
             item["material"] = {"brdf": m.brdf, "ior": m.ior, **({"r": 0.0} if m.brdf == "lambert" else {})}
+            item["textured"] = item["textured"] and textured
         (root / "scene.json").write_text(json.dumps(scene))
     write_image(root / "input.exr", image)
     return lab, image

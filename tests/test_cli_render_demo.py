@@ -68,6 +68,7 @@ def test_demo_fit_against_the_texture(tmp_path, capsys):
                 for n, k in (("mirror", "r"), ("sheet", "t"), ("tile", "ks"), ("tile", "r"))}
 
     textured = errors()
+    _determined_within_their_sigma(ws, truth)
     rounds = read_json(ws / "fit.json")["texture_rounds"]["rounds"]
     assert len(rounds) == 2 and all(r["pixels_left_out"] > 0 for r in rounds)
     # Measured: mirror r 0.009, sheet t 0.015, tile ks 0.028, tile r 0.018 off.
@@ -78,6 +79,30 @@ def test_demo_fit_against_the_texture(tmp_path, capsys):
     assert "texture_rounds" not in read_json(ws / "fit.json")
     for key in (("mirror", "r"), ("tile", "ks"), ("tile", "r")):
         assert homogeneous[key] > 2 * textured[key], (key, homogeneous[key], textured[key])
+
+
+def _determined_within_their_sigma(ws, truth):
+    """Every value fit.json calls determined is within 3σ + 2 % of the truth (a textured surface's
+    kd is its texture's mean, the texture stage's to judge); the box's lobe, seen directly and in
+    the mirror, is reported undetermined: the view that pins its texture carries the same lobe
+    (it was fitted ns 2.5 ± 0.7 against a true 30 and called determined)."""
+    textured = {s["name"] for s in read_json(ws / "scene.json")["surfaces"] if s.get("textured", True)}
+    bad = []
+    for surf in read_json(ws / "fit.json")["surfaces"]:
+        name, und = surf["name"], set(surf["undetermined"])
+        for key, sigma in surf["sigma"].items():
+            if key in und or (key == "kd" and name in textured) or sigma is None:
+                continue
+            value, true = np.atleast_1d(surf["material"][key]), np.atleast_1d(truth[name][key])
+            for c, sd in enumerate(np.atleast_1d(sigma)):
+                if sd is None or f"{key}[{c}]" in und:
+                    continue
+                t = true[min(c, len(true) - 1)]
+                if abs(value[min(c, len(value) - 1)] - t) > 3 * sd + 0.02 * abs(t) + 1e-9:
+                    bad.append((name, key, c, value[min(c, len(value) - 1)], t, sd))
+    assert not bad, bad
+    box = next(s for s in read_json(ws / "fit.json")["surfaces"] if s["name"] == "box")
+    assert {"ks", "ns"} <= set(box["undetermined"])
 
 
 @pytest.mark.parametrize("bad", [["--size", "0x5"], ["--size", "big"], ["--noise", "-1"], ["--depth", "0"]])

@@ -58,14 +58,16 @@ def test_singly_seen_textured_surface_is_honest(name, noise):
 
 def test_matte_floor_seen_in_a_mirror():
     """The floor is seen directly and in the mirror: its texture is fixed by the direct view, so the
-    mirror's r and the floor's own ks and ns are determined, and within 3σ + 2% of the truth."""
+    mirror's r is determined, within 3σ + 2% of the truth. The floor's own ks and ns are reported
+    undetermined: the direct view that pins the texture carries the same lobe at another angle."""
     from hardware.sim.scenes import build, render
 
     ts = build("floor_mirror", W, H)
     res, fac, user = _fit_scene(ts, render(ts))
     rows = _check(res, fac, [s.material for s in ts.scene], user)
     got = {(user.names[r[0]], r[1]) for r in rows}
-    assert {("mirror", "r[0]"), ("mirror", "r[1]"), ("mirror", "r[2]"), ("floor", "ns")} <= got
+    assert {("mirror", "r[0]"), ("mirror", "r[1]"), ("mirror", "r[2]")} <= got
+    assert {"ks", "ns"} <= set(res.undetermined[user.names.index("floor")])
 
 
 def test_corrupted_pane_edge_pixels_are_rejected():
