@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from app.report.data import Sources, summarise
+from hardware.workspace import Workspace
 
 #: Largest width at which the novel and relit views are rendered when there is no truth to match.
 VIEW_WIDTH = 320
@@ -35,15 +36,13 @@ def render_model(src: Sources, depth: int) -> dict | None:
 
 def _turned(cam, degrees: float):
     """A Camera turned about the vertical axis through the ground point on its optical axis."""
-    import numpy as np
-
     from calibration.camera import Camera
+    from calibration.rotations import axis_rotation
 
     C, forward = cam.center, cam.R[2]
     s = -C[2] / forward[2] if abs(forward[2]) > 1e-9 and -C[2] / forward[2] > 0 else 1.0
     pivot = C + s * forward
-    a = np.radians(degrees)
-    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    Rz = axis_rotation((0.0, 0.0, 1.0), degrees)
     R = cam.R @ Rz.T
     return Camera(cam.width, cam.height, cam.K, cam.dist, R, -R @ (pivot + Rz @ (C - pivot)))
 
@@ -69,16 +68,17 @@ def render_views(src: Sources, depth: int) -> dict:
     out = {}
     with tempfile.TemporaryDirectory(prefix="reflab-report-") as tmp:
         for key in ("novel", "relit"):
-            truth_file = f"truth/{key}.exr"
+            pose, truth_image = Workspace(src.ws.truth).view(key)
+            truth_file = src.rel(truth_image).as_posix()
             try:
-                cam, lights, how = None, None, f"truth/{key}_camera.json" if key == "novel" else "truth/relit_lights.json"
+                cam, lights, how = None, None, src.rel(pose).as_posix()
                 if key == "novel":
-                    cam = src.path("truth/novel_camera.json")
+                    cam = pose
                     if not cam.is_file():
                         cam = _small(_turned(Camera.load(src.ws.camera), NOVEL_TURN_DEG)).save(Path(tmp) / "novel.json")
                         how, truth_file = f"input camera turned {NOVEL_TURN_DEG:g}° about the vertical", None
                 else:
-                    lights = src.path("truth/relit_lights.json")
+                    lights = pose
                     if not lights.is_file():
                         turned = [PointLight([-l.position[1], l.position[0], l.position[2]], l.intensity)
                                   for l in Lights.load(src.ws.lights)]
@@ -134,7 +134,7 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
         workspace=str(src.root.resolve()), generated=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         sections=sections, unreadable=src.unreadable, truth=src.truth_dir.is_dir(),
         build_s=f"{time.perf_counter() - t0:.1f}")
-    path = src.root / "report.html"
+    path = src.ws.report
     with atomic_write(path, "w") as f:
         f.write(html)
     return path, summary
