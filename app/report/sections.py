@@ -865,11 +865,16 @@ def error_section(src: Sources) -> Section | None:
         return None
     sec = Section("error", "Error against run time", "Every fit and solve: its error against the seconds it ran "
                                                       "(each from its own start).")
+    homogeneous = ("; until the texture rounds start the fit's model has homogeneous albedo, so texture counts as "
+                   "its error there" if any(s.get("phase") for s in photometric) else "")
     panels = [(series, ylabel, what) for series, ylabel, what in (
         (photometric, "RMS residual (linear radiance)", "photometric fits: RMS residual in linear radiance (mean of "
-                                                        "the bands; fit: over pixels, texture: over its equations)"),
+                                                        "the bands; fit: over pixels, texture: over its equations"
+                                                        + homogeneous + ")"),
         (convergence, "relative residual", "the texture solver's conjugate gradient: its normal-equation residual "
-                                           "relative to that of the homogeneous kd (the stopping test's scale)"),
+                                           "relative to that of the homogeneous kd (the stopping test's scale); each "
+                                           "jump starts an active-set round (texels outside [0, 1] fixed at the bound, "
+                                           "the rest solved again)"),
         (geometric, "RMS reprojection (px)", "geometric solves: RMS reprojection error in pixels")) if series]
     where = ["Left", "middle", "right"] if len(panels) == 3 else ["Left", "right"] if len(panels) == 2 else [""]
     caption = "; ".join(f"{w}: {what}" if w else what for w, (_, _, what) in zip(where, panels))
