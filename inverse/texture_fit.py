@@ -40,6 +40,15 @@ from inverse.texture import TextureOptions, recover_texture, sample_texture
 RISE = 2.0
 #: A pixel feeds the texture when directly seen texture carries at least this share of its light.
 MIN_SHARE = 0.9
+#: The rounds' texels are this many pixel footprints across: a reflection is regressed on texels
+#: recovered from noisy pixels (errors in variables), which pulls its r toward 0 by the texels'
+#: noise over their contrast; four pixels per texel quarter that noise. Floor in a mirror, 1 %
+#: noise, 80x60: mirror r[2] 3.0σ low on average at 1 footprint, within 1σ at 2 (docs/fit.md).
+TEXEL_SCALE = 2.0
+#: A round's texel is known from at least this many pixels' weight (the texture stage asks 0.1): a
+#: coarse texel half over an occlusion edge (the ground behind the demo's sheet) would otherwise
+#: extrapolate the visible side's albedo into what the sheet transmits (sheet t 0.11 off).
+MIN_COVERAGE = 1.0
 
 
 def direct_share(trees, materials, intensities, textured, relative=None) -> np.ndarray:
@@ -121,6 +130,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         predicted light in every band.
     method : {"ftbo", "nftbo"}
     options : TextureOptions, optional
+        The rounds' texture settings; default: texels :data:`TEXEL_SCALE` footprints across.
     maxiter : int, optional
         Outer iteration cap of each round's fit.
     max_seconds : float, optional
@@ -147,6 +157,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
     textured = np.array([s.textured for s in scene], dtype=bool)
+    options = options or TextureOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
     # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
     # for outliers where the homogeneous fit excused it as albedo variation).
     rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
