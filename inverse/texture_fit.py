@@ -75,13 +75,25 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     if relative is not None:
         kd = np.where(on[:, None], kd * relative, kd)
     light = node_radiance(trees, materials, intensities, kd_nodes=kd)
+    # Only the diffuse part of a directly seen textured node counts: its highlight is what the
+    # texture must not absorb.
+    diffuse = node_radiance(trees, [_diffuse_only(m) for m in materials], intensities, kd_nodes=kd)
     first = (np.asarray(trees.level) == 1) & on  # the primary hit: seen directly
 
-    def per_pixel(sel):
-        return np.stack([np.bincount(trees.pixel[sel], weights=light[sel, c], minlength=npix) for c in range(3)], axis=1)
+    def per_pixel(values, sel):
+        return np.stack([np.bincount(trees.pixel[sel], weights=values[sel, c], minlength=npix) for c in range(3)], axis=1)
 
-    total = per_pixel(np.ones(len(trees.pixel), dtype=bool))
-    return np.divide(per_pixel(first), total, out=np.zeros((npix, 3)), where=total > 0)
+    total = per_pixel(light, np.ones(len(trees.pixel), dtype=bool))
+    return np.divide(per_pixel(diffuse, first), total, out=np.zeros((npix, 3)), where=total > 0)
+
+
+def _diffuse_only(material):
+    """``material`` with every linear parameter but kd at 0."""
+    m = material.copy()
+    for name in m.params:
+        if name not in ("kd", "r", "t") and np.ndim(m.params[name]) == 1:
+            m.params[name] = np.zeros_like(np.asarray(m.params[name], dtype=np.float64))
+    return m
 
 
 def relative_albedo(trees, textured, result) -> np.ndarray:
