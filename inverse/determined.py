@@ -139,29 +139,29 @@ def _band_names(name, held) -> list:
     return [f"{name}[{c}]" for c in np.flatnonzero(held)]
 
 
-def texture_absorbed(fac: Factorization, p: Params, materials, textured, pinned: bool = True) -> np.ndarray:
-    """(R,) bool: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
-    predicted light in some band.
+def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) bool twice: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
+    predicted light in some band; and the same counting every textured node as free.
 
     A texture free per texel (about one per pixel) can take up any residual where it shows — a
     highlight, a faint reflection — unless the same texel is pinned down elsewhere. Texture seen
     directly is free; texture seen only in a mirror or through glass (the demo box's back face) is
     free too; texture seen there AND directly (a floor in a mirror) is fixed by the direct view.
     So only pixels without free texture tell a specular term from albedo. Which points are seen
-    directly: cells of twice the mean spacing of the surface's directly seen nodes. With
-    ``pinned=False`` every textured node counts as free (for the textured surface's own lobe,
-    whose pinning view carries the same lobe: :func:`inverse.fitting.fit`).
+    directly: cells of twice the mean spacing of the surface's directly seen nodes. The second
+    mask, with no texture pinned, is for a textured surface's own lobe, whose pinning view carries
+    the same lobe (:func:`inverse.fitting.fit`).
     """
     if textured is None or not any(textured):
-        return np.zeros(fac.n_rows, dtype=bool)
+        return np.zeros(fac.n_rows, dtype=bool), np.zeros(fac.n_rows, dtype=bool)
     from inverse.rendering import node_radiance
 
     tr = fac.trees
     surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
     light = np.abs(node_radiance(tr, materials_of(fac, p, materials), fac._args[0]))
     tex = np.asarray(textured, dtype=bool)[surf]
-    free_tex = tex & (level == 1) if pinned else tex
-    for s in np.flatnonzero(np.asarray(textured, dtype=bool)) if pinned else ():
+    free_tex = tex & (level == 1)
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
         direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
         if not seen_else.any():
             continue
@@ -177,9 +177,9 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured, pinned:
         flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
         free_tex |= seen_else & ~np.isin(flat, flat[direct])
     npix = fac.width * fac.height
-    out = np.zeros(fac.n_rows, dtype=bool)
+    out, anywhere = np.zeros(fac.n_rows, dtype=bool), np.zeros(fac.n_rows, dtype=bool)
     for c in range(BANDS):
-        total = np.bincount(tr.pixel, weights=light[:, c], minlength=npix)[fac.rows]
-        part = np.bincount(tr.pixel[free_tex], weights=light[free_tex, c], minlength=npix)[fac.rows]
-        out |= part > ABSORB_SHARE * np.maximum(total, 1e-300)
-    return out
+        total = ABSORB_SHARE * np.maximum(np.bincount(tr.pixel, weights=light[:, c], minlength=npix)[fac.rows], 1e-300)
+        out |= np.bincount(tr.pixel[free_tex], weights=light[free_tex, c], minlength=npix)[fac.rows] > total
+        anywhere |= np.bincount(tr.pixel[tex], weights=light[tex, c], minlength=npix)[fac.rows] > total
+    return out, anywhere

@@ -27,6 +27,9 @@ class FitResult:
     iterations: int
     message: str
     stats: dict = field(default_factory=dict)
+    #: Which parameters have signal in the image (before any was held): a refit of the same scene
+    #: reuses it (:func:`inverse.fitting.fit`'s ``structure``).
+    structure: Free | None = None
 
 
 def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: dict | None = None) -> dict:

@@ -51,7 +51,8 @@ METHODS = ("ftbo", "nftbo")
 @one_blas_thread
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
-        names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True) -> FitResult:
+        names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
+        structure: Free | None = None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -91,6 +92,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         (:func:`inverse.diagnosis.outliers`: residual beyond ``REJECT_SIGMAS`` image-noise σ,
         at most ``REJECT_SHARE`` of the used pixels) are left out and the fit repeated from
         where it stopped; ``stats["rejected"]`` counts and lists them.
+    structure : Free, optional
+        Which parameters have signal, from an earlier fit of the same scene (``FitResult.structure``;
+        a refit without outliers or against a texture): skips the structure test, nine full
+        evaluations of the system.
 
     Returns
     -------
@@ -109,7 +114,9 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     srch = pb.search
     init.theta = srch.to_theta(srch.to_u(init.theta))
     p = init.copy()
-    free = structural_free(pb, p)
+    free = structural_free(pb, p) if structure is None else Free(structure.x.copy(), structure.s.copy(),
+                                                                  structure.theta.copy())
+    found = Free(free.x.copy(), free.s.copy(), free.theta.copy())
     pb.phases["structure"] = time.perf_counter() - t0
     if held is not None:
         hold(fac, free, held)
@@ -152,7 +159,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
     sig = sigmas(pb, p, free, res)
-    absorbed = texture_absorbed(fac, p, materials, textured)
+    absorbed, anywhere = texture_absorbed(fac, p, materials, textured)
     if absorbed.any():
         # A free texture explains every pixel where it is seen directly: σ from the others only
         # (kd of a textured surface is its texture's mean: its σ stays the one from every pixel).
@@ -168,8 +175,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         lay = fac.layout
         own = np.array([bool(textured[s]) and name != "kd" for s, name in lay.x_names], dtype=bool)
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
-        if own.any() or own_theta.any():
-            anywhere = texture_absorbed(fac, p, materials, textured, pinned=False)
+        if (own[:, None] & free.x).any() or (own_theta & free.theta).any():
             sig_o = sigmas(pb, p, Free(free.x & ~tex_kd[:, None], free.s, free.theta), res, keep=~anywhere)
             sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
@@ -196,7 +202,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
             first = FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace, [], rounds,
                               pb.evaluations, iterations, message,
-                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations})
+                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
                                   task=task, held=held, t0=t0, passes=REJECT_PASSES if reject is True else int(reject),
                                   max_seconds=None if max_seconds is None else max_seconds - elapsed)
@@ -205,12 +211,13 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                      {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
                       "noise": [float(v) for v in pb.noise], "status": status, "warnings": warnings,
                       "phases_s": {k: round(v, 6) for k, v in pb.phases.items()}, "scan_evaluations": pb.scan_evaluations,
-                      "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}})
+                      "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}, found)
 
 
 def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, t0, passes, **kw) -> FitResult:
     """Fit again from ``first`` with the pixels ``bad`` left out; traces, counts and time add up."""
-    again = fit(fac.without(bad), image, first.materials, method, scan=False, reject=passes - 1, **kw)
+    again = fit(fac.without(bad), image, first.materials, method, scan=False, reject=passes - 1,
+                structure=first.structure, **kw)
     width = fac.width
     pixels = [[int(i % width), int(i // width)] for i in bad] + again.stats["rejected"]["pixels"]
     rejected = {"count": len(pixels), "pixels": pixels, "threshold_sigmas": REJECT_SIGMAS}

@@ -199,7 +199,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
         result = fit(fac, image, result.materials, method, textured=list(textured), names=scene.names, scan=False,
                      maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
-                     held=held, reject=False)
+                     held=held, reject=False, structure=start.structure)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0

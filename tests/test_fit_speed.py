@@ -53,7 +53,8 @@ def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
 
 
 def test_phases_add_up_over_a_rejection_refit():
-    """A 3x3 speck is rejected and the fit repeated: phases_s and scan_evaluations count both fits."""
+    """A 3x3 speck is rejected and the fit repeated: phases_s and scan_evaluations count both fits; the
+    refit neither scans nor tests the structure again."""
     lab = build_lab(80, 60, textured=False)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
     truth = [s.material for s in lab.scene]
@@ -68,6 +69,7 @@ def test_phases_add_up_over_a_rejection_refit():
     assert res.stats["rejected"]["count"] == 9
     once = fit(fac, img, start, "ftbo", reject=False)
     assert res.stats["scan_evaluations"] == once.stats["scan_evaluations"] > 0  # the refit does not scan
-    assert res.stats["phases_s"]["structure"] > once.stats["phases_s"]["structure"] * 1.5  # two structure tests
+    # The refit reuses the first pass's structure test (which parameters have signal).
+    assert all(np.array_equal(getattr(res.structure, k), getattr(once.structure, k)) for k in ("x", "s", "theta"))
     assert sum(res.stats["phases_s"].values()) <= res.time_s
     assert sum(res.stats["phases_s"].values()) > 0.8 * res.time_s
