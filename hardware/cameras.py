@@ -100,6 +100,9 @@ class FolderCamera:
         Longest wait for the new file.
     settle_s : float
         How long the size must stay unchanged.
+
+    While it waits, ``cancelled()`` (set by the capture to its task's flag) is asked every 50 ms:
+    a cancel stops the wait with :class:`hardware.task.Cancelled`.
     """
 
     def __init__(self, folder, *, trigger=None, timeout_s: float = 60.0, settle_s: float = 0.5):
@@ -107,6 +110,7 @@ class FolderCamera:
         if not self.folder.is_dir():
             raise CameraError(f"{self.folder}: not a folder; the tethered camera's download folder must exist")
         self.trigger, self.timeout_s, self.settle_s = trigger, float(timeout_s), float(settle_s)
+        self.cancelled = lambda: False
 
     def _images(self) -> dict[Path, int]:
         return {p: p.stat().st_size for p in self.folder.iterdir()
@@ -138,6 +142,10 @@ class FolderCamera:
                         continue
                     self.last_file = path
                     return image
+            if self.cancelled():
+                from hardware.task import Cancelled
+
+                raise Cancelled("cancelled while waiting for the camera's shot")
             time.sleep(0.05)
         raise CameraError(f"no new complete image in {self.folder} within {self.timeout_s:g} s; check the tethering software "
                           f"saves to this folder as {'/'.join(FOLDER_SUFFIXES)}")

@@ -287,6 +287,8 @@ class CaptureSession:
         prepare = getattr(self.camera, "prepare", None)
         if prepare is not None:  # a camera that shows what the shot is for (the simulated one's props)
             prepare(shot)
+        if hasattr(self.camera, "cancelled"):  # a camera that waits for the shutter stops waiting on cancel
+            self.camera.cancelled = lambda: self.control.cancelled
         t0 = time.monotonic()
         image = self.camera.capture(self.exposure)
         if not np.all(np.isfinite(image)):

@@ -4,6 +4,7 @@ Every wait is on a signal (the window's ``step_finished``, a worker's ``progress
 Images are 80x60 so that each test takes seconds.
 """
 import os
+import time
 
 import numpy as np
 import pytest
@@ -34,6 +35,28 @@ def run(qtbot, window, step, timeout=120_000):
         qtbot.mouseClick(window.findChild(QPushButton, f"run_{step}"), Qt.MouseButton.LeftButton)
     assert blocker.args[0] == step
     return blocker.args[1], window.findChild(QLabel, f"status_{step}").text()
+
+
+def wheel(view, u, v, steps=1):
+    """Turn the mouse wheel ``steps`` notches forward with the cursor over pixel (u, v) of an image view."""
+    from PySide6.QtCore import QPointF
+    from PySide6.QtGui import QWheelEvent
+    from PySide6.QtWidgets import QApplication
+
+    for _ in range(steps):
+        at = QPointF(view.mapFromScene(u + 0.5, v + 0.5))
+        QApplication.sendEvent(view.viewport(), QWheelEvent(at, view.viewport().mapToGlobal(at), QPoint(), QPoint(0, 120),
+                                                            Qt.MouseButton.NoButton, Qt.KeyboardModifier.NoModifier,
+                                                            Qt.ScrollPhase.NoScrollPhase, False))
+
+
+def drag(qtbot, view, start, end):
+    """Press on pixel ``start`` of an image view, move to ``end`` and release there."""
+    a, b = (view.mapFromScene(u + 0.5, v + 0.5) for u, v in (start, end))
+    qtbot.mousePress(view.viewport(), Qt.MouseButton.LeftButton, pos=QPoint(a.x(), a.y()))
+    for t in (0.25, 0.5, 0.75, 1.0):
+        qtbot.mouseMove(view.viewport(), pos=QPoint(round(a.x() + t * (b.x() - a.x())), round(a.y() + t * (b.y() - a.y()))))
+    qtbot.mouseRelease(view.viewport(), Qt.MouseButton.LeftButton, pos=QPoint(b.x(), b.y()))
 
 
 @pytest.fixture
@@ -67,6 +90,13 @@ def test_object_names_of_the_contract_and_resume_at_first_missing_step(qtbot, la
     assert ticked == [False, True, True, False, True, True, False, False, False]
     fresh = open_window(qtbot, tmp_path_factory.mktemp("empty"))
     assert fresh.current_step() == "devices"
+    # each page but the last leads on to the next; the pages with something to set up draw it
+    for step, following in zip(NAMES, NAMES[1:]):
+        qtbot.mouseClick(fresh.findChild(QPushButton, f"next_{step}"), Qt.MouseButton.LeftButton)
+        assert fresh.current_step() == following
+    assert fresh.findChild(QPushButton, "next_results") is None
+    drawn = [step for step in NAMES if fresh.findChild(QWidget, f"sketch_{step}") is not None]
+    assert drawn == ["devices", "calibrate_camera", "calibrate_lights", "sweep", "input"]
 
 
 def test_sweep_cancel_then_resume_keeps_the_finished_shots(qtbot, tmp_path):
@@ -79,11 +109,12 @@ def test_sweep_cancel_then_resume_keeps_the_finished_shots(qtbot, tmp_path):
     worker = window.worker
     # cancel once the second shot is written (a queued slot, in the UI thread)
     worker.progress.connect(lambda done, total, msg: done >= 2 and not started and
-                            (started.append(done), qtbot.mouseClick(window.findChild(QPushButton, "cancel"),
-                                                                     Qt.MouseButton.LeftButton)))
+                            (started.append(time.monotonic()),
+                             qtbot.mouseClick(window.findChild(QPushButton, "cancel"), Qt.MouseButton.LeftButton)))
     with qtbot.waitSignal(window.step_finished, timeout=60_000) as blocker:
         pass
     assert blocker.args == ["sweep", "cancelled"]
+    assert time.monotonic() - started[0] < 1.0  # the step stopped within a second of Cancel (seen 0.02-0.1 s)
     assert window.findChild(QLabel, "status_sweep").text().startswith("cancelled")
     manifest = read_json(tmp_path / "captures/turntable/manifest.json")
     assert manifest["status"] == "cancelled"
@@ -110,6 +141,10 @@ def test_sweep_cancel_then_resume_keeps_the_finished_shots(qtbot, tmp_path):
     window.findChild(QWidget, "corner_ior").setValue(1.46)
     window.findChild(QWidget, "corner_thickness").setValue(0.003)
     clicks = {(0, 0): (30.0, 20.0), (0, 1): (31.0, 22.0), (1, 0): (50.0, 21.0), (1, 1): (52.0, 23.0)}
+    shots.setCurrentRow(0)
+    fitted = view.transform().m11()
+    wheel(view, 40.0, 21.0, steps=3)  # zoom in on the corners, which stay under the cursor
+    assert view.transform().m11() == pytest.approx(fitted * 1.25 ** 3)
     for (corner, shot), (u, v) in clicks.items():
         window.findChild(QWidget, "corner_label").setCurrentIndex(corner)
         shots.setCurrentRow(shot)
@@ -166,6 +201,14 @@ def test_fit_texture_results_on_the_simulated_lab(qtbot, lab_workspace):
     rel = np.sqrt(np.mean((model - photo) ** 2)) / np.sqrt(np.mean(photo ** 2))
     assert f"{100 * rel:.2f}%" in window.findChild(QLabel, "results_summary").text()
     assert rel < 0.15
+    # the novel view: the camera orbited and raised, lamp 1 dimmed, from the sliders, off the UI thread
+    window.findChild(QWidget, "novel_azimuth").setValue(20)
+    window.findChild(QWidget, "novel_elevation").setValue(-5)
+    window.findChild(QWidget, "dim_lamp_1").setValue(30)
+    with qtbot.waitSignal(window.page("results").novel_rendered, timeout=60_000) as blocker:
+        qtbot.mouseClick(window.findChild(QPushButton, "render_novel"), Qt.MouseButton.LeftButton)
+    assert blocker.args[0] and blocker.args[1].startswith("orbit +20°, raise -5°, lamps 100%, 30%")
+    assert window.findChild(QWidget, "novel_view").array.shape[:2] == (SIZE[1], SIZE[0])
 
 
 def test_rod_marks_clicked_on_a_shot_are_saved_as_marks_json(qtbot, tmp_path):
@@ -187,6 +230,9 @@ def test_rod_marks_clicked_on_a_shot_are_saved_as_marks_json(qtbot, tmp_path):
         for u, v in (foot, tip):
             at = view.mapFromScene(u + 0.5, v + 0.5)
             qtbot.mouseClick(view.viewport(), Qt.MouseButton.LeftButton, pos=QPoint(at.x(), at.y()))
+    # the foot on the second shot was off: drag it to where it belongs
+    drag(qtbot, view, clicks[1][0], (26.0, 44.0))
+    clicks[1][0] = (26.0, 44.0)
     qtbot.mouseClick(window.findChild(QPushButton, "save_rod_marks"), Qt.MouseButton.LeftButton)
     height, marks = read_marks(tmp_path / "marks.json")
     assert height == pytest.approx(0.12)
@@ -196,6 +242,24 @@ def test_rod_marks_clicked_on_a_shot_are_saved_as_marks_json(qtbot, tmp_path):
     for m in marks:
         foot, tip = clicks[m.light]
         assert np.allclose(m.base, foot, atol=scale) and np.allclose(m.tip, tip, atol=scale)
+    assert list(view.marks) == ["base", "tip"]  # the drag moved the mark, it did not add one
+
+
+def test_reflab_help_imports_no_qt():
+    """`reflab --help` and `reflab gui --help` answer without loading the Qt binding."""
+    import subprocess
+    import sys
+
+    code = ("import sys, contextlib, io\n"
+            "from app.cli import main\n"
+            "for argv in (['--help'], ['gui', '--help']):\n"
+            "    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.suppress(SystemExit):\n"
+            "        main(argv)\n"
+            "    assert 'usage: reflab' in out.getvalue(), argv\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('PySide6', 'shiboken6', 'pytestqt')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
 
 
 def test_closing_with_a_step_running_asks_first(qtbot, tmp_path):
@@ -334,6 +398,13 @@ def test_camera_calibrated_from_the_target_shots_the_window_takes(qtbot, tmp_pat
     table = window.findChild(QWidget, "camera_views")
     assert table.rowCount() == len(views) >= 4
     assert [table.item(i, 1).text() for i in range(table.rowCount())] == [f"{v['rms_px']:.3f}" for v in views]
+    # the worst view is shown with its residuals drawn over it; another row shows that view's
+    worst = max(range(len(views)), key=lambda i: views[i]["rms_px"])
+    caption = window.findChild(QLabel, "camera_residual_caption")
+    assert caption.text().startswith(f"{views[worst]['image'].rsplit('/', 1)[-1]}: residuals × ")
+    table.selectRow((worst + 1) % len(views))
+    assert caption.text().startswith(views[(worst + 1) % len(views)]["image"].rsplit("/", 1)[-1])
+    assert window.findChild(QWidget, "camera_residuals").array.shape[:2] == (240, 320)
 
 
 def test_a_missing_serial_port_fails_the_devices_step_with_its_name(qtbot, tmp_path):
@@ -360,3 +431,71 @@ def test_a_paused_sweep_holds_and_cancel_ends_it(qtbot, tmp_path):
     assert 1 <= taken <= len(shots) <= taken + 1 < 8  # held after the shot it was taking when paused
     pause = window.findChild(QPushButton, "pause")
     assert not pause.isEnabled() and not pause.isChecked() and pause.text() == "Pause"
+
+
+def test_sweep_reconstruct_and_input_through_the_window(qtbot, tmp_path):
+    """The sweep, the reconstruction from its shots and the input photograph, each run by its
+    button on the simulated lab (480x360, 24 shots as `reflab demo --quick`); the lab's true camera stands in for the
+    camera step (tested above at 320x240)."""
+    from hardware.sim.lab import build_lab
+
+    build_lab(480, 360).camera.save(tmp_path / "camera.json")
+    window = MainWindow(tmp_path, size=(480, 360), live_preview_ms=0, options={"sweep": {"count": 24}})
+    qtbot.addWidget(window)
+    window.show()
+    for step in ("sweep", "reconstruct", "input"):
+        outcome, status = run(qtbot, window, step, timeout=300_000)
+        assert outcome == "done", (step, status)
+    sfm = read_json(tmp_path / "sfm.json")["sfm"]
+    assert sfm["registered"] == sfm["images"] == 24
+    summary = window.findChild(QLabel, "reconstruct_summary").text()
+    assert f"<b>24/24</b> shots registered, <b>{sfm['points']}</b> sparse points" in summary
+    names = [s["name"] for s in read_json(tmp_path / "scene.json")["surfaces"]]
+    assert "ground" in names and len(names) >= 2 and all(n in summary for n in names)
+    assert window.findChild(QWidget, "reconstruct_view").array.shape == (360, 480, 3)  # the input view, overlaid
+    assert (tmp_path / "input.exr").exists()
+    assert window.findChild(QLabel, "input_summary").text().startswith("input.exr: 480×360")
+    assert window.findChild(QWidget, "input_view").array.shape[:2] == (360, 480)
+    assert [window.step_list.item(i).text().startswith("✓") for i in range(len(NAMES))][3:6] == [True] * 3
+
+
+def test_a_tethered_camera_previews_its_newest_shot_without_taking_one(qtbot, tmp_path):
+    """`--camera folder:PATH`: the live view shows the folder's newest image and never waits for a
+    new one (a shot would wait up to the camera's 60 s timeout, holding the rig from the steps)."""
+    from hardware.images import write_image
+
+    folder = tmp_path / "tether"
+    folder.mkdir()
+    write_image(folder / "a.exr", np.full((30, 40, 3), 0.2))
+    window = MainWindow(tmp_path / "ws", port="sim", camera=f"folder:{folder}", size=SIZE, live_preview_ms=20)
+    qtbot.addWidget(window)
+    window.show()
+    assert run(qtbot, window, "devices")[0] == "done"
+    view = window.findChild(QWidget, "preview_devices")
+    qtbot.waitUntil(lambda: view.array is not None, timeout=10_000)
+    assert view.array.shape[:2] == (30, 40)
+    write_image(folder / "b.exr", np.full((20, 10, 3), 0.5))  # the user took a shot
+    qtbot.waitUntil(lambda: view.array.shape[:2] == (20, 10), timeout=10_000)
+    assert sorted(p.name for p in folder.iterdir()) == ["a.exr", "b.exr"]
+
+
+def test_cancel_stops_a_sweep_waiting_for_the_tethered_cameras_shot(qtbot, tmp_path):
+    """A tethered camera waits (up to 60 s) for the user's shutter; Cancel stops that wait at once."""
+    folder = tmp_path / "tether"
+    folder.mkdir()
+    window = MainWindow(tmp_path / "ws", port="sim", camera=f"folder:{folder}", size=SIZE, live_preview_ms=0,
+                        options={"sweep": {"count": 3}})
+    qtbot.addWidget(window)
+    window.show()
+    window.ask_close = lambda: True  # no question box at teardown if the step is still running
+    assert run(qtbot, window, "devices")[0] == "done"
+    manifest = tmp_path / "ws/captures/turntable/manifest.json"
+    camera = window.rig.camera
+    idle = camera.cancelled
+    window.run_step("sweep")
+    qtbot.waitUntil(lambda: camera.cancelled is not idle, timeout=10_000)  # the capture waits for the shutter
+    with qtbot.waitSignal(window.step_finished, timeout=10_000) as blocker:
+        clicked = time.monotonic()
+        qtbot.mouseClick(window.findChild(QPushButton, "cancel"), Qt.MouseButton.LeftButton)
+    assert blocker.args == ["sweep", "cancelled"] and time.monotonic() - clicked < 1.0
+    assert read_json(manifest)["status"] == "cancelled" and read_json(manifest)["shots"] == []

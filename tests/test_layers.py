@@ -158,10 +158,10 @@ OWNED = {("camera",): "camera.json", ("lights",): "lights.json", ("scene",): "sc
          ("texture_index",): "textures/index.json", ("input_image",): "input.exr", ("render",): "render.exr",
          ("view", "novel"): "novel.exr", ("view", "relit"): "relit.exr", ("mesh", "floor"): "meshes/floor.ply",
          ("trees_cache", "key"): "cache/trees-key.npz", ("manifest", "sweep"): "captures/turntable/manifest.json"}
-#: Files whose literal workspace names are still to go (the GUI's pages and the report's sections,
-#: under work elsewhere when the test was written), named so that no other file joins them; remove
+#: Files whose literal workspace names are still to go (the report's sections, under work
+#: elsewhere when the test was written), named so that no other file joins them; remove
 #: an entry once its file has none left (the test says so).
-KNOWN_LITERALS = {"app/gui/pages.py", "app/report/sections.py"}
+KNOWN_LITERALS = {"app/report/sections.py"}
 #: Folders of the workspace whose contents only the Workspace object names.
 FOLDERS = ("captures", "meshes", "textures", "truth", "cache")
 
@@ -245,9 +245,9 @@ def test_literal_finder_finds_a_literal():
 
 
 # ---------------------------------------------------------------------- one copy of each geometry helper
-#: Files that still write a rotation matrix out by hand (the GUI's pages, under work elsewhere when the
-#: test was written); remove an entry once its file uses calibration.rotations.
-KNOWN_ROTATIONS = {"app/gui/pages.py"}
+#: Files that still write a rotation matrix out by hand (none left: the GUI's orbit uses
+#: calibration.rotations too); remove an entry once its file uses calibration.rotations.
+KNOWN_ROTATIONS: set = set()
 HAND_ROTATION = re.compile(r"np\.cos\((\w+)\),\s*-np\.sin\(\1\)")
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QColor, QFont
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGridLayout, QGroupBox, QHBoxLayout,
                                QHeaderView, QLabel, QLineEdit, QListWidget, QListWidgetItem, QPushButton, QRadioButton,
@@ -14,6 +14,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
                                QWidget)
 
 from app.gui import stages
+from app.gui.sketch import SKETCHED, RigSketch
 from app.gui.widgets import Curve, ImageView, text_label
 from hardware.workspace import Workspace, read_json
 
@@ -64,37 +65,57 @@ class StepPage(QWidget):
         self.setObjectName(f"page_{step.name}")
         self._options: dict = {}
         outer = QVBoxLayout(self)
+        header = QHBoxLayout()
+        head = QVBoxLayout()
+        header.addLayout(head, 1)
+        if step.name in SKETCHED:  # what to set up at the rig, drawn
+            header.addWidget(RigSketch(step.name), 0, Qt.AlignmentFlag.AlignTop)
+        outer.addLayout(header)
         title = QLabel(step.title)
         f = QFont(title.font())
         f.setPointSize(f.pointSize() + 5)
         f.setBold(True)
         title.setFont(f)
-        outer.addWidget(title)
-        outer.addWidget(text_label(step.instructions, f"instructions_{step.name}"))
+        head.addWidget(title)
+        head.addWidget(text_label(step.instructions, f"instructions_{step.name}"))
         row = QHBoxLayout()
         self.form = QFormLayout()
         row.addLayout(self.form)
         row.addStretch(1)
+        buttons = QVBoxLayout()
         self.run_button = QPushButton(self.run_text)
         self.run_button.setObjectName(f"run_{step.name}")
         self.run_button.setMinimumWidth(140)
         self.run_button.clicked.connect(lambda: window.run_step(step.name))
-        row.addWidget(self.run_button, 0, Qt.AlignmentFlag.AlignTop)
-        outer.addLayout(row)
+        buttons.addWidget(self.run_button)
+        following = stages.NAMES.index(step.name) + 1
+        self.next_button = None
+        if following < len(stages.STEPS):  # the way on, bold once this step is done
+            after = stages.STEPS[following]
+            self.next_button = QPushButton(f"Next: {after.title} ›")
+            self.next_button.setObjectName(f"next_{step.name}")
+            self.next_button.clicked.connect(lambda: window.go_to(after.name))
+            buttons.addWidget(self.next_button)
+        buttons.addStretch(1)
+        row.addLayout(buttons)
+        head.addLayout(row)
+        head.addStretch(1)
         self.status = text_label("", f"status_{step.name}")
         outer.addWidget(self.status)
         split = QSplitter(Qt.Orientation.Horizontal)
         box = QGroupBox("Camera (live)")
         bl = QVBoxLayout(box)
         self.preview = ImageView(placeholder="live view" if self.preview_stretch == 0 else
-                                 "the camera shows here once the rig is connected (Devices)")
+                                 "the camera shows here\nonce the rig is connected\n(Devices)")
         self.preview.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.preview.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.preview.setObjectName(f"preview_{step.name}")
         bl.addWidget(self.preview)
         split.addWidget(box)
-        if self.preview_stretch == 0:
-            box.setMaximumWidth(220)  # nothing to do at the rig: a glance at the camera is enough
+        if self.preview_stretch == 0:  # nothing to do at the rig: a glance at the camera is enough
+            box.setMaximumWidth(220)
+            self.preview.setMaximumHeight(170)
+            bl.addStretch(1)
         self.tabs = QTabWidget()
         self.tabs.setObjectName(f"results_{step.name}")
         split.addWidget(self.tabs)
@@ -121,8 +142,15 @@ class StepPage(QWidget):
 
     def set_status(self, text: str) -> None:
         self.status.setText(text)
+        state = text.split(':')[0].split(' ')[0]
         colour = {"done": "#207020", "failed": "#c00000", "cancelled": "#a06000", "running": "#2050a0"}
-        self.status.setStyleSheet(f"color: {colour.get(text.split(':')[0].split(' ')[0], '#444')}; font-weight: bold")
+        self.status.setStyleSheet(f"color: {colour.get(state, '#444')}; font-weight: bold")
+        if self.next_button is not None:
+            self.next_button.setStyleSheet("font-weight: bold" if state == "done" else "")
+
+    def nothing_yet(self, what: str) -> str:
+        """The result tab's text before the step has run: what is missing and which button makes it."""
+        return f"No {what} yet: press <b>{self.run_text}</b> above."
 
     def add_option(self, key: str, label: str, widget: QWidget, tip: str = "") -> QWidget:
         widget.setObjectName(f"option_{self.step.name}_{key}")
@@ -233,29 +261,65 @@ class CameraPage(StepPage):
         self.add_option("recapture", "", QCheckBox("capture again"))
         self.summary = text_label("", "camera_summary")
         self.views = QWidget()
-        lay = QVBoxLayout(self.views)
+        row = QHBoxLayout(self.views)
+        lay = QVBoxLayout()
         lay.addWidget(self.summary)
         self.table_holder = QVBoxLayout()
-        lay.addLayout(self.table_holder)
+        lay.addLayout(self.table_holder, 1)
+        row.addLayout(lay, 2)
+        right = QVBoxLayout()
+        self.residual_caption = text_label("", "camera_residual_caption")
+        right.addWidget(self.residual_caption)
+        self.residual_view = ImageView(placeholder="pick a view in the table")
+        self.residual_view.setObjectName("camera_residuals")
+        right.addWidget(self.residual_view, 1)
+        row.addLayout(right, 3)
         self.tab(self.views, "Reprojection per view")
+        self.calibration: dict = {}
 
     def refresh(self):
         while self.table_holder.count():
             self.table_holder.takeAt(0).widget().deleteLater()
         if not self.ws.camera.exists():
-            self.summary.setText("No camera.json yet.")
+            self.summary.setText(self.nothing_yet("camera.json"))
             return
         cam = read_json(self.ws.camera)
-        cal = cam.get("calibration", {})
+        cal = self.calibration = cam.get("calibration", {})
         K, s = cam["K"], cal.get("sigma", {})
         pm = lambda key, v: f"{v:.2f} ± {s[key]:.2f}" if key in s else f"{v:.2f}"  # noqa: E731
         self.summary.setText(
             f"fx {pm('fx', K[0][0])} &nbsp; fy {pm('fy', K[1][1])}<br>cx {pm('cx', K[0][2])} &nbsp; cy {pm('cy', K[1][2])}"
             f" &nbsp; k1 {cam['dist'][0]:.4f}<br>reprojection RMS <b>{cal.get('rms_px', float('nan')):.3f} px</b> over "
-            f"{len(cal.get('views', []))} views" + (f"; skipped {len(cal['skipped'])}" if cal.get("skipped") else ""))
+            f"{len(cal.get('views', []))} views"
+            + (f"; skipped {', '.join(Path(str(v)).name for v in cal['skipped'])} (no grid found; the log "
+               "says why)" if cal.get("skipped") else "")
+            + "".join(f"<br>⚠ {text}" for text in cal.get("warnings", [])))
         rows = [[Path(v["image"]).name, f"{v['rms_px']:.3f}", f"{v['worst_px']:.3f}"] for v in cal.get("views", [])]
         bad = {(i, 1) for i, v in enumerate(cal.get("views", [])) if v["rms_px"] > 0.5}
-        self.table_holder.addWidget(_table("camera_views", ["view", "RMS (px)", "worst (px)"], rows, bad))
+        table = _table("camera_views", ["view", "RMS (px)", "worst (px)"], rows, bad)
+        table.setSelectionBehavior(QTableWidget.SelectionBehavior.SelectRows)
+        table.currentCellChanged.connect(lambda r, *_: self.show_residuals(r))
+        self.table_holder.addWidget(table)
+        if rows:
+            table.selectRow(int(np.argmax([v["rms_px"] for v in cal["views"]])))  # the worst view first
+
+    def show_residuals(self, row: int) -> None:
+        """View ``row``'s image with each circle's residual (model minus measured centre) drawn magnified."""
+        views, residuals = self.calibration.get("views", []), self.calibration.get("residuals_px") or []
+        if not 0 <= row < len(views) or len(residuals) != len(views) or not Path(views[row]["image"]).exists():
+            return
+        from hardware.images import to_display
+
+        img = to_display(_read_image(views[row]["image"])).copy()
+        a = np.asarray(residuals[row], float).reshape(-1, 4)
+        typical = float(np.percentile(np.hypot(a[:, 2], a[:, 3]), 95)) or 1.0
+        gain = max(1.0, round(0.04 * img.shape[1] / typical))  # the 95th percentile drawn 4 % of the width long
+        _draw_segments(img, a[:, :2], a[:, :2] + gain * a[:, 2:], (255, 40, 40))
+        _draw_segments(img, a[:, :2] - 1, a[:, :2] + 1, (40, 255, 40))  # the measured centre
+        self.residual_view.set_image(img)
+        self.residual_caption.setText(f"{Path(views[row]['image']).name}: residuals × {gain:g} (red) from each "
+                                      "measured centre (green). Random directions: noise; a swirl or a radial trend: "
+                                      "a model error.")
 
 
 def _mark_editor(page, left: QVBoxLayout, outer: QHBoxLayout, save_text: str, save_name: str, view_name: str,
@@ -356,13 +420,13 @@ class LightsPage(StepPage):
     def save_marks(self):
         complete = [m for m in self.marks.values() if m.get("base") and m.get("tip")]
         stages.update_marks_file(self.window.workspace, rod_height=self._options["rod_height"].value(), marks=complete)
-        self.window.log(f"saved {len(complete)} rod marks to {self.window.workspace / 'marks.json'}")
+        self.window.log(f"saved {len(complete)} rod marks to {self.ws.marks}")
 
     def _show_lamps(self):
         while self.lamps_layout.count():
             self.lamps_layout.takeAt(0).widget().deleteLater()
         if not self.ws.lights.exists():
-            self.lamps_layout.addWidget(QLabel("No lights.json yet."))
+            self.lamps_layout.addWidget(QLabel(self.nothing_yet("lights.json")))
             return
         rows = []
         for k, light in enumerate(read_json(self.ws.lights)["lights"]):
@@ -529,7 +593,7 @@ class SweepPage(StepPage):
             s["corners"] = [c for c in s["corners"] if len(c["marks"]) >= 2]
         others = [s for s in stages.read_marks_file(self.window.workspace).get("surfaces", []) if "corners" not in s]
         stages.update_marks_file(self.window.workspace, surfaces=usable + others)
-        self.window.log(f"saved corners of {len(usable)} surface(s) to {self.window.workspace / 'marks.json'}"
+        self.window.log(f"saved corners of {len(usable)} surface(s) to {self.ws.marks}"
                         + ("" if usable else " (a corner needs marks on two or more shots)"))
 
 
@@ -609,7 +673,7 @@ class ReconstructPage(StepPage):
                 words = ", ".join(k if v is True else f"{k} {v}" for k, v in item.items() if k not in ("name", "at"))
                 self.points.addItem(f"{item['name']} at ({item['at'][0]:.0f}, {item['at'][1]:.0f}): {words or 'glossy'}")
         lines = []
-        sfm = read_json(ws.root / "sfm.json") if (ws.root / "sfm.json").exists() else None
+        sfm = read_json(ws.sfm) if ws.sfm.exists() else None
         if sfm:
             s = sfm.get("sfm", {})
             lines.append(f"<b>{s.get('registered')}/{s.get('images')}</b> shots registered, "
@@ -621,7 +685,7 @@ class ReconstructPage(StepPage):
         if ws.scene.exists():
             surf = read_json(ws.scene).get("surfaces", [])
             lines.append("surfaces: " + ", ".join(f"{s['name']} ({s.get('source', 'given')})" for s in surf))
-        self.summary.setText("<br>".join(lines) or "Not reconstructed yet.")
+        self.summary.setText("<br>".join(lines) or self.nothing_yet("scene.json"))
         self._overlay(sfm)
 
     def _overlay(self, sfm):
@@ -643,8 +707,8 @@ class ReconstructPage(StepPage):
 
         img = to_display(_read_image(base)).copy()
         h, w = img.shape[:2]
-        if (ws.root / "sparse.ply").exists():
-            pts = _read_ply_points(ws.root / "sparse.ply")
+        if ws.sparse.exists():
+            pts = _read_ply_points(ws.sparse)
             if len(pts):
                 uv = np.rint(cam.project(pts)).astype(int)
                 ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
@@ -670,10 +734,14 @@ def _read_ply_points(path) -> np.ndarray:
 
 
 def _draw_edges(img: np.ndarray, uv: np.ndarray, triangles: np.ndarray, colour) -> None:
-    """Draw every triangle edge (sampled points, vectorised) onto an 8-bit image."""
+    """Draw every triangle edge onto an 8-bit image."""
     tri = np.asarray(triangles)
-    a = uv[np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])]
-    b = uv[np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])]
+    _draw_segments(img, uv[np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])],
+                   uv[np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])], colour)
+
+
+def _draw_segments(img: np.ndarray, a: np.ndarray, b: np.ndarray, colour) -> None:
+    """Draw the segments a[i]-b[i] (pixel coordinates; sampled points, vectorised) onto an 8-bit image."""
     t = np.linspace(0.0, 1.0, 64)[:, None, None]
     p = np.rint(a[None] + t * (b - a)[None]).reshape(-1, 2).astype(int)
     h, w = img.shape[:2]
@@ -704,7 +772,7 @@ class InputPage(StepPage):
 
         path = self.ws.input_image
         if not path.exists():
-            self.summary.setText("No input photograph yet.")
+            self.summary.setText(self.nothing_yet("input photograph"))
             return
         img = _read_image(path)
         clip = clip_level(img)
@@ -751,7 +819,7 @@ class FitPage(StepPage):
         while self.materials_layout.count():
             self.materials_layout.takeAt(0).widget().deleteLater()
         if not self.ws.fit.exists():
-            self.materials_layout.addWidget(QLabel("No fit.json yet."))
+            self.materials_layout.addWidget(QLabel(self.nothing_yet("fit.json")))
             return
         fit = read_json(self.ws.fit)
         rows, bad = [], set()
@@ -802,7 +870,7 @@ class TexturePage(StepPage):
         folder = self.ws.textures
         files = sorted(p for p in folder.glob("*.exr") if not p.stem.endswith("_diag")) if folder.is_dir() else []
         if not files:
-            self.grid.addWidget(QLabel("No textures yet."), 0, 0)
+            self.grid.addWidget(QLabel(self.nothing_yet("textures")), 0, 0)
             return
         for i, path in enumerate(files):
             tex = np.nan_to_num(_read_image(path))
@@ -813,9 +881,11 @@ class TexturePage(StepPage):
             known = ""
             if mask.exists():
                 m = _read_image(mask)
-                known = f", {100 * float(np.mean(m > 0)):.0f}% of texels determined"
-            box = QGroupBox(f"{path.stem} ({tex.shape[1]}×{tex.shape[0]}{known})")
-            QVBoxLayout(box).addWidget(view)
+                known = f", {100 * float(np.mean(m > 0)):.0f}% determined by the image"
+            box = QGroupBox(path.stem)
+            bl = QVBoxLayout(box)
+            bl.addWidget(text_label(f"{tex.shape[1]}×{tex.shape[0]} texels{known}"))
+            bl.addWidget(view, 1)
             self.grid.addWidget(box, i // 3, i % 3)
 
 
@@ -823,6 +893,8 @@ class TexturePage(StepPage):
 class ResultsPage(StepPage):
     preview_stretch = 0
     run_text = "Re-render and report"
+    #: A novel view ended: (ok, its description or the failure's message).
+    novel_rendered = Signal(bool, str)
 
     def build(self):
         w = QWidget()
@@ -875,10 +947,10 @@ class ResultsPage(StepPage):
 
     def refresh(self):
         ws = self.ws
-        if not (ws.root / "render.exr").exists() or not ws.input_image.exists():
-            self.summary.setText("Not re-rendered yet.")
+        if not ws.render().exists() or not ws.input_image.exists():
+            self.summary.setText(self.nothing_yet("re-render"))
             return
-        photo, model = _read_image(ws.input_image), _read_image(ws.root / "render.exr")
+        photo, model = _read_image(ws.input_image), _read_image(ws.render())
         exposure = 1.0 / max(float(np.percentile(photo, 99.5)), 1e-12)
         self.views["input"].set_image(photo, exposure)
         self.views["render"].set_image(model, exposure)
@@ -886,8 +958,11 @@ class ResultsPage(StepPage):
             diff = np.abs(model - photo)
             self.views["difference"].set_image(diff, 4 * exposure)
             rel = float(np.sqrt(np.mean((model - photo) ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300))
-            report = " — report.html written" if (ws.root / "report.html").exists() else ""
-            self.summary.setText(f"RMS difference <b>{100 * rel:.2f}%</b> of the photograph's RMS{report}")
+            html = ws.report
+            report = (f"<br><br>The whole account (calibration, geometry, materials with σ, textures): <b>{html}</b>, "
+                      "to open in a browser." if html.exists() else "")
+            self.summary.setText(f"RMS difference <b>{100 * rel:.2f}%</b> of the photograph's RMS.{report}<br><br>"
+                                 "The next tab shows the model from another view and under dimmed or brightened lamps.")
 
     def _describe_novel(self, _=None):
         dims = ", ".join(f"{s.value()}%" for s in self.dimmers)
@@ -905,10 +980,12 @@ class ResultsPage(StepPage):
         self.novel_button.setEnabled(True)
         if not ok:
             self.novel_info.setText(f"failed: {result}")
+            self.novel_rendered.emit(False, str(result))
             return
         image, text = result
         self.novel.set_image(image)
         self.novel_info.setText(text)
+        self.novel_rendered.emit(True, text)
 
 
 def orbit(camera, azimuth: float, elevation: float):
@@ -916,15 +993,13 @@ def orbit(camera, azimuth: float, elevation: float):
     degrees about the vertical, then raised ``elevation`` degrees; same intrinsics, no roll added."""
     from dataclasses import replace
 
+    from calibration.rotations import axis_rotation
+
     eye, axis = camera.center, camera.R[2]
     target = eye + axis * (eye[2] / max(-axis[2], 1e-6))  # the optical axis meets z = 0
-    a, e = np.radians(azimuth), np.radians(elevation)
-    turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    side = np.cross(axis, [0.0, 0.0, 1.0])
-    side = side / max(np.linalg.norm(side), 1e-12)
-    K = np.array([[0, -side[2], side[1]], [side[2], 0, -side[0]], [-side[1], side[0], 0]])
-    raise_ = np.eye(3) + np.sin(-e) * K + (1 - np.cos(e)) * K @ K  # Rodrigues about the camera's side axis
-    Q = turn @ raise_
+    side = np.cross(axis, [0.0, 0.0, 1.0])  # the camera's horizontal axis: raising turns about it
+    side = side if np.linalg.norm(side) > 1e-9 else camera.R[0]  # looking straight down: its x axis
+    Q = axis_rotation([0.0, 0.0, 1.0], azimuth) @ axis_rotation(side, -elevation)
     R = camera.R @ Q.T
     return replace(camera, R=R, t=-R @ (Q @ (eye - target) + target), extra={})
 
@@ -944,9 +1019,10 @@ def novel_view(workspace, azimuth: float, elevation: float, dims) -> tuple:
     dims = list(dims) + [1.0] * (len(lights) - len(dims))
     scaled = Lights([type(l)(l.position, np.asarray(l.intensity) * d) for l, d in zip(lights, dims)])
     with tempfile.TemporaryDirectory() as tmp:
-        cam.save(Path(tmp) / "camera.json")
-        scaled.save(Path(tmp) / "lights.json")
-        image, info = render_workspace(workspace, Path(tmp) / "camera.json", Path(tmp) / "lights.json")
+        moved, dimmed = Path(tmp) / "orbit_camera.json", Path(tmp) / "dimmed_lights.json"
+        cam.save(moved)
+        scaled.save(dimmed)
+        image, info = render_workspace(workspace, moved, dimmed)
     text = (f"orbit {azimuth:+.0f}°, raise {elevation:+.0f}°, lamps "
             + ", ".join(f"{100 * d:.0f}%" for d in dims) + f" — trees {info['trees_s']:.1f} s, render {info['render_s']:.1f} s")
     return image, text
