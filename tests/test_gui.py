@@ -194,6 +194,11 @@ def test_fit_texture_results_on_the_simulated_lab(qtbot, lab_workspace):
                        if s["material"].get(k) is not None}
     assert flagged  # the lab's matte ground has no mirror term to determine
     assert (lab_workspace / "textures/index.json").exists() and (lab_workspace / "render.exr").exists()
+    # the texture page shows every recovered texture
+    maps = {p.stem for p in (lab_workspace / "textures").glob("*.exr") if not p.stem.endswith("_diag")}
+    shown = {w.objectName()[len("texture_"):] for w in window.page("texture").findChildren(QWidget)
+             if w.objectName().startswith("texture_") and w.array is not None}
+    assert maps and shown == maps
     # the page's figure is the re-render's RMS difference, computed here from the files
     from hardware.images import read_image
 
