@@ -6,7 +6,8 @@ relit_lights.json + relit.exr (the input view under other lamps), both rendered 
 textures by the independent reference renderer (hardware/sim/reference.py).
 
 PSNR is ``10 log10(peak² / MSE)`` with ``peak`` the true image's maximum, over the pixels whose
-albedo the recovered model knows (its albedo AOV is finite there).
+albedo the recovered model knows: every node of the pixel's tree (the surface seen, and what it
+reflects or transmits) has a determined albedo (:func:`view_psnr`).
 """
 from __future__ import annotations
 
@@ -95,18 +96,29 @@ def psnr(image, truth, known) -> float:
 
 
 def view_psnr(root, truth: dict, which: str) -> dict:
-    """PSNR of the recovered model's novel or relit view against the truth, over pixels of known albedo."""
+    """PSNR of the recovered model's novel or relit view against the truth, over pixels of known albedo.
+
+    A pixel's albedo is known when every node of its tree has one (docs/texture.md's "known",
+    the render's ``unknown_pixels``): a textured point the input saw directly, in a mirror or
+    through the sheet, or an untextured surface. A mirror pixel that reflects a point the input
+    never determined (in a capture lamp's shadow, or out of its view: its texel is 0 in
+    textures/<surface>_mask.png and the render puts the homogeneous kd there) is not known,
+    though the mirror itself is. ``psnr_primary_db`` is the PSNR over the pixels whose directly
+    seen surface alone has a known albedo (finite albedo AOV), the score used until 2026-11-24.
+    """
     from inverse.stages import render_workspace
     from hardware.images import read_image
 
     ws = Workspace(root)
     pose = Workspace(ws.truth).view(which)[0]
-    albedo, _ = render_workspace(ws.root, aov="albedo", depth=truth["depth"],
-                                 **({"camera": pose} if which == "novel" else {"lights": pose}))
-    known = np.all(np.isfinite(albedo), axis=2)
-    image = read_image(ws.view(which)[1])
-    return {"psnr_db": psnr(image, truth["images"][which], known), "known_pct": float(100 * known.mean()),
-            "psnr_all_db": psnr(image, truth["images"][which], np.ones_like(known))}
+    albedo, info = render_workspace(ws.root, aov="albedo", depth=truth["depth"],
+                                    **({"camera": pose} if which == "novel" else {"lights": pose}))
+    primary = np.all(np.isfinite(albedo), axis=2)
+    known = primary & ~info["unknown_pixels"]
+    image, true = read_image(ws.view(which)[1]), truth["images"][which]
+    return {"psnr_db": psnr(image, true, known), "known_pct": float(100 * known.mean()),
+            "psnr_primary_db": psnr(image, true, primary), "primary_known_pct": float(100 * primary.mean()),
+            "psnr_all_db": psnr(image, true, np.ones_like(known))}
 
 
 def score_stage(stage: str, root, truth: dict) -> str:
@@ -142,5 +154,7 @@ def score_stage(stage: str, root, truth: dict) -> str:
         return "; ".join(parts) + " (true in brackets)"
     if stage in ("render novel", "render relit"):
         e = view_psnr(ws.root, truth, stage.split()[1])
-        return f"PSNR {e['psnr_db']:.1f} dB over the {e['known_pct']:.0f} % of pixels of known albedo ({e['psnr_all_db']:.1f} dB over all)"
+        return (f"PSNR {e['psnr_db']:.1f} dB over the {e['known_pct']:.0f} % of pixels of known albedo "
+                f"({e['psnr_primary_db']:.1f} dB over the {e['primary_known_pct']:.0f} % whose seen surface's is known, "
+                f"{e['psnr_all_db']:.1f} dB over all)")
     return ""
