@@ -3,7 +3,8 @@
 The truth (INTERFACES.md, "The simulated lab's truth"): camera.json, lights.json, scene.json with
 its meshes (true materials), novel_camera.json + novel.exr (a view the input did not see) and
 relit_lights.json + relit.exr (the input view under other lamps), both rendered with the true
-textures by the independent reference renderer (hardware/sim/reference.py).
+textures by the independent reference renderer (hardware/sim/reference.py), and albedo.exr (the
+true kd seen at each pixel of the input view, :func:`true_albedo`).
 
 PSNR is ``10 log10(peak² / MSE)`` with ``peak`` the true image's maximum, over the pixels whose
 albedo the recovered model knows: every node of the pixel's tree (the surface seen, and what it
@@ -51,7 +52,22 @@ def write_truth(root, size, *, depth: int = 3, grain: float = 0.2) -> dict:
         image_path = truth.view(name)[1]
         write_image(image_path, images[name])
         write_preview(image_path.with_suffix(".png"), images[name])
+    write_image(Workspace(root).truth_albedo, true_albedo(lab), allow_nan=True)
     return {"lab": lab, "novel_camera": novel, "relit_lights": relit, "images": images, "depth": depth}
+
+
+def true_albedo(lab) -> np.ndarray:
+    """truth/albedo.exr: the true kd (H, W, 3) of the surface seen directly at each pixel of the lab's
+    camera, NaN where none is seen (``reflab render --aov albedo``'s form): the lab's albedo at the
+    level-1 nodes of the true scene's trees (pixel centres), independent of any recovered model."""
+    from inverse.trees import build_trees
+
+    cam = lab.camera
+    trees = build_trees(lab.scene, cam, lab.lights, depth=1)
+    first = trees.level == 1
+    out = np.full((cam.height * cam.width, 3), np.nan)
+    out[trees.pixel[first]] = lab.albedo_at(trees.surface[first], trees.point[first])
+    return out.reshape(cam.height, cam.width, 3)
 
 
 def camera_error(cam, true) -> dict:

@@ -95,6 +95,7 @@ class Workspace:
     report = property(lambda self: self.root / "report.html")
     report_json = property(lambda self: self.root / "report.json")  # report.html's summary
     truth_materials = property(lambda self: self.root / "truth.json")  # the simulated lab's true materials
+    truth_albedo = property(lambda self: self.truth / "albedo.exr")  # the simulated lab's true kd at the input view
     texture_index = property(lambda self: self.textures / "index.json")
     cache = property(lambda self: self.root / "cache")
     logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
