@@ -2,7 +2,8 @@
 
 1. writes the simulated lab (hardware/sim/lab.py) as a workspace: camera.json, lights.json,
    meshes, and a scene.json with only what a user knows before fitting (``brdf``, ``ior``, and
-   ``r = 0`` for the matte paper ground); the true materials go to truth.json;
+   ``r = 0`` for the matte paper ground); the true materials go to truth.json and the true
+   albedo seen at each pixel to truth/albedo.exr (the report's texture comparison);
 2. renders input.exr with the independent reference renderer (hardware/sim/reference.py) and the
    true textures, optionally with Gaussian noise;
 3. runs the later steps of the guided acquisition (app/steps.py: fit, texture, results), the
@@ -46,6 +47,7 @@ def run_from_truth(args) -> int:
     import numpy as np
 
     from app import steps
+    from app.demo_score import true_albedo
     from hardware.images import write_image, write_preview
     from hardware.sim.lab import build_lab, write_lab
     from hardware.sim.reference import render_reference
@@ -55,6 +57,7 @@ def run_from_truth(args) -> int:
     width, height = args.size or (320, 240)
     lab = build_lab(width, height)
     write_lab(ws.root, lab, materials=False)
+    write_image(ws.truth_albedo, true_albedo(lab), allow_nan=True)  # the report's texture truth
     print(f"[demo] 1/4 wrote the simulated lab ({width}x{height}, {len(lab.scene)} surfaces, {len(lab.lights)} lamps) "
           f"to {ws.root}/ (true materials in {ws.truth_materials.name})")
 
