@@ -30,7 +30,7 @@ import numpy as np
 
 from inverse.factorization import Factorization
 from inverse.fitting import FitResult, fit
-from inverse.rendering import node_radiance
+from inverse.rendering import linear_basis, node_radiance
 from inverse.texture import TextureOptions, recover_texture, sample_texture
 
 #: A round whose fit leaves an RMS residual more than RISE times the best so far is not kept. Each
@@ -74,10 +74,11 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     on = np.asarray(textured, dtype=bool)[trees.surface]
     if relative is not None:
         kd = np.where(on[:, None], kd * relative, kd)
-    light = node_radiance(trees, materials, intensities, kd_nodes=kd)
+    basis = linear_basis(trees, materials, intensities)
+    light = node_radiance(trees, materials, intensities, kd_nodes=kd, basis=basis)
     # Only the diffuse part of a directly seen textured node counts: its highlight is what the
     # texture must not absorb.
-    diffuse = node_radiance(trees, [_diffuse_only(m) for m in materials], intensities, kd_nodes=kd)
+    diffuse = node_radiance(trees, [_diffuse_only(m) for m in materials], intensities, kd_nodes=kd, basis=basis)
     first = (np.asarray(trees.level) == 1) & on  # the primary hit: seen directly
 
     def per_pixel(values, sel):

@@ -133,7 +133,7 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
         wr = weights[:, None] * res  # (3, R)
         scores = np.zeros((n, n_tiles))
         if len(q):
-            scores[n_lin:] = np.asarray((P.T @ np.einsum("qcr,cr->rq", img, wr)).T)
+            scores[n_lin:] = np.asarray((P.T @ (img * wr).sum(axis=1).T).T)
     off = 0
     for c in range(BANDS):
         D = blocks[c]
@@ -150,7 +150,7 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
             H[n_lin:, off:off + k] = cross.T
         off += k
     if len(q):
-        H[n_lin:, n_lin:] = np.einsum("c,qcr,pcr->qp", weights, img, img)
+        H[n_lin:, n_lin:] = sum(weights[c] * (img[:, c, :] @ img[:, c, :].T) for c in range(BANDS))
     labels += [("theta", i, -1) for i in q]
     if res is not None:
         return H, labels, scores
