@@ -203,3 +203,28 @@ def test_still_ground_is_the_frame_plane_over_the_input_view(lab):
         assert np.sqrt(np.mean(d**2)) < 1e-3, (m.name, np.sqrt(np.mean(d**2)))
     # Without the camera there is nothing to fall back on: the largest level plane is taken (the tile's top).
     assert "RANSAC" in surf.fit_scene_points(pts)[0].source
+
+
+def test_low_box_yaw_from_its_top_face_outline(lab):
+    """A tile shows points on its top only: inside the footprint they say nothing about the yaw,
+    so the few mismatches just beyond an edge (as the lab sweep leaves them, 1-3 mm out) must not
+    turn it: the smallest rectangle around the top face's points, each edge at its third
+    outermost point, does not (lab sweep: 18.5 deg fitted for 20 before, 20.1 after; here
+    -4.4 deg and a corner 6.9 mm off before, over seeds 7-12 within 0.64 deg and 2.5 mm after)."""
+    tile = lab.scene[lab.scene.index("tile")].mesh
+    v = tile.vertices
+    ex, ey = v[4] - v[0], v[2] - v[0]
+    size = np.array([np.linalg.norm(ex), np.linalg.norm(ey), v[:, 2].max()])
+    R = np.stack([ex / size[0], ey / size[1], [0, 0, 1.0]], axis=1)
+    rng = np.random.default_rng(7)
+    top = rng.uniform(-size[:2] / 2 + 0.002, size[:2] / 2 - 0.002, (900, 2))
+    top = top[rng.random(len(top)) < 0.3 + 0.7 * (top[:, 0] / size[0] + 0.5)]  # denser toward one side
+    stray = np.array([[-size[0] / 2 - 0.003, -0.02], [0.03, size[1] / 2 + 0.0025], [size[0] / 2 + 0.001, 0.04]])
+    local = np.c_[np.concatenate([top, stray]), np.full(len(top) + len(stray), size[2] / 2)]
+    pts = v.mean(axis=0) + local @ R.T + rng.normal(0, 3e-4, local.shape)
+    fitted = surf.fit_scene_points(pts, camera=lab.camera)
+    assert [m.name for m in fitted] == ["ground", "box0"]
+    e = fitted[1].mesh.vertices[4] - fitted[1].mesh.vertices[0]
+    yaw = (np.degrees(np.arctan2(e[1], e[0])) - 20.0 + 45.0) % 90.0 - 45.0  # the lab's tile is turned 20 deg
+    d = surf.distance_to_mesh(tile, fitted[1].mesh.sample_points(5000))
+    assert abs(yaw) < 0.75 and d.max() < 2.6e-3, (yaw, d.max(), fitted[1].info)
