@@ -1,4 +1,4 @@
-"""The guided acquisition as one ordered list of steps, shared by the GUI and ``reflab demo --from-truth``.
+"""The guided acquisition as one ordered list of steps, shared by the GUI and ``reflab demo``.
 
 Each :class:`Step` has the contract's name (INTERFACES.md, GUI: ``devices``, ``calibrate_camera``,
 ``calibrate_lights``, ``sweep``, ``reconstruct``, ``input``, ``fit``, ``texture``, ``results``), a

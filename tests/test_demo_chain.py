@@ -1,10 +1,11 @@
 """The simulated lab end to end from its captures (issue 14): README's stepwise commands, run as
 documented on the simulated devices, scored against the truth they never saw.
 
-One test runs the whole chain (devices, target shots, calibrate camera, rod shots, calibrate
-lights, sweep, reconstruct, input, fit, texture, novel and relit renders, report) and checks
-every stage against hardware/sim's truth; the other checks that `reflab demo` runs exactly
-README's commands.
+`reflab demo` runs app/steps.py's step list (the GUI's) with app/demo_lab.py's options; README
+documents the same acquisition as command lines. One test checks that README's commands are the
+step list, in order, with the demo's options; the other runs README's commands (devices, target
+shots, calibrate camera, rod shots, calibrate lights, sweep, reconstruct, input, fit, texture,
+novel and relit renders, report) and checks every stage against hardware/sim's truth.
 """
 import re
 import shlex
@@ -13,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.cli import main
-from app import demo_score as score
-from app.commands.demo import commands
+from app import demo_score as score, steps
+from app.cli import build_parser, main
+from app.demo_lab import CENTRE, SIZE, step_options, views
 from calibration.camera import Camera
 from calibration.lights import Lights
 from hardware.images import read_image
@@ -33,10 +34,38 @@ def readme_commands() -> list[list[str]]:
     return [shlex.split(line) for line in lines]
 
 
-def test_demo_runs_readmes_commands():
+#: README's command (its first words) -> the step it stands for: the demo runs the step instead.
+STEP_OF = {"hardware": "devices", "capture calibration": "calibrate_camera", "calibrate camera": "calibrate_camera",
+           "capture lights": "calibrate_lights", "calibrate lights": "calibrate_lights", "capture sweep": "sweep",
+           "reconstruct": "reconstruct", "capture input": "input", "fit": "fit", "texture": "texture",
+           "render": "results", "report": "report"}
+
+
+def test_readmes_commands_are_the_demos_steps_and_options():
+    """README's commands are the demo's steps in order, with the options the demo gives each step
+    (a command's default counts), on the simulated rig the demo opens; `render` gives the results
+    step's options for the novel and the relit view."""
     documented = readme_commands()
     assert documented[0] == ["demo", "demo-workspace", "--truth-only"]
-    assert documented[1:] == [argv for _, argv in commands("demo-workspace")]
+    parser = build_parser()
+    parsed = [(STEP_OF[" ".join(argv[:2]) if argv[0] in ("capture", "calibrate") else argv[0]],
+               vars(parser.parse_args(argv))) for argv in documented[1:]]
+    order = [name for i, (name, _) in enumerate(parsed) if i == 0 or parsed[i - 1][0] != name]
+    assert order == steps.NAMES + ["report"]
+    for name, options in step_options().items():
+        for key, value in options.items():
+            given = [args[key] for step, args in parsed if step == name and key in args]
+            want = list(value) if isinstance(value, tuple) else value
+            assert given and all(g == pytest.approx(want) if key == "sheet_region" else g == want for g in given), \
+                (name, key, given, value)
+    renders = [{k: Path(args[k]) for k in ("camera", "lights", "output") if args[k]} for step, args in parsed
+               if step == "results"]
+    assert renders == list(views("demo-workspace").values())
+    rig = [args for _, args in parsed if "port" in args]
+    assert all(args["port"] == "sim" for args in rig) and len(rig) == 5
+    captures = [args for args in rig if "camera" in args]
+    assert all(args["camera"] == "sim" and args["centre"] == list(CENTRE) for args in captures)
+    assert [args["size"] for args in captures] == [SIZE, None, None, None]  # later captures take camera.json's
 
 
 @pytest.mark.slow  # the whole acquisition: 57 simulated shots, structure from motion, fit, texture (140 s measured)

@@ -1,0 +1,123 @@
+"""`reflab demo WORKSPACE`: the simulated lab end to end, from its captures, through the step list.
+
+1. writes the truth (app/demo_score.py: WORKSPACE/truth/, INTERFACES.md "The simulated lab's
+   truth"), which no stage reads;
+2. opens the simulated board and camera (``app.devices.Rig("sim", "sim")``) and runs app/steps.py's
+   ``STEPS`` in order, the functions the GUI runs: devices -> calibrate camera (target shots) ->
+   calibrate lights (rod shots) -> sweep (then the simulated user marks the mirror's and the
+   sheet's corners and names the surfaces, as a person does in the GUI) -> reconstruct -> input
+   photograph -> fit -> texture -> results; then the results step again for the novel and the
+   relit view (truth/'s camera and lamps), and the report;
+3. after each stage prints its error against the truth and its time, and at the end a table.
+
+The options (:func:`step_options`, :func:`views`) are those README's stepwise commands give by
+hand ("The simulated lab step by step"); tests/test_demo_chain.py checks that they agree and runs
+the commands. Exit status as the commands': 1 on a device fault, 130 when a capture is
+interrupted, 3 when the fit is poor, 2 for a bad file or option (app/cli.py).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+#: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
+SIZE, CENTRE = (480, 360), (0.0, 0.0)
+
+
+def step_options(quick: bool = False) -> dict[str, dict]:
+    """Options per step on the simulated lab: its props' target, rod and grey card (the region
+    5 mm inside the card's edges), the turntable axis; sweep shots and texture rounds (--quick:
+    24 and 1)."""
+    from hardware.sim.props import LabProps
+
+    props, inset = LabProps(), 0.005
+    x0, x1, y0, y1 = props.card
+    region = [round(v, 6) for v in (x0 + inset, x1 - inset, y0 + inset, y1 - inset)]
+    return {"calibrate_camera": {"grid": props.grid, "spacing": props.spacing},
+            "calibrate_lights": {"rod_height": props.rod_height, "sheet_reflectance": props.card_reflectance,
+                                 "sheet_region": region},
+            "sweep": {"count": 24 if quick else 36}, "reconstruct": {"turntable_centre": CENTRE},
+            "fit": {"texture_rounds": 1 if quick else 2}}
+
+
+def views(workspace) -> dict[str, dict]:
+    """The results step's options for the novel and the relit view: truth/'s camera or lamps."""
+    from hardware.workspace import Workspace
+
+    ws = Workspace(workspace)
+    truth = Workspace(ws.truth)
+    return {"novel": {"camera": truth.view("novel")[0], "output": ws.view("novel")[1]},
+            "relit": {"lights": truth.view("relit")[0], "output": ws.view("relit")[1]}}
+
+
+def _log(line: str) -> None:
+    print(line, flush=True)
+
+
+def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list) -> int:
+    """Every step and the two views on the simulated rig; a row (stage, seconds, error) per stage."""
+    from app import demo_score as score, steps
+    from app.devices import Rig, SimOptions
+    from hardware.sim.user import mark_sweep
+
+    options = step_options(quick)
+    runs = [(s.name.replace("_", " "), s, options.get(s.name, {})) for s in steps.STEPS]
+    runs += [(f"render {view}", steps.step("results"), opts) for view, opts in views(root).items()]
+    with Rig("sim", "sim", sim=SimOptions(size=size, centre=list(CENTRE)), log=_log) as rig:
+        for stage, step, opts in runs:
+            _log(f"[demo] step {step.name}: {step.title}")
+            t0 = time.perf_counter()
+            result = step.run(root, rig=rig, log=_log, **opts)
+            if step.name == "sweep":  # what a person marks in the GUI after the sweep
+                path = mark_sweep(root, rig.camera.sim_lab, result.capture.manifest, centre=CENTRE)
+                _log(f"[demo] the simulated user marked the mirror's and the sheet's corners and named the surfaces "
+                     f"in {path}")
+            seconds = time.perf_counter() - t0
+            _log(f"[demo] step {step.name}: {result.summary}")
+            if step.name == "fit" and result.value.status == "poor fit":  # `reflab fit`'s exit status
+                _log(f"[demo] stage {stage} failed (exit 3) after {seconds:.1f} s: later stages skipped")
+                return 3
+            rows.append((stage, seconds, score.score_stage(stage, root, truth)))
+            _log(f"[demo] {stage}: {seconds:.1f} s{'; ' + rows[-1][2] if rows[-1][2] else ''}")
+    return 0
+
+
+def run_lab(args) -> int:
+    from app import demo_score as score
+    from app.report.build import build_report
+    from app.report.data import summary_text
+    from hardware.cameras import CameraError
+    from hardware.capture import CaptureCancelled, CaptureError
+    from hardware.grbl import GrblError
+    from hardware.workspace import Workspace, write_json
+
+    root, size = Path(args.workspace), args.size or SIZE
+    start = t0 = time.perf_counter()
+    truth = score.write_truth(root, size, depth=args.depth)
+    _log(f"[demo] wrote the truth to {Workspace(root).truth} ({time.perf_counter() - t0:.1f} s)")
+    if args.truth_only:
+        return 0
+    rows = []
+    try:  # a bad file or option stops the demo as it stops the CLI (exit 2)
+        code = _run_steps(root, truth, size, args.quick, rows)
+    except CaptureCancelled as exc:
+        print(f"reflab demo: {exc}", file=sys.stderr)
+        return 130
+    except (CaptureError, GrblError, CameraError) as exc:
+        print(f"reflab demo: error: {exc}", file=sys.stderr)
+        return 1
+    if code:
+        return code
+    t0 = time.perf_counter()
+    html, summary = build_report(root)
+    for path, why in summary.get("unreadable", {}).items():
+        print(f"warning: {path} is unreadable, left out of the report ({why})", file=sys.stderr)
+    _log(f"{summary_text(summary)}\nwrote {write_json(Workspace(root).report_json, summary)}\nwrote {html}")
+    rows.append(("report", time.perf_counter() - t0, ""))
+    _log(f"[demo] report: {rows[-1][1]:.1f} s")
+    print("[demo] stage             time (s)  error against truth/")
+    for stage, seconds, error in rows:
+        print(f"[demo] {stage:<17} {seconds:8.1f}  {error}")
+    print(f"[demo] done in {time.perf_counter() - start:.1f} s")
+    return 0
