@@ -34,6 +34,28 @@ def render_model(src: Sources, depth: int) -> dict | None:
             "trees_s": info.get("trees_s"), "render_s": info.get("render_s")}
 
 
+def render_albedo(src: Sources, depth: int) -> dict | None:
+    """The recovered model's albedo AOV at the input view (``reflab render --aov albedo``'s code, the
+    trees from the cache) and the recovered surface seen at each pixel, to compare with
+    truth/albedo.exr; None without that file or textures/."""
+    import numpy as np
+
+    if (not src.ws.truth_albedo.is_file() or src.textures is None or src.scene is None or src.camera is None
+            or src.lights is None):
+        return None
+    from inverse.stages import render_workspace
+
+    try:
+        albedo, info = render_workspace(src.root, aov="albedo", depth=depth)
+    except Exception as err:  # noqa: BLE001 - the report shows what failed and goes on
+        return {"error": f"could not render the albedo ({type(err).__name__}: {err})"}
+    trees = info["trees"]
+    first = trees.level == 1
+    surface = np.full(trees.width * trees.height, -1, dtype=np.int64)
+    surface[trees.pixel[first]] = trees.surface[first]
+    return {"albedo": albedo, "surface": surface.reshape(trees.height, trees.width)}
+
+
 def _turned(cam, degrees: float):
     """A Camera turned about the vertical axis through the ground point on its optical axis."""
     from calibration.camera import Camera
@@ -104,8 +126,9 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     ----------
     workspace : path-like
     render : bool
-        Re-render the model at the input view and render a novel and a relit view (the report's
-        costliest part: one tree build per view).
+        Re-render the model at the input view (its radiance, and its albedo where truth/albedo.exr
+        is there to compare) and render a novel and a relit view (the report's costliest part: one
+        tree build per view).
     """
     from app.report import sections as S
     from hardware.workspace import atomic_write
@@ -115,9 +138,10 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     depth = int((src.fit or {}).get("depth") or 3) if isinstance((src.fit or {}).get("depth"), int) else 3
     model = render_model(src, depth) if render and src.fit is not None else None
     views = render_views(src, depth) if render else {}
+    albedo = render_albedo(src, depth) if render else None
     parts = [("captures", "Captures", S.captures_section, ()), ("camera", "Camera", S.camera_section, ()),
              ("lights", "Lights", S.lights_section, ()), ("geometry", "Geometry", S.geometry_section, ()),
-             ("fit", "Fit", S.fit_section, (model,)), ("texture", "Texture", S.texture_section, (model,)),
+             ("fit", "Fit", S.fit_section, (model,)), ("texture", "Texture", S.texture_section, (model, albedo)),
              ("views", "Novel and relit views", S.views_section, (views,)),
              ("error", "Error against run time", S.error_section, ())]
     sections = []

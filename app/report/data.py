@@ -63,6 +63,29 @@ class Sources:
                     self.unreadable[str(path)] = f"{type(err).__name__}: {err}"
         return self._images[path]
 
+    def albedo_image(self, rel):
+        """An albedo image at ``rel`` (``reflab render --aov albedo``'s form: kd per band, NaN where
+        unknown) as float (H, W, 3); None when absent or unreadable. read_image refuses NaN, which
+        here is data; inf or another shape makes the file unreadable."""
+        import numpy as np
+
+        path = self.path(rel)
+        if path not in self._images:
+            self._images[path] = None
+            if path.is_file():
+                try:
+                    from hardware.mitsuba_env import mitsuba
+
+                    bmp = mitsuba().Bitmap(str(path))
+                    img = np.array(bmp, dtype=np.float64).reshape(bmp.height(), bmp.width(), -1)
+                    if img.shape[2] < 3 or np.isinf(img).any():
+                        raise ValueError(f"expected finite or NaN kd in 3 bands, got {img.shape[2]} bands"
+                                         + (" with inf" if np.isinf(img).any() else ""))
+                    self._images[path] = img[:, :, :3]
+                except Exception as err:  # noqa: BLE001 - any reader failure makes the file unreadable
+                    self.unreadable[str(path)] = f"{type(err).__name__}: {err}"
+        return self._images[path]
+
     # ------------------------------------------------------------------ the stages' files
     camera = property(lambda self: self.json(self.rel(self.ws.camera)))
     lights = property(lambda self: self.json(self.rel(self.ws.lights)))

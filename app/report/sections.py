@@ -714,7 +714,7 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
 
 
 # ---------------------------------------------------------------------- texture
-def texture_section(src: Sources, model: dict | None = None) -> Section | None:
+def texture_section(src: Sources, model: dict | None = None, albedo: dict | None = None) -> Section | None:
     idx = src.textures
     if idx is None:
         return None
@@ -738,9 +738,11 @@ def texture_section(src: Sources, model: dict | None = None) -> Section | None:
     if model and model.get("textured") and model.get("image") is not None:
         sec.note("The texture's residual in the image: the fit section's difference and unexplained-pixel maps, "
                  "whose re-render includes this texture.")
-    if src.truth_dir.is_dir():
-        sec.note("truth/ holds no albedo maps: the texture is scored through the novel and relit views below "
-                 "(PSNR over the pixels of known albedo).")
+    if src.ws.truth_albedo.is_file():
+        _albedo_against_truth(sec, src, albedo)
+    elif src.truth_dir.is_dir():
+        sec.note(f"{src.rel(src.truth_dir).as_posix()}/ holds no albedo.exr (written before the truth had one): the texture is "
+                 "scored through the novel and relit views below (PSNR over the pixels of known albedo).")
     for e in as_list(idx.get("surfaces")):
         if not isinstance(e, dict):
             continue
@@ -768,6 +770,78 @@ def texture_section(src: Sources, model: dict | None = None) -> Section | None:
         size = f"{e.get('width')}×{e.get('height')} texels of {num(1e3 * e['texel_size'], 3)} mm" if isinstance(e.get("texel_size"), (int, float)) else ""
         sec.images(items, f"{name}: {e.get('kind', '')} {size}, {e.get('texels_known')} known, {e.get('texels_amplified')} amplified")
     return sec
+
+
+#: An albedo error (largest band) at most this counts as right in the texture's comparison with the truth.
+ALBEDO_TOLERANCE = 0.05
+
+
+def _albedo_against_truth(sec: Section, src: Sources, albedo: dict | None) -> None:
+    """The recovered albedo at the input view against truth/albedo.exr, pixel for pixel: per surface
+    and overall, RMSE per band, mean error and share within :data:`ALBEDO_TOLERANCE`, and the error map."""
+    rel = src.rel(src.ws.truth_albedo).as_posix()
+    true = src.albedo_image(rel)
+    if true is None:
+        return  # unreadable: named at the top of the report
+    if albedo is None:
+        sec.note(f"{rel} holds the true albedo at the input view; the recovered albedo was not rendered "
+                 "(--no-render), so it is not compared.")
+        return
+    if albedo.get("error"):
+        sec.note(f"against {rel}: {albedo['error']}", "bad")
+        return
+    rec, surface = np.asarray(albedo["albedo"], dtype=np.float64), albedo["surface"]
+    if rec.shape != true.shape:
+        sec.note(f"{rel} is {true.shape[1]}×{true.shape[0]} px, the input view {rec.shape[1]}×{rec.shape[0]}: "
+                 "not compared.", "bad")
+        return
+    seen, known = np.all(np.isfinite(true), axis=2), np.all(np.isfinite(rec), axis=2)
+    both = seen & known
+    diff = np.where(both[:, :, None], rec - true, np.nan)
+    worst = np.max(np.abs(diff), axis=2)  # NaN outside ``both``
+    surfaces = as_list(as_dict(src.scene).get("surfaces"))
+    textured = {as_dict(e).get("surface") for e in as_list(src.textures.get("surfaces"))}
+
+    def row(label, what, sel, of):
+        n = int(np.count_nonzero(sel))
+        if n == 0:
+            return [label, what, 0, "–", "–", "–", "–", "–"]
+        d = diff[sel]
+        return [label, what, n, f"{100 * n / max(int(np.count_nonzero(of)), 1):.0f}",
+                num(np.sqrt(np.mean(d ** 2, axis=0)).tolist(), 3), num(np.mean(d, axis=0).tolist(), 2),
+                num(round(float(np.median(worst[sel])), 4), 2), f"{100 * float(np.mean(worst[sel] <= ALBEDO_TOLERANCE)):.1f}"]
+
+    rows = []
+    for k in np.unique(surface[both]):
+        entry = as_dict(surfaces[k]) if 0 <= k < len(surfaces) else {}
+        name = str(entry.get("name", f"surface {k}"))
+        what = "recovered texture" if name in textured else (
+            "homogeneous kd" if entry.get("textured") is False else "homogeneous kd (no texture recovered)")
+        on = seen & (surface == k)
+        rows.append(row(name, what, both & (surface == k), on))
+    rows.append(row("all", "", both, seen))
+    sec.table(["surface seen (recovered model)", "albedo from", "pixels compared", "% of its pixels",
+               "RMSE per band", "mean error per band", "median |error|", f"% within {ALBEDO_TOLERANCE:g}"], rows,
+              f"The recovered albedo at the input view (`reflab render --aov albedo`) against {rel}, pixel for pixel, "
+              "over the pixels where both know it: the truth sees a surface and the model knows the albedo of the "
+              "surface it sees (a determined texel, or an untextured surface's kd). "
+              "% of its pixels: of those where the model sees that surface and the truth sees one; "
+              f"within {ALBEDO_TOLERANCE:g}: the largest band's |recovered − true| at most {ALBEDO_TOLERANCE:g}; "
+              "mean error: recovered − true (a bias, e.g. from a lamp's intensity); median |error|: of the largest "
+              "band (an RMSE far above it comes from few pixels: outlines where the recovered geometry sees "
+              "another surface than the truth, amplified texels).")
+    unknown, missing = int(np.count_nonzero(seen & ~known)), int(np.count_nonzero(known & ~seen))
+    share = 100 * float(np.mean(both))
+    sec.kv([("compared over", f"{int(np.count_nonzero(both))} pixels ({share:.0f} % of the image)"),
+            ("left out: the truth sees a surface, the model's albedo is unknown there", f"{unknown} pixels"
+             + (" (in a capture lamp's shadow, out of the texture's view, or no surface in the model)" if unknown else "")),
+            ("left out: the model sees a surface the truth does not", f"{missing} pixels" if missing else None)],
+           f"against {rel}")
+    sec.images([(F.thumb(F.display(true, 1.0), 320, 240), f"true albedo ({rel}, sRGB, 1 = white)"),
+                (F.thumb(F.display(rec, 1.0), 320, 240), "recovered albedo at the input view (black: unknown)"),
+                (F.heat_with_bar(worst, "|recovered − true| kd, largest band", "albedo error (white: not compared)",
+                                 vmax=4 * ALBEDO_TOLERANCE),
+                 f"albedo error (top colour: {4 * ALBEDO_TOLERANCE:g} or more)", True)])
 
 
 # ---------------------------------------------------------------------- views
