@@ -177,7 +177,7 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
     try:
         res = calibrate(obs, target_points(cols, rows, o.spacing), size, radius=o.radius,
                         pixel_size=o.pixel_size, reference=used.index(o.reference),
-                        bias_correction=o.bias_correction, areas=areas)
+                        bias_correction=o.bias_correction, areas=areas, check=task.check)
     except CalibrationError as exc:
         if exc.view is None:
             raise

@@ -193,10 +193,11 @@ class CalibrationResult:
 
 
 # ------------------------------------------------------------------ joint refinement
-def _refine(pixels, intr0, poses, obs, points, radius):
+def _refine(pixels, intr0, poses, obs, points, radius, check=None):
     """Least squares over shared intrinsics and per-view poses; returns (intr, poses, res, cov).
 
-    ``pixels(intr, xn, yn)`` maps normalised undistorted coordinates to pixels.
+    ``pixels(intr, xn, yn)`` maps normalised undistorted coordinates to pixels; ``check()``, when
+    given, is called at every evaluation (a task's pause and cancel).
     """
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
@@ -206,6 +207,8 @@ def _refine(pixels, intr0, poses, obs, points, radius):
     x0 = np.concatenate([intr0] + [np.concatenate([rotation_vector(R), t]) for R, t in poses])
 
     def residuals(x):
+        if check is not None:
+            check()
         p = x[ni:].reshape(nv, 6)
         return (_centres(pixels, x[:ni], rodrigues(p[:, :3]), p[:, 3:], points, radius)[0] - obs).ravel()
 
@@ -303,7 +306,7 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
               radius: float | None = None, pixel_size: float = 0.005, reference: int = 0,
               bias_correction: bool = True, areas: list[np.ndarray] | None = None,
               min_views: int = 3, min_spread_deg: float = 5.0, bad_view_ratio: float = 3.0,
-              bad_view_px: float = 0.5, max_focal_sigma: float = 0.002) -> CalibrationResult:
+              bad_view_px: float = 0.5, max_focal_sigma: float = 0.002, check=None) -> CalibrationResult:
     """Calibrate one camera from several views of a planar circle grid.
 
     Parameters
@@ -331,6 +334,8 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     max_focal_sigma : float
         A one-sigma uncertainty of fx or fy above this fraction of it adds a warning (views too
         alike: near-parallel target planes).
+    check : callable, optional
+        Called at every evaluation of the least squares (a task's ``check``: pause and cancel).
 
     Raises
     ------
@@ -381,12 +386,12 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
         # Stage 3: Tsai's full optimisation over all views (radius from the data when unknown).
         rad = float(radius) if radius else 0.3 * spacing
         r_fit = rad if bias_correction else 0.0
-        x_t, poses, res_t, cov_t = _refine(tsai_model, x0, poses, obs, points, r_fit)
+        x_t, poses, res_t, cov_t = _refine(tsai_model, x0, poses, obs, points, r_fit, check)
         if bias_correction and radius is None and areas is not None:
             pred = _centres(tsai_model, x_t, np.array([R for R, _ in poses]), np.array([t for _, t in poses]),
                             points, rad)[1]
             rad *= float(np.sqrt(np.median(np.asarray([areas[i] for i in keep]) / pred)))
-            x_t, poses, res_t, cov_t = _refine(tsai_model, x_t, poses, obs, points, rad)
+            x_t, poses, res_t, cov_t = _refine(tsai_model, x_t, poses, obs, points, rad, check)
         rms_t = _view_rms(res_t)
         bad = _worst_view(rms_t, bad_view_ratio, bad_view_px)
         if bad is None:
@@ -409,7 +414,7 @@ def calibrate(observations: list[np.ndarray], points: np.ndarray, size: tuple[in
     kn = kappa1 * f**2
     cv_model = lambda x, xn, yn: opencv_pixels(xn, yn, *x)  # noqa: E731
     x_c, poses, res_c, cov_c = _refine(cv_model, np.array([sx * f / dx, f / dy, Cx, Cy, -kn, 3 * kn**2]),
-                                       poses, obs, points, rad if bias_correction else 0.0)
+                                       poses, obs, points, rad if bias_correction else 0.0, check)
     fx, fy, cx, cy, k1, k2 = x_c
     sig_c, sig_t = np.sqrt(np.diag(cov_c)), np.sqrt(np.diag(cov_t))
     sigma = dict(zip(["fx", "fy", "cx", "cy", "k1", "k2"], sig_c.tolist()))

@@ -113,6 +113,8 @@ LONG_STAGES = {
     "captures": (lambda request, tmp_path: tmp_path / "ws", "sweep: 0001", _capture_sweep),
     "target detection (calibrate camera)": (_fixture("target_workspace"), "detecting the target in 01",
                                             _stage("calibration.stages", "calibrate_camera", "CameraOptions")),
+    "least squares (calibrate camera)": (_fixture("target_workspace"), "calibrating",
+                                         _stage("calibration.stages", "calibrate_camera", "CameraOptions")),
 }
 
 
