@@ -275,3 +275,35 @@ def test_bad_options_name_their_flag_on_the_command_line_and_their_field_in_the_
     assert "--target: need at least 2 circles" in capsys.readouterr().err
     with pytest.raises(OptionError, match="^ior: no imported mesh named 'pane'"):
         reconstruct(ReconstructOptions(tmp_path, iors={"pane": 1.5}))
+
+
+@pytest.mark.slow  # one more structure-from-motion run of the shared sweep
+def test_reconstruct_cancelled_while_matching_then_rerun(sweep, tmp_path):
+    """Cancelled inside structure from motion, reconstruct writes nothing; run again on the same
+    workspace it registers every shot, as the uninterrupted run did."""
+    import shutil
+
+    from hardware.task import Cancelled, Task
+    from hardware.workspace import Workspace
+    from reconstruction.stages import ReconstructOptions, reconstruct
+
+    root, *_ = sweep
+    ws = Workspace(tmp_path / "ws")
+    shutil.copytree(Workspace(root).captures, ws.captures)
+    shutil.copy(Workspace(root).camera, ws.camera)
+    options = ReconstructOptions(ws.root, target=GRID, spacing=SPACING)
+    seen = []
+
+    def progress(done, total, message):
+        seen.append(message)
+        if message.endswith("matching"):
+            task.cancel()
+
+    task = Task(progress)
+    with pytest.raises(Cancelled):
+        reconstruct(options, task)
+    assert seen[-1].endswith("matching") and not any("mapping" in m for m in seen)
+    assert not ws.sfm.exists() and not ws.scene.exists() and not ws.sparse.exists()
+    reconstruct(options)
+    assert read_json(ws.sfm)["sfm"]["registered"] == N_SHOTS == read_json(Workspace(root).sfm)["sfm"]["registered"]
+    assert Scene.load(ws.scene).names[0] == "ground"
