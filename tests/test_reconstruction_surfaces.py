@@ -228,3 +228,32 @@ def test_low_box_yaw_from_its_top_face_outline(lab):
     yaw = (np.degrees(np.arctan2(e[1], e[0])) - 20.0 + 45.0) % 90.0 - 45.0  # the lab's tile is turned 20 deg
     d = surf.distance_to_mesh(tile, fitted[1].mesh.sample_points(5000))
     assert abs(yaw) < 0.75 and d.max() < 2.6e-3, (yaw, d.max(), fitted[1].info)
+
+
+def test_box_edges_moved_to_where_the_shots_show_them():
+    """Footprint edges fitted short of a tile's true edges (sparse points stop 1-3 mm inside), or
+    beyond them, move to where the shots show its top edges: here within 0.1 mm (true poses, six
+    turntable angles); in the lab demo at 480x360, with structure from motion's poses, tile 0.57 ->
+    0.22 mm RMS (worst corner 2.9 -> 0.9 mm), box 0.55 -> 0.37 mm."""
+    from calibration.rotations import axis_rotation
+    from hardware.sim.camera import lab_renderer
+    from hardware.sim.lab import build_lab
+
+    lab = build_lab(480, 360, grain=0.2)
+    render = lab_renderer(lab, depth=1)
+    cam = lab.camera
+    angles = (0, 60, 120, 180, 240, 300)
+    views = surf.Views(cam, {f"shot{a}": (cam.R @ axis_rotation((0.0, 0.0, 1.0), a), cam.t) for a in angles})
+    gradients = surf.edge_gradients({f"shot{a}": render(a, [True, True]) for a in angles})
+    tile = lab.scene[lab.scene.index("tile")].mesh
+    v = tile.vertices
+    axes = np.stack([v[4] - v[0], v[2] - v[0], v[1] - v[0]], axis=1)
+    size = np.linalg.norm(axes, axis=0)
+    R = axes / size
+    short = np.array([0.002, -0.001, 0.003, -0.002])  # -x, +x, -y, +y edges moved inward (outward if < 0)
+    lo, hi = -size[:2] / 2 + short[[0, 2]], size[:2] / 2 - short[[1, 3]]
+    fitted = surf.box_mesh(v.mean(axis=0) + R[:, :2] @ ((lo + hi) / 2), R, [*(hi - lo), size[2]])
+    moved, shifts = surf.refine_box_edges(fitted, views, gradients)
+    assert all(s is not None for s in shifts) and np.allclose(shifts, short, atol=3e-4), shifts
+    d = surf.distance_to_mesh(tile, moved.sample_points(4000))
+    assert d.max() < 4e-4, d.max()
