@@ -158,10 +158,10 @@ OWNED = {("camera",): "camera.json", ("lights",): "lights.json", ("scene",): "sc
          ("texture_index",): "textures/index.json", ("input_image",): "input.exr", ("render",): "render.exr",
          ("view", "novel"): "novel.exr", ("view", "relit"): "relit.exr", ("mesh", "floor"): "meshes/floor.ply",
          ("trees_cache", "key"): "cache/trees-key.npz", ("manifest", "sweep"): "captures/turntable/manifest.json"}
-#: Files whose literal workspace names are still to go (the report's sections, under work
-#: elsewhere when the test was written), named so that no other file joins them; remove
-#: an entry once its file has none left (the test says so).
-KNOWN_LITERALS = {"app/report/sections.py"}
+#: Files whose literal workspace names are still to go (none left: the report's sections take
+#: theirs from the Workspace object too), named so that no other file joins them; remove an
+#: entry once its file has none left (the test says so).
+KNOWN_LITERALS: set = set()
 #: Folders of the workspace whose contents only the Workspace object names.
 FOLDERS = ("captures", "meshes", "textures", "truth", "cache")
 

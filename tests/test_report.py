@@ -245,7 +245,7 @@ def test_texture_section_scores_the_albedo_against_the_truth(lab_workspace):
     """The comparison's numbers follow the albedo given: the truth itself scores 0, the truth plus
     0.1 in the red band scores RMSE [0.1, 0, 0] and none within 0.05; unknown pixels are left out."""
     from app.report.data import Sources
-    from app.report.sections import texture_section
+    from app.report.sections.texture import texture_section
 
     root, lab = lab_workspace
     src = Sources(root)

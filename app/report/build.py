@@ -130,7 +130,15 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
         is there to compare) and render a novel and a relit view (the report's costliest part: one
         tree build per view).
     """
-    from app.report import sections as S
+    from app.report.sections.camera import camera_section
+    from app.report.sections.captures import captures_section
+    from app.report.sections.error_vs_time import error_section
+    from app.report.sections.fit import fit_section
+    from app.report.sections.geometry import geometry_section
+    from app.report.sections.lights import lights_section
+    from app.report.sections.section import Section
+    from app.report.sections.texture import texture_section
+    from app.report.sections.views import views_section
     from hardware.workspace import atomic_write
 
     t0 = time.perf_counter()
@@ -139,17 +147,17 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     model = render_model(src, depth) if render and src.fit is not None else None
     views = render_views(src, depth) if render else {}
     albedo = render_albedo(src, depth) if render else None
-    parts = [("captures", "Captures", S.captures_section, ()), ("camera", "Camera", S.camera_section, ()),
-             ("lights", "Lights", S.lights_section, ()), ("geometry", "Geometry", S.geometry_section, ()),
-             ("fit", "Fit", S.fit_section, (model,)), ("texture", "Texture", S.texture_section, (model, albedo)),
-             ("views", "Novel and relit views", S.views_section, (views,)),
-             ("error", "Error against run time", S.error_section, ())]
+    parts = [("captures", "Captures", captures_section, ()), ("camera", "Camera", camera_section, ()),
+             ("lights", "Lights", lights_section, ()), ("geometry", "Geometry", geometry_section, ()),
+             ("fit", "Fit", fit_section, (model,)), ("texture", "Texture", texture_section, (model, albedo)),
+             ("views", "Novel and relit views", views_section, (views,)),
+             ("error", "Error against run time", error_section, ())]
     sections = []
     for sid, title, make, extra in parts:
         try:
             section = make(src, *extra)
         except Exception as err:  # noqa: BLE001 - a field of an unexpected shape spoils its section, not the report
-            section = S.Section(sid, title)
+            section = Section(sid, title)
             section.note(f"this section could not be drawn from the workspace's files: {type(err).__name__}: {err}", "bad")
         if section is not None:
             sections.append(section)

@@ -110,8 +110,9 @@ class Sources:
         return self.ws.truth
 
     def truth(self, name: str) -> dict | None:
-        """truth/<name> (INTERFACES.md, "The simulated lab's truth"), None when there is none."""
-        return self.json(self.rel(self.ws.truth / name))
+        """The JSON file of truth/ that :class:`Workspace` calls ``name`` (``camera``, ``lights``, ``scene``;
+        INTERFACES.md, "The simulated lab's truth"), None when there is none."""
+        return self.json(self.rel(getattr(Workspace(self.ws.truth), name)))
 
     def truth_materials(self) -> tuple[dict[str, dict], str]:
         """True material per surface name and the file they came from: truth/scene.json, else the older

@@ -1,0 +1,145 @@
+"""The fit section: fit.json's materials with σ against the truth, where its time went, and the
+re-rendered model against the photograph."""
+from __future__ import annotations
+
+import numpy as np
+
+from app.report import figures as F
+from app.report.data import Sources, as_dict, as_list
+from app.report.sections.section import Section, floats, num, pm
+
+
+#: fit.json's method, as the docs name it.
+METHOD_NAMES = {"ftbo": "F-TBO", "nftbo": "NF-TBO"}
+#: The photometric parameters shown per surface, in this order.
+MATERIAL_KEYS = ("kd", "ks", "ns", "alpha", "sigma", "r", "t", "ior")
+
+
+def fit_section(src: Sources, model: dict | None) -> Section | None:
+    fit = src.fit
+    if fit is None:
+        return None
+    sec = Section("fit", "Fit", "fit.json: the non-Lambertian parameters fitted to the input photograph, their "
+                                "uncertainties, and how well the model explains the image.")
+    status = fit.get("status")
+    if status:
+        sec.note(f"status: {status}" + (f" — {fit['message']}" if fit.get("message") else ""),
+                 "good" if status == "ok" else "bad" if status == "poor fit" else "warn")
+    for w in as_list(fit.get("warnings")):
+        sec.note(str(w), "warn")
+    image = as_dict(fit.get("image"))
+    sec.kv([("method", method_name(fit)), ("depth", fit.get("depth")),
+            ("image", f"{image.get('file')} {image.get('width')} × {image.get('height')}, {image.get('saturated_pixels')} saturated pixels masked"
+             if image else None),
+            ("RMS residual per band", num(fit.get("rms"))), ("image noise σ per band", num(fit.get("noise"))),
+            ("outlier pixels left out of the fit", _rejected_text(fit.get("rejected"))),
+            ("iterations / evaluations", f"{fit.get('iterations')} / {fit.get('evaluations')}" if "iterations" in fit else None),
+            ("fit time", f"{num(fit.get('time_s'), 3)} s" if fit.get("time_s") is not None else None),
+            ("set-up", ", ".join(f"{k} {num(v, 3)} s" for k, v in fit["setup_s"].items()) if isinstance(fit.get("setup_s"), dict) else None)])
+    phases = {k: v for k, v in (fit.get("phases_s") or {}).items() if isinstance(v, (int, float)) and v > 0} \
+        if isinstance(fit.get("phases_s"), dict) else {}
+    if phases:
+        sec.figure(_phases_figure(phases), "Where the fit's time went (fit.json phases_s), in the order they run; "
+                   "the error-vs-time plot below shows the error over the same seconds.")
+    truth, truth_file = src.truth_materials()
+    items = [s for s in as_list(fit.get("surfaces")) if isinstance(s, dict)]
+    keys = [k for k in MATERIAL_KEYS if any(isinstance(s.get("material"), dict) and s["material"].get(k) is not None
+                                             for s in items)]
+    rows = []
+    for s in items:
+        name, mat = str(s.get("name")), as_dict(s.get("material"))
+        sig = as_dict(s.get("sigma"))
+        und = [str(u) for u in as_list(s.get("undetermined"))]
+        bounds = as_dict(s.get("at_bound"))  # {"ks[0]": "upper"}
+        true = truth.get(name, {})
+        row = [name, mat.get("brdf", "–")]
+        for key in keys:
+            if mat.get(key) is None:
+                row.append("")
+                continue
+            lines = [pm(mat[key], sig.get(key), 4)]
+            held = [u for u in und if u == key or u.startswith(key + "[")]
+            if held:
+                lines.append("undetermined" + ("" if held == [key] else " " + ", ".join(held)))
+            on = [f"{k} {side}" for k, side in bounds.items() if k == key or str(k).startswith(key + "[")]
+            if on:
+                lines.append("at its bound: " + ", ".join(on))
+            if true.get(key) is not None and key != "ior":
+                a, b = floats(mat[key]), floats(true[key])
+                err = (a - b).tolist() if a is not None and b is not None and a.shape == b.shape else None
+                lines.append(f"truth {num(true[key])}, error {num(err, 3)}")
+            row.append("\n".join(lines))
+        rows.append(row)
+    sec.table(["surface", "BRDF"] + list(keys), rows,
+              "value ± σ (one standard deviation, per band R, G, B where there are three); undetermined: the image "
+              "does not fix it: either held at its initial or user-given value (no σ), or fitted with a σ that spans "
+              "its plausible range (value and σ shown, docs/fit.md)" + (f"; truth: {truth_file}." if truth else "."))
+    if model and model.get("image") is not None:
+        _model_images(sec, src, fit, model)
+    elif model and model.get("error"):
+        sec.note(f"re-render of the model failed: {model['error']}", "bad")
+    return sec
+
+
+def method_name(fit: dict):
+    """fit.json's method as the docs name it (F-TBO, NF-TBO); another value as written."""
+    m = fit.get("method")
+    return METHOD_NAMES.get(m, m) if isinstance(m, str) else m
+
+
+def _phases_figure(phases: dict) -> str:
+    fig, (ax,) = F.new_figure(6.0, 0.5 + 0.16 * len(phases))
+    left = 0.0
+    for i, (name, secs) in enumerate(phases.items()):
+        ax.barh(0, secs, left=left, color=F.COLOURS[i % len(F.COLOURS)], label=f"{name} {secs:.2g} s")
+        left += secs
+    ax.set_yticks([])
+    ax.set_xlabel("seconds", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    return F.figure_uri(fig)
+
+
+def _rejected_text(rejected) -> str | None:
+    if not isinstance(rejected, dict) or not rejected.get("count"):
+        return None
+    return (f"{rejected['count']} (residual above {num(rejected.get('threshold_sigmas'))} σ; cyan in the map below)"
+            if rejected.get("threshold_sigmas") is not None else str(rejected["count"]))
+
+
+def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
+    photo, img = model["photo"], model["image"]
+    if photo is None or photo.shape != img.shape:
+        sec.images([(F.thumb(F.display(img), 480, 360), "re-rendered model")])
+        return
+    from inverse.fitting import DIAG_FLOOR, DIAG_SIGMAS
+
+    exposure = 1.0 / max(float(np.percentile(photo, 99.5)), 1e-12)
+    diff = np.abs(img - photo).max(axis=2)
+    noise = floats(fit.get("noise"))
+    peak = float(photo.max())
+    tol = DIAG_SIGMAS * (noise if noise is not None and noise.shape == (3,) else np.zeros(3)) + DIAG_FLOOR * peak
+    bad = np.any(np.abs(img - photo) > tol, axis=2)
+    overlay = F.display(photo, exposure).copy()
+    overlay[bad] = [255, 0, 255]
+    rejected = floats(as_dict(fit.get("rejected")).get("pixels"))
+    if rejected is not None and rejected.ndim == 2 and rejected.shape[1] == 2:
+        x, y = rejected[:, 0].astype(int), rejected[:, 1].astype(int)
+        inside = (x >= 0) & (x < overlay.shape[1]) & (y >= 0) & (y < overlay.shape[0])
+        overlay[y[inside], x[inside]] = [0, 255, 255]
+    what = "fitted materials with the recovered texture" if model.get("textured") else "fitted materials, homogeneous kd"
+    sec.images([(F.thumb(F.display(photo, exposure), 480, 360), "input photograph"),
+                (F.thumb(F.display(img, exposure), 480, 360), f"re-rendered model ({what}), same exposure")])
+    sec.images([(F.heat_with_bar(diff, "|model − input|, largest band", "linear radiance"), "difference", True),
+                (F.thumb(overlay, 480, 360), f"unexplained pixels (magenta): {int(bad.sum())} of {bad.size}, residual "
+                                             f"above {DIAG_SIGMAS:g} σ + {DIAG_FLOOR:g} × peak in some band"
+                                             + ("; outliers the fit left out in cyan" if rejected is not None else ""))])
+    share = float(np.sum((img - photo)[bad] ** 2) / max(np.sum((img - photo) ** 2), 1e-300))
+    sec.note(f"Unexplained pixels: the fit's test (docs/fit.md) on this re-render, with σ = fit.json's image noise "
+             f"{num(noise.tolist() if noise is not None else None, 3)}; they hold {100 * share:.0f}% of the squared "
+             "residual. Unlike the fit's own diagnosis, no allowance is made for texture: the re-render "
+             + ("includes the recovered texture." if model.get("textured") else "uses homogeneous albedo, so texture shows."))
+    rms = np.sqrt(np.mean((img - photo) ** 2, axis=(0, 1)))
+    sec.kv([("model vs input RMS per band", num(rms.tolist())),
+            ("relative RMS", f"{num(100 * float(np.sqrt(np.mean((img - photo) ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300)), 3)} %"),
+            ("render time", f"trees {num(model.get('trees_s'), 2)} s, render {num(model.get('render_s'), 2)} s")])

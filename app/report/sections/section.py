@@ -1,0 +1,78 @@
+"""The Section every section module returns, and the numbers it writes: read (``floats``) and
+formatted (``num``, ``mm``, ``pm``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Section:
+    """A report section: an id (an anchor), a title, a one-line lead and its blocks in order."""
+
+    id: str
+    title: str
+    lead: str = ""
+    blocks: list = field(default_factory=list)
+
+    def kv(self, rows, caption: str = "") -> None:
+        rows = [(k, v) for k, v in rows if v not in (None, "", [])]
+        if rows:
+            self.blocks.append({"kind": "kv", "rows": rows, "caption": caption})
+
+    def table(self, head, rows, caption: str = "") -> None:
+        if rows:
+            self.blocks.append({"kind": "table", "head": list(head), "rows": rows, "caption": caption})
+
+    def figure(self, src: str | None, caption: str, id: str | None = None) -> None:
+        if src:
+            self.blocks.append({"kind": "figure", "src": src, "caption": caption, "id": id})
+
+    def images(self, items, caption: str = "") -> None:
+        """A row of pictures: (src, caption) for images shown pixel for pixel, (src, caption, True) for plots."""
+        items = [{"src": it[0], "caption": it[1], "plot": len(it) > 2 and it[2]} for it in items if it[0]]
+        if items:
+            self.blocks.append({"kind": "images", "items": items, "caption": caption})
+
+    def note(self, text: str, level: str = "info") -> None:
+        self.blocks.append({"kind": "note", "text": text, "level": level})
+
+
+def num(x, digits: int = 4) -> str:
+    """A number or a list of numbers, ``digits`` significant; '–' for None/NaN."""
+    if isinstance(x, (list, tuple)):
+        return "[" + ", ".join(num(v, digits) for v in x) + "]"
+    if isinstance(x, bool) or x is None:
+        return "–" if x is None else str(x)
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    if isinstance(x, (float, np.floating)):
+        return "–" if not math.isfinite(x) else f"{x:.{digits}g}"
+    return str(x)
+
+
+def mm(x) -> str:
+    """A length in millimetres, to the micrometre."""
+    return f"{x:.3f}" if isinstance(x, (int, float)) and math.isfinite(x) else "–"
+
+
+def pm(value, sigma, digits: int = 4) -> str:
+    """'value ± sigma' (per band for lists); the value alone where σ is unknown."""
+    if sigma is None or (isinstance(sigma, list) and all(s is None for s in sigma)):
+        return num(value, digits)
+    if isinstance(value, list) and isinstance(sigma, list):
+        return "[" + ", ".join(pm(v, s, digits) for v, s in zip(value, sigma)) + "]"
+    if isinstance(value, (int, float)) and isinstance(sigma, (int, float)):
+        return f"{num(value, digits)} ± {num(sigma, 2)}"
+    return num(value, digits)
+
+
+def floats(x) -> np.ndarray | None:
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return a if a.size and np.all(np.isfinite(a)) else None
