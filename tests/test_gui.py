@@ -341,7 +341,7 @@ def test_naming_a_fitted_surface_by_clicking_it_writes_marks_json(qtbot, lab_wor
 
 
 def test_novel_view_orbits_the_input_camera_and_relights_linearly(lab_workspace):
-    from app.gui.pages import novel_view, orbit
+    from app.gui.pages.results import novel_view, orbit
     from calibration.camera import Camera
     from inverse.stages import render_workspace
 
