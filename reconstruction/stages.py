@@ -211,7 +211,7 @@ def load_views(ws, camera: Camera):
     return Views(camera, out), points
 
 
-def _refine_edges(ws, views, modelled: list) -> list:
+def _refine_edges(ws, views, modelled: list, task: Task | None = None) -> list:
     """The boxes fitted to sparse points, each footprint edge moved to where the registered shots
     show it (:func:`reconstruction.surfaces.refine_box_edges`); ``info["edge_shifts_mm"]`` says how far."""
     from hardware.images import read_image
@@ -227,8 +227,10 @@ def _refine_edges(ws, views, modelled: list) -> list:
         except WorkspaceError:  # an unreadable shot was already skipped by structure from motion
             continue
     gradients = surf.edge_gradients(images)
-    for m in boxes:
-        m.mesh, shifts = surf.refine_box_edges(m.mesh, views, gradients)
+    task = ensure(task)
+    for i, m in enumerate(boxes):
+        task.step(i, len(boxes), f"edges of {m.name} from the shots")
+        m.mesh, shifts = surf.refine_box_edges(m.mesh, views, gradients, check=task.check)
         m.info["edge_shifts_mm"] = [None if x is None else round(1e3 * x, 2) for x in shifts]
         v = m.mesh.vertices
         m.info["size_m"] = [float(np.linalg.norm(v[4] - v[0])), float(np.linalg.norm(v[2] - v[0])), float(np.linalg.norm(v[1] - v[0]))]
@@ -268,7 +270,7 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
         views, points = load_views(ws, camera)
         task.check()
         if fresh and o.fit_surfaces and not o.meshes:
-            modelled = _refine_edges(ws, views, surf.fit_scene_points(points, camera=camera)) + modelled
+            modelled = _refine_edges(ws, views, surf.fit_scene_points(points, camera=camera), task) + modelled
         specs, pointed = user_marks.read_surfaces(o.marks) if o.marks else ([], [])
         for spec in specs:
             modelled.append(surf.box_from_marks(spec, views))

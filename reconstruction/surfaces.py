@@ -403,7 +403,7 @@ def edge_gradients(images: dict) -> dict:
 
 
 def refine_box_edges(mesh: Mesh, views: Views, gradients: dict, search: float = EDGE_SEARCH, step: float = 1e-4,
-                     samples: int = 41, min_contrast: float = 3.0) -> tuple[Mesh, list]:
+                     samples: int = 41, min_contrast: float = 3.0, check=None) -> tuple[Mesh, list]:
     """A box resting on the ground with each footprint edge moved to where the shots show its top edge.
 
     Sparse points stop short of a box's edges (features straddling an occluding edge do not
@@ -416,6 +416,7 @@ def refine_box_edges(mesh: Mesh, views: Views, gradients: dict, search: float = 
     summed over the shots, is largest; an edge whose best score is under ``min_contrast`` times
     the scores' median, or at the end of the range, stays. Returns the mesh and the four shifts
     (metres, outward positive; None where kept) in the order -x, +x, -y, +y of the box's frame.
+    ``check`` (e.g. a task's), when given, is called before each edge.
     """
     from scipy.ndimage import map_coordinates
 
@@ -432,6 +433,8 @@ def refine_box_edges(mesh: Mesh, views: Views, gradients: dict, search: float = 
             n = sign * R[:, a]
             along = np.linspace(-0.4, 0.4, samples)[:, None] * size[1 - a] * R[:, 1 - a]
             P = centre + sign * size[a] / 2 * R[:, a] + size[2] / 2 * R[:, 2] + along
+            if check is not None:
+                check()
             score = np.zeros(len(deltas))
             for name, (gu, gv) in gradients.items():
                 if name not in views.poses:
