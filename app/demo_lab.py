@@ -90,9 +90,15 @@ def run_lab(args) -> int:
     from hardware.cameras import CameraError
     from hardware.capture import CaptureCancelled, CaptureError
     from hardware.grbl import GrblError
-    from hardware.workspace import Workspace, write_json
+    from hardware.workspace import OptionError, Workspace, read_json, write_json
 
     root, size = Path(args.workspace), args.size or SIZE
+    camera = Workspace(root).camera
+    if camera.exists():  # a re-run keeps finished captures: they must be of the size scored against
+        earlier = read_json(camera)
+        if [earlier.get("width"), earlier.get("height")] != list(size):
+            raise OptionError("size", f"{root} holds a demo at {earlier.get('width')}x{earlier.get('height')} "
+                                      f"({camera.name}); give that size or another folder, not {size[0]}x{size[1]}")
     start = t0 = time.perf_counter()
     truth = score.write_truth(root, size, depth=args.depth)
     _log(f"[demo] wrote the truth to {Workspace(root).truth} ({time.perf_counter() - t0:.1f} s)")

@@ -99,3 +99,15 @@ def test_readme_chain_on_the_simulated_lab(tmp_path):
         e = score.view_psnr(ws, truth, which)
         assert e["psnr_db"] >= bar and e["known_pct"] > 50, (which, e)
     assert (ws / "report.html").exists()
+
+
+def test_demo_rerun_at_another_size_is_refused(tmp_path, capsys):
+    """A re-run keeps the finished captures, so a workspace calibrated at one size cannot be scored
+    against the truth of another: refused in one line before anything is written."""
+    ws = tmp_path / "lab"
+    Camera.look_at(64, 48, 50.0, (0, -0.4, 0.4), (0, 0, 0)).save(ws / "camera.json")
+    before = sorted(p.relative_to(ws) for p in ws.rglob("*"))
+    assert main(["demo", str(ws), "--size", "160x120"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--size" in err[0] and "64x48" in err[0] and "160x120" in err[0], err
+    assert sorted(p.relative_to(ws) for p in ws.rglob("*")) == before
