@@ -92,10 +92,11 @@ def test_readme_chain_on_the_simulated_lab(tmp_path):
     assert by_name["sheet"].material.ior == pytest.approx(1.46) and not by_name["sheet"].textured
     assert not by_name["mirror"].textured and by_name["box"].textured and by_name["tile"].textured
     # The recovered model against the reference renderer's novel and relit views, over the pixels of
-    # known albedo. Measured 28.2 and 27.0 dB; the issue asks 30 dB, which the fit does not reach
-    # even from the true camera, lamps and geometry (32.9 and 29.95 dB: docs/simulated-lab.md).
+    # known albedo (every node of the pixel's tree). Measured 28.0 and 30.6 dB; the issue asks 30 dB:
+    # the novel view loses 4.4 dB to the calibrated focal length (0.26 %) and 3.9 dB to the mirror's
+    # plane from 1 px corner marks (docs/simulated-lab.md's error budget).
     truth = {"depth": 3, "images": {k: read_image(ws / "truth" / f"{k}.exr").astype(np.float64) for k in ("novel", "relit")}}
-    for which, bar in (("novel", 27.0), ("relit", 26.0)):
+    for which, bar in (("novel", 27.0), ("relit", 29.0)):
         e = score.view_psnr(ws, truth, which)
         assert e["psnr_db"] >= bar and e["known_pct"] > 50, (which, e)
     assert (ws / "report.html").exists()
