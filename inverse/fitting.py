@@ -114,9 +114,8 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     srch = pb.search
     init.theta = srch.to_theta(srch.to_u(init.theta))
     p = init.copy()
-    free = structural_free(pb, p) if structure is None else Free(structure.x.copy(), structure.s.copy(),
-                                                                  structure.theta.copy())
-    found = Free(free.x.copy(), free.s.copy(), free.theta.copy())
+    free = structural_free(pb, p) if structure is None else structure.copy()
+    found = free.copy()
     pb.phases["structure"] = time.perf_counter() - t0
     if held is not None:
         hold(fac, free, held)
@@ -159,11 +158,12 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
     sig = sigmas(pb, p, free, res)
+    lay = fac.layout
     absorbed, anywhere = texture_absorbed(fac, p, materials, textured)
     if absorbed.any():
         # A free texture explains every pixel where it is seen directly: σ from the others only
         # (kd of a textured surface is its texture's mean: its σ stays the one from every pixel).
-        tex_kd = np.array([bool(textured[s]) and name == "kd" for s, name in fac.layout.x_names], dtype=bool)
+        tex_kd = np.array([bool(textured[s]) and name == "kd" for s, name in lay.x_names], dtype=bool)
         # The texture (its mean kd included) counts as known from the pixels that see it directly.
         sig_t = sigmas(pb, p, Free(free.x & ~tex_kd[:, None], free.s, free.theta), res, keep=~absorbed)
         sig = Params(np.where(tex_kd[:, None], sig.x, np.fmax(sig.x, sig_t.x)), np.fmax(sig.s, sig_t.s),
@@ -172,7 +172,6 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         # carries the same lobe at another angle, so moving the lobe moves the pinned texture too,
         # which the σ above ignores. Such a lobe is judged only from pixels where no texture shows
         # (left free on the demo it fitted box ns 2.5 ± 0.7, true 30, from the box in the mirror).
-        lay = fac.layout
         own = np.array([bool(textured[s]) and name != "kd" for s, name in lay.x_names], dtype=bool)
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
         if (own[:, None] & free.x).any() or (own_theta & free.theta).any():
@@ -182,7 +181,6 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
     loose = unresolved(pb, p, init, free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
     # A lobe's ks means nothing without its shininess: held or undetermined θ makes its ks so too.
-    lay = fac.layout
     for k, (s, name) in enumerate(lay.x_names):
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
         if name != "kd" and (np.any(~free.theta[th]) or np.any(loose.theta[th])):

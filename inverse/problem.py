@@ -54,6 +54,9 @@ class Free:
     def count(self) -> int:
         return int(self.x.sum() + self.s.sum() + self.theta.sum())
 
+    def copy(self) -> "Free":
+        return Free(self.x.copy(), self.s.copy(), self.theta.copy())
+
 
 def params_of(fac: Factorization, materials) -> Params:
     """Flat parameters from a list of materials (surface order)."""

@@ -8,8 +8,8 @@ texture is recovered only from the pixels that directly seen texture lights almo
 that it cannot absorb a wrong highlight, reflection or transmission, and the fit then judges
 those against it. Each round:
 
-1. the share of every pixel's predicted light that comes from textured surfaces seen directly
-   (the first node of its tree), with the current parameters and texture
+1. the share of every pixel's predicted light that comes from the diffuse term of textured
+   surfaces seen directly (the first node of its tree), with the current parameters and texture
    (:func:`direct_share`);
 2. the texture from the pixels where that share is at least ``min_share`` in every band
    (:func:`inverse.texture.recover_texture` with ``exclude``);
@@ -30,7 +30,7 @@ import numpy as np
 
 from inverse.factorization import Factorization
 from inverse.fitting import FitResult, fit
-from inverse.rendering import linear_basis, node_radiance
+from inverse.rendering import linear_basis, node_radiance, path_products
 from inverse.texture import TextureOptions, recover_texture, sample_texture
 
 #: A round whose fit leaves an RMS residual more than RISE times the best so far is not kept. Each
@@ -38,7 +38,8 @@ from inverse.texture import TextureOptions, recover_texture, sample_texture
 #: not mean better parameters (measured on the textured lab: round 2 right with a higher RMS than
 #: round 1), but a several-fold rise means the round's texture went wrong.
 RISE = 2.0
-#: A pixel feeds the texture when directly seen texture carries at least this share of its light.
+#: A pixel feeds the texture when directly seen texture's diffuse term carries at least this share
+#: of its light.
 MIN_SHARE = 0.9
 #: The rounds' texels are this many pixel footprints across: a reflection is regressed on texels
 #: recovered from noisy pixels (errors in variables), which pulls its r toward 0 by the texels'
@@ -52,7 +53,8 @@ MIN_COVERAGE = 1.0
 
 
 def direct_share(trees, materials, intensities, textured, relative=None) -> np.ndarray:
-    """(H*W, 3) share of each pixel's predicted light that directly seen textured surfaces carry.
+    """(H*W, 3) share of each pixel's predicted light that the diffuse term of directly seen
+    textured surfaces carries.
 
     Parameters
     ----------
@@ -74,11 +76,11 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     on = np.asarray(textured, dtype=bool)[trees.surface]
     if relative is not None:
         kd = np.where(on[:, None], kd * relative, kd)
-    basis = linear_basis(trees, materials, intensities)
+    basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd in slot 0
     light = node_radiance(trees, materials, intensities, kd_nodes=kd, basis=basis)
-    # Only the diffuse part of a directly seen textured node counts: its highlight is what the
-    # texture must not absorb.
-    diffuse = node_radiance(trees, [_diffuse_only(m) for m in materials], intensities, kd_nodes=kd, basis=basis)
+    # Only the diffuse term of a directly seen textured node counts (path product · kd's basis · kd,
+    # as inverse.texture.build_system weighs a texel): its highlight the texture must not absorb.
+    diffuse = path_products(trees, materials) * basis[:, :, 0] * kd
     first = (np.asarray(trees.level) == 1) & on  # the primary hit: seen directly
 
     def per_pixel(values, sel):
@@ -86,15 +88,6 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
 
     total = per_pixel(light, np.ones(len(trees.pixel), dtype=bool))
     return np.divide(per_pixel(diffuse, first), total, out=np.zeros((npix, 3)), where=total > 0)
-
-
-def _diffuse_only(material):
-    """``material`` with every linear parameter but kd at 0."""
-    m = material.copy()
-    for name in m.params:
-        if name not in ("kd", "r", "t") and np.ndim(m.params[name]) == 1:
-            m.params[name] = np.zeros_like(np.asarray(m.params[name], dtype=np.float64))
-    return m
 
 
 def relative_albedo(trees, textured, result) -> np.ndarray:

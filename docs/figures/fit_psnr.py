@@ -38,11 +38,11 @@ from inverse.stages import render_workspace  # noqa: E402
 
 def turned(camera: Camera, target, degrees: float = 40.0, rise: float = 0.08) -> Camera:
     """``camera`` moved round ``target`` by ``degrees`` about the vertical and raised by ``rise``."""
-    eye = -camera.R.T @ camera.t
-    a = np.radians(degrees)
-    rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    eye = rz @ (eye - target) + target + [0.0, 0.0, rise]
-    return Camera.look_at(camera.width, camera.height, 36.0, eye=tuple(eye), target=tuple(target))
+    from calibration.rotations import axis_rotation
+
+    eye = axis_rotation((0.0, 0.0, 1.0), degrees) @ (camera.center - target) + target + [0.0, 0.0, rise]
+    fov = np.degrees(2 * np.arctan(camera.width / 2 / camera.K[0, 0]))
+    return Camera.look_at(camera.width, camera.height, fov, eye=tuple(eye), target=tuple(target))
 
 
 def views(root: Path, width: int, height: int, lab, scene: str):
