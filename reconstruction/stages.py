@@ -211,22 +211,51 @@ def load_views(ws, camera: Camera):
     return Views(camera, out), points
 
 
-def _refine_edges(ws, views, modelled: list, task: Task | None = None) -> list:
-    """The boxes fitted to sparse points, each footprint edge moved to where the registered shots
-    show it (:func:`reconstruction.surfaces.refine_box_edges`); ``info["edge_shifts_mm"]`` says how far."""
+def _shot_gradients(ws, views) -> dict:
+    """:func:`reconstruction.surfaces.edge_gradients` of the registered shots."""
     from hardware.images import read_image
     from reconstruction import surfaces as surf
 
-    boxes = [m for m in modelled if m.name.startswith("box") and m.source.startswith("box on the ground")]
-    if not boxes:
-        return modelled
     images = {}
     for name in views.poses:
         try:
             images[name] = read_image(ws.root / name, linear=False)
         except WorkspaceError:  # an unreadable shot was already skipped by structure from motion
             continue
-    gradients = surf.edge_gradients(images)
+    return surf.edge_gradients(images)
+
+
+def _refine_marked(views, gradients: dict, m, task: Task | None = None):
+    """A box from marked corners with its marked face moved to where the shots show its edges
+    (:func:`reconstruction.surfaces.refine_marked_face`); ``info["edges"]`` says which edges were
+    found and how far they moved (normal, outward; mm), or that the marks were kept."""
+    from reconstruction import surfaces as surf
+
+    if "face" not in m.info or m.ior is not None:  # a transparent box's edges show what lies behind, refracted
+        return m
+    mesh, found = surf.refine_marked_face(m.mesh, views, gradients, *m.info["face"], check=ensure(task).check)
+    shown = {k: v for k, v in found.items() if v is not None}
+    if shown:
+        m.mesh = mesh
+        v = m.mesh.vertices
+        m.info["size_m"] = [float(np.linalg.norm(v[4] - v[0])), float(np.linalg.norm(v[2] - v[0])), float(np.linalg.norm(v[1] - v[0]))]
+    m.info["edges"] = ("from the shots: " + ", ".join(f"{k} {1e3 * a:+.1f}/{1e3 * b:+.1f} mm" for k, (a, b) in shown.items())
+                       if shown else "as marked (no clear edge in the shots)")
+    kept = [k for k, v in found.items() if v is None]
+    if shown and kept:
+        m.info["edges"] += f"; {', '.join(kept)} as marked"
+    return m
+
+
+def _refine_edges(ws, views, modelled: list, task: Task | None = None, gradients: dict | None = None) -> list:
+    """The boxes fitted to sparse points, each footprint edge moved to where the registered shots
+    show it (:func:`reconstruction.surfaces.refine_box_edges`); ``info["edge_shifts_mm"]`` says how far."""
+    from reconstruction import surfaces as surf
+
+    boxes = [m for m in modelled if m.name.startswith("box") and m.source.startswith("box on the ground")]
+    if not boxes:
+        return modelled
+    gradients = _shot_gradients(ws, views) if gradients is None else gradients
     task = ensure(task)
     for i, m in enumerate(boxes):
         task.step(i, len(boxes), f"edges of {m.name} from the shots")
@@ -269,11 +298,13 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
             sfm_report = reconstruct_sweep(ws, camera, o, task, log=log)["report"]
         views, points = load_views(ws, camera)
         task.check()
-        if fresh and o.fit_surfaces and not o.meshes:
-            modelled = _refine_edges(ws, views, surf.fit_scene_points(points, camera=camera), task) + modelled
         specs, pointed = user_marks.read_surfaces(o.marks) if o.marks else ([], [])
+        fit = fresh and o.fit_surfaces and not o.meshes
+        gradients = _shot_gradients(ws, views) if fit or specs else None
+        if fit:
+            modelled = _refine_edges(ws, views, surf.fit_scene_points(points, camera=camera), task, gradients) + modelled
         for spec in specs:
-            modelled.append(surf.box_from_marks(spec, views))
+            modelled.append(_refine_marked(views, gradients, surf.box_from_marks(spec, views), task))
     if not modelled:
         raise WorkspaceError(ws.scene, expected="at least one surface (fitted, marked or imported)", got="none")
     task.check()

@@ -92,11 +92,12 @@ def test_readme_chain_on_the_simulated_lab(tmp_path):
     assert by_name["sheet"].material.ior == pytest.approx(1.46) and not by_name["sheet"].textured
     assert not by_name["mirror"].textured and by_name["box"].textured and by_name["tile"].textured
     # The recovered model against the reference renderer's novel and relit views, over the pixels of
-    # known albedo (every node of the pixel's tree). Measured 28.0 and 30.6 dB; the issue asks 30 dB:
-    # the novel view loses 4.4 dB to the calibrated focal length (0.26 %) and 3.9 dB to the mirror's
-    # plane, off mostly through the recovered camera and poses (docs/simulated-lab.md's error budget).
+    # known albedo (every node of the pixel's tree), the issue's 30 dB. Measured 30.4 and 31.8 dB
+    # (30.0-30.6 and 31.3-31.8 over four seeds of the simulated user's marks): the camera from
+    # pixel-integrated target shots (focal 0.015 %) and the mirror's face from its edges in the shots
+    # (0.19 mm RMS); before either, 28.0 and 30.6 dB (docs/simulated-lab.md's error budget).
     truth = {"depth": 3, "images": {k: read_image(ws / "truth" / f"{k}.exr").astype(np.float64) for k in ("novel", "relit")}}
-    for which, bar in (("novel", 27.0), ("relit", 29.0)):
+    for which, bar in (("novel", 30.0), ("relit", 31.0)):
         e = score.view_psnr(ws, truth, which)
         assert e["psnr_db"] >= bar and e["known_pct"] > 50, (which, e)
     assert (ws / "report.html").exists()
