@@ -157,6 +157,20 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         if rounds == max_rounds:
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
+    if int(reject) > 0 and not message.startswith("stopped"):
+        # Outliers first: a refit follows, and this pass's σ and diagnosis would be thrown away.
+        bad = outliers(pb, p, A, res, textured)
+        if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
+            elapsed = time.perf_counter() - t0
+            pb.phases["refinement"] -= pb.phases["scan"]
+            pb.phases["uncertainty"] = elapsed - sum(pb.phases.values())  # the holding rounds
+            nan = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+            first = FitResult(method, p, free, materials_of(fac, p, materials), nan, pb.rms(res), elapsed, trace, [],
+                              rounds, pb.evaluations, iterations, message,
+                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
+            return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
+                                  task=task, held=held, t0=t0, passes=REJECT_PASSES if reject is True else int(reject),
+                                  max_seconds=None if max_seconds is None else max_seconds - elapsed)
     sig = sigmas(pb, p, free, res)
     lay = fac.layout
     absorbed, anywhere = texture_absorbed(fac, p, materials, textured)
@@ -195,15 +209,6 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
-    if int(reject) > 0 and not message.startswith("stopped"):
-        bad = outliers(pb, p, A, res, textured)
-        if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
-            first = FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace, [], rounds,
-                              pb.evaluations, iterations, message,
-                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
-            return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
-                                  task=task, held=held, t0=t0, passes=REJECT_PASSES if reject is True else int(reject),
-                                  max_seconds=None if max_seconds is None else max_seconds - elapsed)
     return FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace,
                      undetermined_names(fac, free, materials, loose), rounds, pb.evaluations, iterations, message,
                      {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
