@@ -20,9 +20,13 @@ from inverse.ranges import linear_upper
 
 #: Sweeps of the scan over the θs at most.
 SCAN_SWEEPS = 2
-#: Images with at least this many used pixels are scanned on every second pixel in x and y (a
-#: quarter of the cost per candidate), the full image finishing from the basins found there.
+#: Images with at least this many used pixels are scanned on a subsample (every s-th pixel in x
+#: and y), the full image finishing from the basins found there.
 COARSE_MIN_ROWS = 60_000
+#: The subsample's stride s is the largest (at least 2) that leaves this many used pixels: about
+#: a 160x120 image, on which the full-image scan finds its basins (320x240: every second pixel;
+#: 480x360: every third; 640x480: every fourth, a sixteenth of the cost per candidate).
+COARSE_ROWS = 15_000
 #: F-TBO stops once the undamped Gauss–Newton step on θ predicts a relative decrease of the error
 #: below this: Levenberg–Marquardt otherwise creeps along a flat valley for dozens of iterations,
 #: each gaining 1e-9 of the error (measured on the textured demo).
@@ -51,7 +55,7 @@ def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True):
         return cur, 0, "no nonlinear parameter to fit: one exact linear solve"
     coarse = coarse_problem(pb) if scan else None
     if coarse is not None:
-        # The basins from a quarter of the pixels; the full image evaluates the chosen θ once.
+        # The basins from a subsample of the pixels; the full image evaluates the chosen θ once.
         t_scan = time.perf_counter()
         ev = _evaluator(coarse, free, q)
         cu, cstate = _scan(coarse, q, u, ev(u, cur), ev, t0, [])
@@ -248,8 +252,13 @@ def _evaluator(pb: Problem, free: Free, q):
     return evaluate
 
 
+def coarse_stride(n_rows: int) -> int:
+    """The coarse scan's stride in x and y: the largest (at least 2) leaving :data:`COARSE_ROWS` pixels."""
+    return max(2, int(np.sqrt(n_rows / COARSE_ROWS)))
+
+
 def coarse_problem(pb: Problem):
-    """The problem on every second used pixel in x and y, or None below :data:`COARSE_MIN_ROWS`.
+    """The problem on every s-th used pixel in x and y (:data:`COARSE_ROWS`), or None below :data:`COARSE_MIN_ROWS`.
 
     It keeps the full image's noise σ, deadline and task; its scan threshold scales with its
     share of the pixels, so that it keeps the candidates the full image would.
@@ -258,7 +267,8 @@ def coarse_problem(pb: Problem):
     if fac.n_rows < COARSE_MIN_ROWS:
         return None
     x, y = fac.rows % fac.width, fac.rows // fac.width
-    sub = fac.without(fac.rows[(x % 2 == 1) | (y % 2 == 1)])
+    stride = coarse_stride(fac.n_rows)
+    sub = fac.without(fac.rows[(x % stride != 0) | (y % stride != 0)])
     image = np.zeros((fac.width * fac.height, BANDS))
     image[fac.rows] = pb.b.T
     coarse = Problem(sub, image.reshape(fac.height, fac.width, BANDS), pb.transparent)

@@ -52,6 +52,33 @@ def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
     assert 0 < res.stats["scan_evaluations"] < res.evaluations
 
 
+def test_coarse_scan_stride_grows_with_the_image(monkeypatch):
+    """The scan's subsample stays about a 160x120 image: stride 2 at 320x240, 3 at 480x360, 4 at
+    640x480. A 320x240 fit scanned at stride 4 (80x60, the threshold lowered) from ns = 2^14 lands
+    where the stride-2 scan does, on the truth."""
+    assert [ftbo.coarse_stride(w * h) for w, h in ((320, 240), (480, 360), (640, 480), (1280, 960))] == [2, 3, 4, 9]
+    lab = build_lab(320, 240, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material for s in lab.scene]
+    fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
+    img = render(trees, truth, lab.lights.intensities)
+    start = [Material.from_json({"brdf": m.brdf, "ior": m.ior}, "scene.json", "material") for m in truth]
+    for m in start:
+        if "ns" in m.params:
+            m.params["ns"] = np.float64(2.0**14)
+    two = fit(fac, img, start, "ftbo")
+    monkeypatch.setattr(ftbo, "COARSE_ROWS", 4_000)
+    pb = Problem(fac, img, [m.transparent for m in truth])
+    assert ftbo.coarse_problem(pb).fac.n_rows == 80 * 60
+    four = fit(fac, img, start, "ftbo")
+    assert four.undetermined == two.undetermined
+    t = params_of(fac, truth)
+    for name in ("theta", "x"):
+        mask = getattr(four.free, name)
+        np.testing.assert_array_equal(mask, getattr(two.free, name))
+        np.testing.assert_allclose(getattr(four.params, name)[mask], getattr(t, name)[mask], rtol=1e-4, atol=1e-7, err_msg=name)
+
+
 def test_phases_add_up_over_a_rejection_refit():
     """A 3x3 speck is rejected and the fit repeated: phases_s and scan_evaluations count both fits; the
     refit neither scans nor tests the structure again."""
