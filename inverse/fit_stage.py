@@ -78,11 +78,15 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                              got="no pixel sees a lit surface")
     # What the user gave in scene.json is held (Material.defaulted names the rest).
     held = [{n for n in s.material.params if n not in s.material.defaulted} for s in scene]
-    result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
-                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held)
-    rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
-    if texture_rounds > 0 and seen_textured.any() and not result.message.startswith("stopped"):
+    refit = texture_rounds > 0 and seen_textured.any()
+    # With texture rounds to follow, the homogeneous fit's σ is computed only if it is the one kept.
+    result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
+                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held, uncertainty=not refit)
+    rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
+    if "complete" in result.stats and result.message.startswith("stopped"):
+        result = result.stats["complete"]()  # no round follows a fit that ran out of time
+    if refit and not result.message.startswith("stopped"):
         from inverse.texture_fit import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]

@@ -52,7 +52,7 @@ METHODS = ("ftbo", "nftbo")
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
-        structure: Free | None = None) -> FitResult:
+        structure: Free | None = None, uncertainty: bool = True) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -96,6 +96,11 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         Which parameters have signal, from an earlier fit of the same scene (``FitResult.structure``;
         a refit without outliers or against a texture): skips the structure test, nine full
         evaluations of the system.
+    uncertainty : bool
+        False: return at once with σ = inf and what the holding rounds held as undetermined;
+        ``stats["complete"]()`` then computes the robust σ, the undetermined values and the
+        diagnosis (the result as ``uncertainty=True`` returns it). For a fit whose σ may never be
+        reported: the homogeneous start and the early texture rounds of a textured scene.
 
     Returns
     -------
@@ -169,8 +174,34 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                               rounds, pb.evaluations, iterations, message,
                               {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
-                                  task=task, held=held, t0=t0, passes=REJECT_PASSES if reject is True else int(reject),
-                                  max_seconds=None if max_seconds is None else max_seconds - elapsed)
+                                  task=task, held=held, passes=REJECT_PASSES if reject is True else int(reject),
+                                  max_seconds=None if max_seconds is None else max_seconds - elapsed,
+                                  uncertainty=uncertainty)
+    rms = pb.rms(res)
+    trace.append(trace_point(t0, rms))
+    fitted = time.perf_counter() - t0
+    pb.phases["refinement"] -= pb.phases["scan"]
+    pb.phases["uncertainty"] = fitted - sum(pb.phases.values())  # the holding rounds
+    stats = {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
+             "noise": [float(v) for v in pb.noise], "scan_evaluations": pb.scan_evaluations,
+             "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}
+    if not uncertainty:
+        inf = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+        complete = lambda: _complete(pb, p, init, free, found, res, A, materials, textured, names, method,  # noqa: E731
+                                     trace, rounds, iterations, message, fitted, stats)
+        return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
+                         undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
+                         {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
+                          "complete": complete}, found)
+    return _complete(pb, p, init, free, found, res, A, materials, textured, names, method, trace, rounds, iterations,
+                     message, fitted, stats)
+
+
+def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
+              method, trace, rounds, iterations, message, fitted, stats) -> FitResult:
+    """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted."""
+    t0 = time.perf_counter()
+    fac = pb.fac
     sig = sigmas(pb, p, free, res)
     lay = fac.layout
     absorbed, anywhere = texture_absorbed(fac, p, materials, textured)
@@ -199,29 +230,31 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
         if name != "kd" and (np.any(~free.theta[th]) or np.any(loose.theta[th])):
             loose.x[k] |= free.x[k]
-    elapsed = time.perf_counter() - t0
-    rms = pb.rms(res)
-    trace.append(trace_point(t0, rms))
     status, warnings = diagnose(pb, p, A, res, textured, names)
-    elapsed = time.perf_counter() - t0
-    pb.phases["refinement"] -= pb.phases["scan"]
-    pb.phases["uncertainty"] = elapsed - sum(pb.phases.values())  # with the holding rounds and the diagnosis
+    spent = time.perf_counter() - t0
+    elapsed = fitted + spent
+    phases = dict(pb.phases, uncertainty=pb.phases["uncertainty"] + spent)  # with the holding rounds and the diagnosis
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
-    return FitResult(method, p, free, materials_of(fac, p, materials), sig, rms, elapsed, trace,
+    return FitResult(method, p, free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,
                      undetermined_names(fac, free, materials, loose), rounds, pb.evaluations, iterations, message,
-                     {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
-                      "noise": [float(v) for v in pb.noise], "status": status, "warnings": warnings,
-                      "phases_s": {k: round(v, 6) for k, v in pb.phases.items()}, "scan_evaluations": pb.scan_evaluations,
-                      "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}, found)
+                     {**stats, "status": status, "warnings": warnings, "phases_s": {k: round(v, 6) for k, v in phases.items()}},
+                     found)
 
 
-def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, t0, passes, **kw) -> FitResult:
+def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, passes, **kw) -> FitResult:
     """Fit again from ``first`` with the pixels ``bad`` left out; traces, counts and time add up."""
     again = fit(fac.without(bad), image, first.materials, method, scan=False, reject=passes - 1,
                 structure=first.structure, **kw)
-    width = fac.width
+    merged = _merged(first, again, fac.width, bad)
+    if "complete" in again.stats:  # σ later: completing the refit completes the merge
+        merged.stats["complete"] = lambda: _merged(first, again.stats["complete"](), fac.width, bad)
+    return merged
+
+
+def _merged(first: FitResult, again: FitResult, width: int, bad) -> FitResult:
+    """The refit ``again`` with ``first``'s trace, counts, time and phases added and its outliers listed."""
     pixels = [[int(i % width), int(i // width)] for i in bad] + again.stats["rejected"]["pixels"]
     rejected = {"count": len(pixels), "pixels": pixels, "threshold_sigmas": REJECT_SIGMAS}
     bad = pixels
@@ -229,7 +262,7 @@ def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, 
                 "fit.json 'rejected' lists them as [x, y])"] + [w for w in again.stats.get("warnings", []) if "outlier" not in w]
     offset = first.time_s
     return dataclasses.replace(
-        again, trace=first.trace + [[offset + t, r] for t, r in again.trace], time_s=time.perf_counter() - t0,
+        again, trace=first.trace + [[offset + t, r] for t, r in again.trace], time_s=offset + again.time_s,
         evaluations=first.evaluations + again.evaluations, iterations=first.iterations + again.iterations,
         rounds=first.rounds + again.rounds, stats={**again.stats, "rejected": rejected, "warnings": warnings,
                                                    **_add_phases(first.stats, again.stats)})

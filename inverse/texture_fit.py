@@ -191,9 +191,10 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         relative = relative_albedo(trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
+        # σ only for the last round (the one kept, unless its texture went wrong: see below).
         result = fit(fac, image, result.materials, method, textured=list(textured), names=scene.names, scan=False,
                      maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
-                     held=held, reject=False, structure=start.structure)
+                     held=held, reject=False, structure=start.structure, uncertainty=k == int(rounds) - 1)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0
@@ -212,6 +213,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         records.append(record)
         if progress is not None:
             progress(record)
+    if "complete" in best.stats:  # an earlier round (or the start) kept, or time ran out: its σ now
+        best = best.stats["complete"]()
     warnings = [w for w in start.stats.get("warnings", []) if "outlier" in w] + best.stats.get("warnings", [])
     result = dataclasses.replace(best, stats={**best.stats, "best_round": best_round, "rejected": rejected,
                                               "warnings": warnings}, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
