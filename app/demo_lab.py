@@ -21,8 +21,10 @@ import sys
 import time
 from pathlib import Path
 
+from app.devices import SIM_SIZE
+
 #: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
-SIZE, CENTRE = (480, 360), (0.0, 0.0)
+SIZE, CENTRE = SIM_SIZE, (0.0, 0.0)
 
 
 def step_options(quick: bool = False) -> dict[str, dict]:

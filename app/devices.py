@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+#: The simulated camera's default image size: at 320x240 structure from motion registers too few
+#: of the simulated sweep's shots (docs/reconstruction.md), so every default is 480x360.
+SIM_SIZE = (480, 360)
+
 
 def load_config(path):
     """The hardware configuration at ``path``, or the defaults when it is None."""
@@ -32,7 +36,7 @@ class SimOptions:
     """The simulated camera's knobs (``--camera sim``): image size, ray depth, turntable axis
     (x, y, metres), ambient radiance added to every pixel, print grain of the lab's textures."""
 
-    size: tuple = (320, 240)
+    size: tuple = SIM_SIZE
     depth: int = 3
     centre: list = field(default_factory=lambda: [0.0, 0.0])
     room_light: float = 0.0

@@ -68,6 +68,20 @@ def test_readmes_commands_are_the_demos_steps_and_options():
     assert [args["size"] for args in captures] == [SIZE, None, None, None]  # later captures take camera.json's
 
 
+def test_every_simulated_default_is_the_size_that_reconstructs():
+    """`reflab gui`, `reflab capture --camera sim` and the demo all default to the size the chain
+    below runs (at 320x240 the simulated sweep does not register: docs/reconstruction.md)."""
+    import inspect
+
+    from app.devices import SimOptions
+    from app.gui.main_window import MainWindow
+
+    parser = build_parser()
+    assert parser.parse_args(["gui"]).size == SIZE == (480, 360)
+    assert SimOptions().size == SIZE
+    assert inspect.signature(MainWindow).parameters["size"].default == SIZE
+
+
 @pytest.mark.slow  # the whole acquisition: 57 simulated shots, structure from motion, fit, texture (140 s measured)
 def test_readme_chain_on_the_simulated_lab(tmp_path):
     ws = tmp_path / "lab"

@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from app.devices import Rig, SimOptions, load_config
+    from app.devices import SIM_SIZE, Rig, SimOptions, load_config
     from hardware.cameras import CameraError
     from hardware.capture import CaptureCancelled, CaptureError, CaptureOptions, calibrated_size, run_capture
     from hardware.grbl import GrblError
@@ -66,7 +66,7 @@ def run(args) -> int:
 
     calibrated = calibrated_size(ws)
     if args.camera == "sim" and args.size is None:
-        args.size = calibrated or (480, 360)
+        args.size = calibrated or SIM_SIZE
     elif args.camera == "sim" and calibrated and tuple(args.size) != calibrated and args.kind != "calibration":
         raise WorkspaceError(ws.camera, "width/height",
                              f"captures of the calibrated size {calibrated[0]}x{calibrated[1]} (leave --size out, "

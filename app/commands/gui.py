@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 
 from app.commands._args import image_size
+from app.devices import SIM_SIZE
 
 HELP = "the guided lab window: devices, calibration, sweep, reconstruction, input, fit, texture, results"
 
@@ -16,7 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workspace", nargs="?", default="workspace", help="workspace folder (default ./workspace)")
     parser.add_argument("--port", default="sim", help="serial port of the GRBL board, or 'sim' (default)")
     parser.add_argument("--camera", default="sim", help="sim (default) | opencv:N | folder:PATH")
-    parser.add_argument("--size", type=image_size, default=(320, 240), help="simulated camera image size (320x240)")
+    parser.add_argument("--size", type=image_size, default=SIM_SIZE,
+                        help="simulated camera image size (480x360: at 320x240 the simulated sweep does not reconstruct)")
 
 
 def run(args) -> int:

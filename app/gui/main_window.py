@@ -18,6 +18,7 @@ from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem
                                QPlainTextEdit, QProgressBar, QPushButton, QSplitter, QStackedWidget, QVBoxLayout,
                                QWidget)
 
+from app.devices import SIM_SIZE
 from app.gui import stages
 from app.gui.pages import PAGES
 from app.gui.rig import Rig
@@ -49,7 +50,7 @@ class MainWindow(QMainWindow):
     hardware_done = Signal(bool, str)  # a jog or lamp switch ended: (ok, status line or message)
     log_line = Signal(str)
 
-    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=(320, 240),
+    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=SIM_SIZE,
                  live_preview_ms: int = 1500, options: dict | None = None):
         super().__init__()
         self.workspace = Path(workspace)

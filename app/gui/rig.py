@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.devices import SIM_SIZE
 from hardware.workspace import Workspace
 
 
@@ -23,7 +24,7 @@ class RigError(RuntimeError):
 class Rig:
     """Connect, jog, switch lamps, preview and capture on one controller and one camera."""
 
-    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=(320, 240), log=None):
+    def __init__(self, workspace, port: str = "sim", camera: str = "sim", *, size=SIM_SIZE, log=None):
         self.workspace = Path(workspace)
         self.port_spec, self.camera_spec, self.size = port, camera, tuple(size)
         self.log = log or (lambda msg: None)
