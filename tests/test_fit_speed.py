@@ -11,10 +11,9 @@ from inverse.trees import build_trees
 from reconstruction.scene import Material
 
 
-def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
-    """160x120 scanned on its 80x60 subsample (the threshold lowered so that a small image takes
-    that path): from ns = 2^14 everywhere the basins found there lead the full image to the truth."""
-    lab = build_lab(160, 120, textured=False)
+def _homogeneous_lab_from_ns_2_14(width: int, height: int):
+    """The homogeneous lab's true materials, factorization and exact image, and a start at ns = 2^14."""
+    lab = build_lab(width, height, textured=False)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
     truth = [s.material for s in lab.scene]
     fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
@@ -23,6 +22,12 @@ def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
     for m in start:
         if "ns" in m.params:
             m.params["ns"] = np.float64(2.0**14)
+    return truth, fac, img, start
+
+def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
+    """160x120 scanned on its 80x60 subsample (the threshold lowered so that a small image takes
+    that path): from ns = 2^14 everywhere the basins found there lead the full image to the truth."""
+    truth, fac, img, start = _homogeneous_lab_from_ns_2_14(160, 120)
 
     full = fit(fac, img, start, "ftbo")
     monkeypatch.setattr(ftbo, "COARSE_MIN_ROWS", 10_000)
@@ -57,15 +62,7 @@ def test_coarse_scan_stride_grows_with_the_image(monkeypatch):
     640x480. A 320x240 fit scanned at stride 4 (80x60, the threshold lowered) from ns = 2^14 lands
     where the stride-2 scan does, on the truth."""
     assert [ftbo.coarse_stride(w * h) for w, h in ((320, 240), (480, 360), (640, 480), (1280, 960))] == [2, 3, 4, 9]
-    lab = build_lab(320, 240, textured=False)
-    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
-    truth = [s.material for s in lab.scene]
-    fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
-    img = render(trees, truth, lab.lights.intensities)
-    start = [Material.from_json({"brdf": m.brdf, "ior": m.ior}, "scene.json", "material") for m in truth]
-    for m in start:
-        if "ns" in m.params:
-            m.params["ns"] = np.float64(2.0**14)
+    truth, fac, img, start = _homogeneous_lab_from_ns_2_14(320, 240)
     two = fit(fac, img, start, "ftbo")
     monkeypatch.setattr(ftbo, "COARSE_ROWS", 4_000)
     pb = Problem(fac, img, [m.transparent for m in truth])
