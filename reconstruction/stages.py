@@ -237,8 +237,7 @@ def _refine_marked(views, gradients: dict, m, task: Task | None = None):
     shown = {k: v for k, v in found.items() if v is not None}
     if shown:
         m.mesh = mesh
-        v = m.mesh.vertices
-        m.info["size_m"] = [float(np.linalg.norm(v[4] - v[0])), float(np.linalg.norm(v[2] - v[0])), float(np.linalg.norm(v[1] - v[0]))]
+        m.info["size_m"] = surf.box_frame(m.mesh)[2].tolist()
     m.info["edges"] = ("from the shots: " + ", ".join(f"{k} {1e3 * a:+.1f}/{1e3 * b:+.1f} mm" for k, (a, b) in shown.items())
                        if shown else "as marked (no clear edge in the shots)")
     kept = [k for k, v in found.items() if v is None]
@@ -261,8 +260,7 @@ def _refine_edges(ws, views, modelled: list, task: Task | None = None, gradients
         task.step(i, len(boxes), f"edges of {m.name} from the shots")
         m.mesh, shifts = surf.refine_box_edges(m.mesh, views, gradients, check=task.check)
         m.info["edge_shifts_mm"] = [None if x is None else round(1e3 * x, 2) for x in shifts]
-        v = m.mesh.vertices
-        m.info["size_m"] = [float(np.linalg.norm(v[4] - v[0])), float(np.linalg.norm(v[2] - v[0])), float(np.linalg.norm(v[1] - v[0]))]
+        m.info["size_m"] = surf.box_frame(m.mesh)[2].tolist()
     return modelled
 
 

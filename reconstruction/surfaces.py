@@ -59,6 +59,14 @@ def box_mesh(center, R, size) -> Mesh:
     return Mesh(verts, [t for a, b, c, d in _QUADS for t in ((a, b, c), (a, c, d))])
 
 
+def box_frame(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre (3,), rotation (3, 3) and edge lengths (3,) of a :func:`box_mesh` (its inverse)."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    axes = np.stack([v[4] - v[0], v[2] - v[0], v[1] - v[0]], axis=1)  # box_mesh's corner order
+    size = np.linalg.norm(axes, axis=0)
+    return v.mean(axis=0), axes / size, size
+
+
 def quad_mesh(center, R, size) -> Mesh:
     """An open rectangle in the box frame's z = 0 plane (two-sided): corners ``center + R @ (±w/2, ±h/2, 0)``."""
     half = 0.5 * np.asarray(size, dtype=np.float64)[:2]
@@ -420,11 +428,7 @@ def refine_box_edges(mesh: Mesh, views: Views, gradients: dict, search: float = 
     """
     from scipy.ndimage import map_coordinates
 
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    axes = np.stack([v[4] - v[0], v[2] - v[0], v[1] - v[0]], axis=1)  # box_mesh's corner order
-    size = np.linalg.norm(axes, axis=0)
-    R = axes / size
-    centre = v.mean(axis=0)
+    centre, R, size = box_frame(mesh)
     deltas = np.arange(-search, search + step / 2, step)
     lo, hi = -size[:2] / 2, size[:2] / 2
     shifts = []
@@ -492,11 +496,7 @@ def refine_marked_face(mesh: Mesh, views: Views, gradients: dict, face_axis: int
 
     from scipy.ndimage import map_coordinates
 
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    axes = np.stack([v[4] - v[0], v[2] - v[0], v[1] - v[0]], axis=1)
-    size = np.linalg.norm(axes, axis=0)
-    R = axes / size
-    centre = v.mean(axis=0)
+    centre, R, size = box_frame(mesh)
     n = face_sign * R[:, face_axis]
     inplane = [a for a in range(3) if a != face_axis]
     face_centre = centre + face_sign * size[face_axis] / 2 * R[:, face_axis]
