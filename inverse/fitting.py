@@ -162,31 +162,27 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         if rounds == max_rounds:
             A = fac.matrices(p.theta)
             res = pb.residual(A, fac.y(p.x, p.s))
-    if int(reject) > 0 and not message.startswith("stopped"):
-        # Outliers first: a refit follows, and this pass's σ and diagnosis would be thrown away.
-        bad = outliers(pb, p, A, res, textured)
-        if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
-            elapsed = time.perf_counter() - t0
-            pb.phases["refinement"] -= pb.phases["scan"]
-            pb.phases["uncertainty"] = elapsed - sum(pb.phases.values())  # the holding rounds
-            nan = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
-            first = FitResult(method, p, free, materials_of(fac, p, materials), nan, pb.rms(res), elapsed, trace, [],
-                              rounds, pb.evaluations, iterations, message,
-                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
-            return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
-                                  task=task, held=held, passes=REJECT_PASSES if reject is True else int(reject),
-                                  max_seconds=None if max_seconds is None else max_seconds - elapsed,
-                                  uncertainty=uncertainty)
     rms = pb.rms(res)
     trace.append(trace_point(t0, rms))
     fitted = time.perf_counter() - t0
     pb.phases["refinement"] -= pb.phases["scan"]
     pb.phases["uncertainty"] = fitted - sum(pb.phases.values())  # the holding rounds
+    inf = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+    if int(reject) > 0 and not message.startswith("stopped"):
+        # Outliers first: a refit follows, and this pass's σ and diagnosis would be thrown away.
+        bad = outliers(pb, p, A, res, textured)
+        if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
+            first = FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace, [],
+                              rounds, pb.evaluations, iterations, message,
+                              {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
+            return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
+                                  task=task, held=held, passes=REJECT_PASSES if reject is True else int(reject),
+                                  max_seconds=None if max_seconds is None else max_seconds - fitted,
+                                  uncertainty=uncertainty)
     stats = {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
              "noise": [float(v) for v in pb.noise], "scan_evaluations": pb.scan_evaluations,
              "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}
     if not uncertainty:
-        inf = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
         complete = lambda: _complete(pb, p, init, free, found, res, A, materials, textured, names, method,  # noqa: E731
                                      trace, rounds, iterations, message, fitted, stats)
         return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
