@@ -200,23 +200,27 @@ def _paper_level(g: np.ndarray, circle: np.ndarray, grown: np.ndarray, centres: 
     lab, gr = outer[ring], g[ring]
     du, dv = u[ring] - centres[lab - 1, 0], v[ring] - centres[lab - 1, 1]
     X = np.stack([np.ones_like(du), du, dv], axis=1)
-    keep = np.ones(len(lab), bool)
-    coef = np.zeros((n + 1, 3))
-    for _ in range(2):
+    mean = np.bincount(lab, gr, n + 1) / np.maximum(np.bincount(lab, minlength=n + 1), 1)
+    by_circle = np.argsort(lab, kind="stable")
+    splits = np.searchsorted(lab[by_circle], np.arange(1, n + 1))
+
+    def planes(keep):
+        # Per circle, least squares of its kept ring pixels; the ring's mean where fewer than 8.
         XtX = np.zeros((n + 1, 3, 3))
         np.add.at(XtX, lab[keep], X[keep, :, None] * X[keep, None, :])
         Xtg = np.zeros((n + 1, 3))
         np.add.at(Xtg, lab[keep], X[keep] * gr[keep, None])
         ok = np.bincount(lab[keep], minlength=n + 1) >= 8
+        coef = np.zeros((n + 1, 3))
         coef[ok] = np.linalg.solve(XtX[ok] + 1e-9 * np.eye(3), Xtg[ok][..., None])[..., 0]
-        coef[~ok] = 0.0
-        coef[~ok, 0] = np.bincount(lab, gr, n + 1)[~ok] / np.maximum(np.bincount(lab, minlength=n + 1)[~ok], 1)
-        r = gr - (X * coef[lab]).sum(1)
-        mad = np.zeros(n + 1)
-        for_lab = np.argsort(lab, kind="stable")
-        splits = np.searchsorted(lab[for_lab], np.arange(1, n + 1))
-        mad[1:] = [np.median(np.abs(a)) if len(a) else 0.0 for a in np.split(r[for_lab], splits)[1:]]
-        keep = np.abs(r) <= 3 * 1.4826 * np.maximum(mad[lab], 1e-12)
+        coef[~ok, 0] = mean[~ok]
+        return coef
+
+    coef = planes(np.ones(len(lab), bool))
+    r = gr - (X * coef[lab]).sum(1)
+    mad = np.zeros(n + 1)
+    mad[1:] = [np.median(np.abs(a)) if len(a) else 0.0 for a in np.split(r[by_circle], splits)[1:]]
+    coef = planes(np.abs(r) <= 3 * 1.4826 * np.maximum(mad[lab], 1e-12))
     idx = grown.ravel()
     cu = np.concatenate([[0.0], centres[:, 0]])[idx]
     cv_ = np.concatenate([[0.0], centres[:, 1]])[idx]
