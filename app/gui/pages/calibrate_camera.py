@@ -40,8 +40,7 @@ class CameraPage(StepPage):
         self.calibration: dict = {}
 
     def refresh(self):
-        while self.table_holder.count():
-            self.table_holder.takeAt(0).widget().deleteLater()
+        self.clear(self.table_holder)
         if not self.ws.camera.exists():
             self.summary.setText(self.nothing_yet("camera.json"))
             return

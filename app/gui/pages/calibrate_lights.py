@@ -95,8 +95,7 @@ class LightsPage(StepPage):
         self.window.log(f"saved {len(complete)} rod marks to {self.ws.marks}")
 
     def _show_lamps(self):
-        while self.lamps_layout.count():
-            self.lamps_layout.takeAt(0).widget().deleteLater()
+        self.clear(self.lamps_layout)
         if not self.ws.lights.exists():
             self.lamps_layout.addWidget(QLabel(self.nothing_yet("lights.json")))
             return

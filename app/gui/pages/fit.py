@@ -43,8 +43,7 @@ class FitPage(StepPage):
                                  for band, colour, trace in zip("RGB", colours, self.previous)])
 
     def refresh(self):
-        while self.materials_layout.count():
-            self.materials_layout.takeAt(0).widget().deleteLater()
+        self.clear(self.materials_layout)
         if not self.ws.fit.exists():
             self.materials_layout.addWidget(QLabel(self.nothing_yet("fit.json")))
             return

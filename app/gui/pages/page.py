@@ -147,6 +147,12 @@ class StepPage(QWidget):
         if self.next_button is not None:
             self.next_button.setStyleSheet("font-weight: bold" if state == "done" else "")
 
+    @staticmethod
+    def clear(layout) -> None:
+        """Remove and delete every widget of ``layout`` (a result tab about to be filled anew)."""
+        while layout.count():
+            layout.takeAt(0).widget().deleteLater()
+
     def nothing_yet(self, what: str) -> str:
         """The result tab's text before the step has run: what is missing and which button makes it."""
         return f"No {what} yet: press <b>{self.run_text}</b> above."

@@ -18,8 +18,7 @@ class TexturePage(StepPage):
         self.tab(self.grid_widget, "Textures")
 
     def refresh(self):
-        while self.grid.count():
-            self.grid.takeAt(0).widget().deleteLater()
+        self.clear(self.grid)
         folder = self.ws.textures
         files = sorted(p for p in folder.glob("*.exr") if not p.stem.endswith("_diag")) if folder.is_dir() else []
         if not files:
