@@ -254,7 +254,15 @@ def _opencv_calibration(obs, points, size):
     objp = [points.astype(np.float32)] * len(obs)
     imgp = [o.reshape(-1, 1, 2).astype(np.float32) for o in obs]
     flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags)
+    # One OpenCV thread: with its thread pool the same centres gave focal lengths 1e-5 apart run to
+    # run, and this is the start of the refinement below, so the camera (and the chain after it)
+    # was not repeatable.
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags)
+    finally:
+        cv2.setNumThreads(threads)
     poses = [(rodrigues(np.asarray(r, dtype=np.float64).ravel()), np.asarray(t, dtype=np.float64).ravel())
              for r, t in zip(rvecs, tvecs)]
     return float(rms), np.asarray(K, dtype=np.float64), np.asarray(dist, dtype=np.float64).ravel(), poses
