@@ -139,6 +139,35 @@ def _band_names(name, held) -> list:
     return [f"{name}[{c}]" for c in np.flatnonzero(held)]
 
 
+def texture_confounded(pb: Problem, p: Params, materials, textured) -> np.ndarray:
+    """(n_factors, 3) bool: the r and t of textured surfaces whose every pixel of signal is one where
+    free texture shows (:func:`texture_absorbed`).
+
+    A textured surface's own faint reflection (or transmission) of a smooth surrounding is, pixel
+    for pixel, light its free texture can take up; no pixel tells the two apart. Fitted anyway, the
+    coefficient takes up the texture's correlation with the reflected light instead (a box on a
+    matte ground: r 0.1–0.2 per band for a true 0), and the texture rounds, which leave out the
+    pixels it claims, lose the whole surface. Such a coefficient is held at 0 and reported
+    undetermined: the photograph's light there is the texture's (docs/fit.md).
+    """
+    fac = pb.fac
+    out = np.zeros((fac.layout.n_factors, BANDS), dtype=bool)
+    if textured is None or not any(textured):
+        return out
+    factors = [f for i in np.flatnonzero(np.asarray(textured, dtype=bool)) for f in (2 * i, 2 * i + 1)
+               if fac.exponents[:, f].any()]
+    if not factors:
+        return out
+    absorbed, _ = texture_absorbed(fac, p, materials, textured)
+    A = fac.matrices(p.theta)
+    floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
+    for c in range(BANDS):
+        clear = abs(A[c][~absorbed]).max(axis=0).toarray().ravel() > floor if (~absorbed).any() else np.zeros(fac.n_columns, bool)
+        for f in factors:
+            out[f, c] = not clear[fac.exponents[:, f] > 0].any()
+    return out
+
+
 def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tuple[np.ndarray, np.ndarray]:
     """(R,) bool twice: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
     predicted light in some band; and the same counting every textured node as free.

@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from hardware.task import Task, ensure
-from inverse.determined import (RESOLVE_THETA, hold, structural_free, texture_absorbed, theta_resolution,
+from inverse.determined import (RESOLVE_THETA, hold, structural_free, texture_absorbed, texture_confounded, theta_resolution,
                                 undetermined_names, unresolved)
 from inverse.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
 from inverse.factorization import Factorization, one_blas_thread
@@ -119,7 +119,15 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     srch = pb.search
     init.theta = srch.to_theta(srch.to_u(init.theta))
     p = init.copy()
-    free = structural_free(pb, p) if structure is None else structure.copy()
+    if structure is None:
+        free = structural_free(pb, p)
+        # A textured surface's r or t that only its own free texture's pixels show: held at 0 (a
+        # refit given this structure starts from materials that hold it there already).
+        confounded = texture_confounded(pb, p, materials, textured) & free.s
+        free.s &= ~confounded
+        init.s[confounded], p.s[confounded] = 0.0, 0.0
+    else:
+        free = structure.copy()
     found = free.copy()
     pb.phases["structure"] = time.perf_counter() - t0
     if held is not None:
