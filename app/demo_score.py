@@ -120,21 +120,25 @@ def view_psnr(root, truth: dict, which: str) -> dict:
     never determined (in a capture lamp's shadow, or out of its view: its texel is 0 in
     textures/<surface>_mask.png and the render puts the homogeneous kd there) is not known,
     though the mirror itself is. ``psnr_primary_db`` is the PSNR over the pixels whose directly
-    seen surface alone has a known albedo (finite albedo AOV), the score used until 2026-11-24.
+    seen surface alone has a known albedo (finite albedo AOV), the score used until 2026-11-24;
+    ``psnr_determined_db`` over the known pixels whose value rests on no undetermined parameter
+    (the render's ``undetermined_pixels``).
     """
     from inverse.stages import render_workspace
     from hardware.images import read_image
 
     ws = Workspace(root)
     pose = Workspace(ws.truth).view(which)[0]
-    albedo, info = render_workspace(ws.root, aov="albedo", depth=truth["depth"],
-                                    **({"camera": pose} if which == "novel" else {"lights": pose}))
+    view = {"camera": pose} if which == "novel" else {"lights": pose}
+    albedo, info = render_workspace(ws.root, aov="albedo", depth=truth["depth"], **view)
     primary = np.all(np.isfinite(albedo), axis=2)
     known = primary & ~info["unknown_pixels"]
+    determined = known & ~render_workspace(ws.root, depth=truth["depth"], **view)[1]["undetermined_pixels"]
     image, true = read_image(ws.view(which)[1]), truth["images"][which]
     return {"psnr_db": psnr(image, true, known), "known_pct": float(100 * known.mean()),
             "psnr_primary_db": psnr(image, true, primary), "primary_known_pct": float(100 * primary.mean()),
-            "psnr_all_db": psnr(image, true, np.ones_like(known))}
+            "psnr_all_db": psnr(image, true, np.ones_like(known)),
+            "psnr_determined_db": psnr(image, true, determined), "determined_pct": float(100 * determined.mean())}
 
 
 def score_stage(stage: str, root, truth: dict) -> str:
@@ -172,5 +176,6 @@ def score_stage(stage: str, root, truth: dict) -> str:
         e = view_psnr(ws.root, truth, stage.split()[1])
         return (f"PSNR {e['psnr_db']:.1f} dB over the {e['known_pct']:.0f} % of pixels of known albedo "
                 f"({e['psnr_primary_db']:.1f} dB over the {e['primary_known_pct']:.0f} % whose seen surface's is known, "
-                f"{e['psnr_all_db']:.1f} dB over all)")
+                f"{e['psnr_all_db']:.1f} dB over all, {e['psnr_determined_db']:.1f} dB over the {e['determined_pct']:.0f} % "
+                f"whose value rests on no undetermined parameter)")
     return ""

@@ -52,6 +52,8 @@ class Model:
     name: str = ""
     linear: tuple[str, ...] = ()
     nonlinear: tuple[str, ...] = ()
+    #: The linear slots whose g depends on θ (what an undetermined θ leaves undetermined).
+    shaped: tuple[int, ...] = ()
 
     @property
     def n_linear(self) -> int:
@@ -105,7 +107,7 @@ class Lambert(Model):
 class Phong(Model):
     """``g = [n·l, (n·h)^ns]`` (INTERFACES.md: kd (n·l) + ks (n·h)^ns), h the half vector."""
 
-    name, linear, nonlinear = "phong", ("kd", "ks"), ("ns",)
+    name, linear, nonlinear, shaped = "phong", ("kd", "ks"), ("ns",), (1,)
 
     def _eval(self, theta, n, l, v, grad):
         nl = _dot(n, l)
@@ -122,7 +124,7 @@ class Phong(Model):
 class Ward(Model):
     """Isotropic Ward: ``g = [n·l, n·l · exp(−tan²δ/α²) / (4π α² sqrt(n·l n·v))]``, δ = ∠(n, h)."""
 
-    name, linear, nonlinear = "ward", ("kd", "ks"), ("alpha",)
+    name, linear, nonlinear, shaped = "ward", ("kd", "ks"), ("alpha",), (1,)
 
     def _eval(self, theta, n, l, v, grad):
         nl = _dot(n, l)
@@ -153,7 +155,7 @@ class OrenNayar(Model):
     Computed without angles: ``max(0, cos Δφ) sin α tan β = max(0, l·v − (n·l)(n·v)) / max(n·l, n·v)``.
     """
 
-    name, linear, nonlinear = "oren-nayar", ("kd",), ("sigma",)
+    name, linear, nonlinear, shaped = "oren-nayar", ("kd",), ("sigma",), (0,)
 
     def _eval(self, theta, n, l, v, grad):
         nl = _dot(n, l)

@@ -150,3 +150,92 @@ def render_albedo(trees, materials, kd_nodes=None) -> np.ndarray:
     primary = trees.level == 1
     out[trees.pixel[primary]] = kd[primary]
     return out.reshape(trees.height, trees.width, 3)
+
+
+# ---------------------------------------------------------------------- what a prediction rests on
+#: A pixel whose predicted light rests for more than this share (in some band) on parameters the
+#: image did not determine is itself undetermined: its value is a guess (docs/fit.md, "Renders that
+#: say where they guess").
+UNDETERMINED_SHARE = 0.05
+#: ... unless that part is below this fraction of the image's peak (dark pixels, faint tails).
+UNDETERMINED_FLOOR = 1e-3
+
+
+def _named_bands(names) -> dict:
+    """fit.json names ("ks", "r[2]") as {name: (3,) bool bands}."""
+    out = {}
+    for name in names:
+        base, _, band = name.partition("[")
+        mask = out.setdefault(base, np.zeros(3, dtype=bool))
+        if band:
+            mask[int(band.rstrip("]"))] = True
+        else:
+            mask[:] = True
+    return out
+
+
+def undetermined_radiance(trees, materials, intensities, undetermined, *, kd_nodes=None, textured=None,
+                          guessed=None) -> np.ndarray:
+    """(N, 3) part of each node's radiance that rests on parameters the image did not determine.
+
+    Parameters
+    ----------
+    undetermined : list of iterable of str
+        Per surface, parameter names as fit.json's ``undetermined`` gives them (``"ks"``,
+        ``"r[2]"``, ``"ns"``), less what the user gave (a given value is known, not undetermined).
+    kd_nodes : (N, 3) array_like, optional
+        Per-node albedo (the texture), as for :func:`node_radiance`.
+    textured : sequence of bool, optional
+        Per surface: its kd is the texture's, judged by the texture stage, not by fit.json.
+    guessed : (N,) bool, optional
+        Nodes whose albedo is a guess (texels the texture stage flagged: made from pixels whose
+        light rested on undetermined parameters): their diffuse term counts as undetermined.
+
+    A linear term is undetermined when its parameter is, or when it is shaped by an undetermined
+    θ (:attr:`inverse.models.Model.shaped`: a Phong lobe whose ns is free); a whole node when its
+    path passes a reflection or transmission coefficient that is undetermined.
+    """
+    intensities = _check(trees, materials, intensities)
+    x, _ = node_parameters(trees, materials)
+    if kd_nodes is not None:
+        x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)
+    n_s = len(materials)
+    slots = np.zeros((n_s, 3, MAX_LINEAR), dtype=bool)
+    coeff = np.zeros((n_s, 2, 3), dtype=bool)  # r, t bands
+    for s in range(n_s):
+        model = get_model(materials[s].brdf)
+        names = _named_bands(undetermined[s] if s < len(undetermined) else ())
+        for j, name in enumerate(model.linear):
+            if name in names and not (j == 0 and textured is not None and textured[s]):
+                slots[s, :, j] |= names[name]
+        if any(p in names for p in model.nonlinear):
+            slots[s, :, list(model.shaped)] = True
+        coeff[s] = [names.get("r", np.zeros(3, bool)), names.get("t", np.zeros(3, bool))]
+    per_path = np.zeros((len(trees.paths), 3), dtype=bool)
+    for i, path in enumerate(trees.paths):  # one iteration per distinct path
+        for s, kind in path:
+            per_path[i] |= coeff[s, int(bool(kind))]
+    terms = linear_basis(trees, materials, intensities) * x * path_products(trees, materials)[:, :, None]
+    slot = slots[trees.surface]
+    if guessed is not None:
+        slot[:, :, 0] |= np.asarray(guessed, dtype=bool)[:, None]
+    part = np.where(slot, terms, 0.0).sum(axis=2)
+    return np.where(per_path[trees.path], terms.sum(axis=2), part)
+
+
+def undetermined_pixels(trees, materials, intensities, undetermined, *, kd_nodes=None, textured=None, guessed=None,
+                        image=None, share: float = UNDETERMINED_SHARE, floor: float = UNDETERMINED_FLOOR) -> np.ndarray:
+    """(H, W) bool: pixels whose predicted light rests for more than ``share`` of it on undetermined
+    parameters (and for more than ``floor`` of the peak); see :func:`undetermined_radiance`.
+
+    ``image`` (H, W, 3), optional: the photograph to measure the share against (the texture stage,
+    before any texture is known); default the prediction itself.
+    """
+    part = accumulate(trees, np.abs(undetermined_radiance(trees, materials, intensities, undetermined,
+                                                          kd_nodes=kd_nodes, textured=textured, guessed=guessed)))
+    if image is None:
+        total = render(trees, materials, intensities, kd_nodes=kd_nodes)
+    else:
+        total = np.asarray(image, dtype=np.float64).reshape(part.shape)
+    peak = float(total.max()) if total.size else 0.0
+    return np.any((part > share * np.abs(total)) & (part > floor * peak), axis=2)

@@ -123,6 +123,7 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     from hardware.images import check_radiance, read_image
     from hardware.workspace import Workspace, WorkspaceError, check_folder, read_json
     from inverse import texture as tex
+    from inverse.rendering import undetermined_pixels
     from inverse.trees import trees_for_workspace
 
     task = ensure(task)
@@ -143,8 +144,14 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
                                 smoothness=o.smoothness, saturation=o.saturation, bounds=(0.0, o.max_albedo))
     solver.validate()
     trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=log, task=task)
-    result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, task=task)
+    # Pixels whose light rests on what the fit left undetermined (a textured surface's own lobe,
+    # seen once): the texels they make are flagged guessed, and renders that use them say so.
+    undetermined = tex.load_undetermined(ws, scene)
+    guess = undetermined_pixels(trees, materials, lights.intensities, undetermined, image=image,
+                                textured=[s.textured for s in scene]).ravel() if any(undetermined) else None
+    result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, guess=guess, task=task)
     extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
+             "undetermined_pixels": int(np.count_nonzero(guess)) if guess is not None else 0,
              "options": {"texel_scale": solver.texel_scale, "texel_size": solver.texel_size, "prior": solver.prior,
                          "smoothness": solver.smoothness, "saturation": solver.saturation,
                          "bounds": list(solver.bounds), "min_coverage": solver.min_coverage,
@@ -172,12 +179,14 @@ class RenderOptions:
 
 @dataclass
 class RenderResult:
-    """What :func:`render` wrote: the image, its 8-bit preview, and :func:`render_workspace`'s info."""
+    """What :func:`render` wrote: the image, its 8-bit preview, :func:`render_workspace`'s info, and
+    the mask of pixels whose value rests on undetermined parameters (None when there are none)."""
 
     path: Path
     preview: Path
     image: np.ndarray
     info: dict = field(default_factory=dict)
+    undetermined: Path | None = None
 
 
 def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3,
@@ -203,12 +212,14 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     info : dict
         ``materials`` (source file), ``texture_nodes`` (nodes with recovered albedo, or None),
         ``unknown_albedo`` (nodes whose albedo was unknown), ``unknown_pixels`` ((H, W) bool: a
-        node of the pixel's tree had unknown albedo, so the homogeneous kd stood in), ``trees_s``,
-        ``render_s``, ``trees``.
+        node of the pixel's tree had unknown albedo, so the homogeneous kd stood in),
+        ``undetermined_pixels`` ((H, W) bool: the pixel's predicted light rests on parameters fit.json
+        calls undetermined, or on texels the texture stage flagged guessed,
+        :func:`inverse.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``, ``render_s``, ``trees``.
     """
     from hardware.workspace import Workspace
-    from inverse.rendering import render as render_trees, render_albedo
-    from inverse.texture import albedo_nodes, load_materials
+    from inverse.rendering import render as render_trees, render_albedo, undetermined_pixels
+    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_undetermined
     from inverse.trees import trees_for_workspace
 
     task = ensure(task)
@@ -236,6 +247,12 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
             homogeneous = np.array([m["kd"] for m in materials])[trees.surface]
             kd_nodes = np.where(np.isfinite(kd_nodes), kd_nodes, homogeneous)
         image = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
+    undetermined = load_undetermined(ws, scene)
+    guessed = guessed_nodes(ws, scene, trees) if kd_nodes is not None else None
+    info["undetermined_pixels"] = (undetermined_pixels(trees, materials, lig.intensities, undetermined, kd_nodes=kd_nodes,
+                                                       textured=[s.textured for s in scene], guessed=guessed)
+                                   if aov is None and (any(undetermined) or (guessed is not None and guessed.any()))
+                                   else np.zeros((cam.height, cam.width), dtype=bool))
     info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees)
     return image, info
 
@@ -254,5 +271,9 @@ def render(options: RenderOptions, task: Task | None = None, *, log=None) -> Ren
     write_image(out, image, allow_nan=o.aov == "albedo")
     preview = out.with_suffix(".png") if out.suffix.lower() != ".png" else out.with_name(out.stem + "_preview.png")
     preview = write_preview(preview, image, exposure=1.0 if o.aov == "albedo" else None)
+    guess = None
+    if info["undetermined_pixels"].any():  # where the render is a guess, as a picture beside it
+        guess = write_image(out.with_name(out.stem + "_undetermined.png"),
+                            info["undetermined_pixels"].astype(np.float32))
     task.step(1, 1, f"wrote {out}")
-    return RenderResult(out, preview, image, info)
+    return RenderResult(out, preview, image, info, guess)

@@ -35,7 +35,7 @@ from hardware.workspace import Workspace, WorkspaceError, atomic_write, read_jso
 from inverse.texels import TexelMap, build_texel_map, choose_texel_size, pixel_footprint
 
 #: Flag bits of the per-texel diagnostics.
-AMPLIFIED, SATURATED, CLIPPED = 1, 2, 4
+AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
 
 
 @dataclass
@@ -147,6 +147,21 @@ def load_materials(workspace, scene) -> tuple[list, str]:
             raise WorkspaceError(ws.fit, f"surfaces[{i}].name", f"one of the scene's surfaces {scene.names}", got=name)
         materials[scene.index(name)] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
     return materials, "fit.json"
+
+
+def load_undetermined(workspace, scene) -> list:
+    """Per surface, the names fit.json calls undetermined, less what scene.json gives (a given
+    value is known); empty sets without fit.json (the user gave the materials)."""
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    out = [set() for _ in scene]
+    if not ws.fit.exists():
+        return out
+    for item in read_json(ws.fit).get("surfaces", []):
+        if isinstance(item, dict) and item.get("name") in scene.names:
+            s = scene.index(item["name"])
+            given = {n for n in scene[s].material.params if n not in scene[s].material.defaulted}
+            out[s] = {n for n in item.get("undetermined", []) if n.partition("[")[0] not in given}
+    return out
 
 
 def build_maps(scene, trees, options: TextureOptions) -> dict[int, TexelMap]:
@@ -485,7 +500,7 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None,
-                    exclude=None, task=None) -> TextureResult:
+                    exclude=None, guess=None, task=None) -> TextureResult:
     """Recover the diffuse texture of every textured surface the trees reach.
 
     Parameters
@@ -503,6 +518,10 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     options : TextureOptions, optional
     exclude : (H, W) or (H*W,) bool array_like, optional
         Pixels to leave out (their texels are then known only from other pixels, or not at all).
+    guess : (H, W) or (H*W,) bool array_like, optional
+        Pixels whose light rests on parameters the fit left undetermined
+        (:func:`inverse.rendering.undetermined_pixels`): a texel that draws most of its weight from
+        them is a guess, flagged :data:`GUESSED` (kept: it is the best guess the fit allows).
     task : hardware.task.Task, optional
         Progress and cancellation, checked every conjugate-gradient iteration.
 
@@ -535,6 +554,12 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     clipped = np.zeros(3 * total, dtype=bool)
     clipped[system.col_global] = (z <= lo) | (z >= hi)
     known3 = (system.coverage >= options.min_coverage).reshape(3, total)
+    guessed3 = np.zeros(3 * total, dtype=bool)
+    if guess is not None and len(z):
+        on_guess = np.asarray(guess, dtype=bool).reshape(-1)[system.row_pixel].astype(np.float64)
+        weights = abs(system.E).T
+        guessed3[system.col_global] = weights @ on_guess > 0.5 * (weights @ np.ones_like(on_guess))
+    guessed3 = guessed3.reshape(3, total)
     weight3, coverage3 = system.weight.reshape(3, total), system.coverage.reshape(3, total)
     full, clipped, saturated3 = full.reshape(3, total), clipped.reshape(3, total), system.saturated_touch.reshape(3, total)
 
@@ -548,7 +573,8 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
         amp[kn3 & (w3 <= 0)] = np.inf
         flags = (np.where((amp > options.amplification_limit).any(0) & known, AMPLIFIED, 0)
                  | np.where(saturated3[:, sl].any(0), SATURATED, 0)
-                 | np.where(clipped[:, sl].any(0) & known, CLIPPED, 0)).astype(np.uint8)
+                 | np.where(clipped[:, sl].any(0) & known, CLIPPED, 0)
+                 | np.where(guessed3[:, sl].any(0) & known, GUESSED, 0)).astype(np.uint8)
         shape = (m.height, m.width)
         result.kd[s] = kd.T.reshape(*shape, 3)
         result.mask[s] = known.reshape(shape)
@@ -561,6 +587,7 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
         texels_known=int(sum(int(v.sum()) for v in result.mask.values())),
         texels_amplified=int(sum(int(np.count_nonzero(f & AMPLIFIED)) for f in result.flags.values())),
         texels_clipped=int(sum(int(np.count_nonzero(f & CLIPPED)) for f in result.flags.values())),
+        texels_guessed=int(sum(int(np.count_nonzero(f & GUESSED)) for f in result.flags.values())),
         maps_s=t_maps - t0, system_s=t_sys - t_maps, total_s=time.perf_counter() - t0,
     )
     result.stats = stats
@@ -590,7 +617,8 @@ def write_textures(workspace, scene, result: TextureResult, extra: dict | None =
             written.append(ws.textures / files["uv"])
         entry = m.to_json()
         entry.update(files=files, texels_known=int(result.mask[s].sum()),
-                     texels_amplified=int(np.count_nonzero(result.flags[s] & AMPLIFIED)))
+                     texels_amplified=int(np.count_nonzero(result.flags[s] & AMPLIFIED)),
+                     texels_guessed=int(np.count_nonzero(result.flags[s] & GUESSED)))
         entries.append(entry)
     index = {"surfaces": entries, "stats": result.stats, **(extra or {})}
     written.append(write_json(ws.texture_index, index))
@@ -661,4 +689,24 @@ def albedo_nodes(workspace, scene, trees) -> np.ndarray:
             out[sel] = materials[s]["kd"]
         elif s in textures:
             out[sel] = sample_texture(*textures[s], trees.triangle[sel], trees.barycentric[sel])
+    return out
+
+
+def guessed_nodes(workspace, scene, trees) -> np.ndarray:
+    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½)."""
+    from hardware.images import read_image
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    out = np.zeros(len(trees), dtype=bool)
+    entries = {item.get("surface"): item for item in read_json(ws.texture_index).get("surfaces", [])
+               if isinstance(item, dict)}
+    for s, (m, _, mask) in load_texture_maps(ws, scene).items():
+        diag = ws.textures / str(entries[scene[s].name].get("files", {}).get("diag", ""))
+        sel = np.nonzero(trees.surface == s)[0]
+        if not diag.is_file() or len(sel) == 0:
+            continue
+        flag = (read_image(diag)[:, :, 2].astype(np.int64) & GUESSED) > 0
+        value = sample_texture(m, np.repeat(flag[:, :, None], 3, axis=2).astype(np.float64), mask,
+                               trees.triangle[sel], trees.barycentric[sel])[:, 0]
+        out[sel] = np.nan_to_num(value, nan=0.0) >= 0.5
     return out

@@ -39,3 +39,5 @@ def test_known_pixels_need_every_node_of_their_tree_known(tmp_path):
     err = np.abs(image - truth["images"]["relit"]).max(axis=2)
     assert np.median(err[reflected_unknown]) > 10 * np.median(err[primary & ~info["unknown_pixels"]])
     assert e["psnr_db"] > e["psnr_primary_db"] + 1, e
+    # The materials were given (no fit.json): no pixel rests on an undetermined parameter.
+    assert e["determined_pct"] == e["known_pct"] and e["psnr_determined_db"] == e["psnr_db"], e

@@ -4,7 +4,8 @@ Materials come from fit.json when it exists (the fitted model), else from scene.
 diffuse albedo comes from textures/ when it exists (the texture stage's ``albedo_nodes``). A
 different camera (--camera) gives a novel view, different lights (--lights) a relighting.
 Writes a float32 EXR (default WORKSPACE/render.exr, or albedo.exr for --aov albedo) and an
-8-bit PNG preview beside it.
+8-bit PNG preview beside it; where some pixels' values rest on parameters fit.json calls
+undetermined (or on texels made from such pixels), a mask OUT_undetermined.png of them.
 """
 from __future__ import annotations
 
@@ -37,4 +38,8 @@ def run(args) -> int:
     print(f"materials from {info['materials']}, {texture}")
     print(f"trees {info['trees_s']:.2f} s ({len(info['trees'])} nodes, depth {args.depth}), render {info['render_s']:.2f} s")
     print(f"wrote {r.path} ({w}x{h}{', albedo' if args.aov else ''}) and {r.preview} in {time.perf_counter() - start:.1f} s")
+    if r.undetermined is not None:
+        n = int(info["undetermined_pixels"].sum())
+        print(f"{n} pixels ({100 * n / (w * h):.1f} %) rest on parameters fit.json calls undetermined or on texels "
+              f"the texture stage guessed: a guess, not a prediction (white in {r.undetermined})")
     return 0

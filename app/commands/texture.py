@@ -50,6 +50,7 @@ def run(args) -> int:
     for s, m in result.maps.items():
         print(f"  {m.name}: {m.kind} {m.width}x{m.height} texels of {m.texel_size * 1000:.2f} mm, "
               f"{int(result.mask[s].sum())} known, {int(np.count_nonzero(result.flags[s] & 1))} amplified > "
-              f"{r.solver.amplification_limit:g}x")
+              f"{r.solver.amplification_limit:g}x, {int(np.count_nonzero(result.flags[s] & 8))} guessed (their pixels' "
+              f"light rests on undetermined parameters)")
     print(f"reflab texture: wrote {len(r.written)} files in {r.folder}")
     return 0

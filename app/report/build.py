@@ -107,7 +107,7 @@ def render_views(src: Sources, depth: int) -> dict:
                         lights = Lights(turned).save(Path(tmp) / "relit.json")
                         cam = _small(Camera.load(src.ws.camera)).save(Path(tmp) / "relit_camera.json")
                         how, truth_file = "lamps turned 90° about the vertical", None
-                image, _ = render_workspace(src.root, cam, lights, depth=depth)
+                image, info = render_workspace(src.root, cam, lights, depth=depth)
                 # Which pixels the recovered model knows the albedo of (same trees, from the cache).
                 albedo, _ = render_workspace(src.root, cam, lights, aov="albedo", depth=depth)
             except Exception as err:  # noqa: BLE001 - the report shows what failed and goes on
@@ -115,7 +115,7 @@ def render_views(src: Sources, depth: int) -> dict:
                 continue
             truth = src.image(truth_file) if truth_file else None
             out[key] = {"image": np.asarray(image), "known": np.all(np.isfinite(albedo), axis=2), "truth": truth,
-                        "truth_file": truth_file, "how": how}
+                        "truth_file": truth_file, "how": how, "undetermined": info["undetermined_pixels"]}
     return out
 
 

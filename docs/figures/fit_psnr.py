@@ -69,17 +69,20 @@ def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float
         out[kind] = {}
         for name, cam, lig in views(root, width, height, lab, scene):
             image, info = render_workspace(root, cam, lig)
-            out[kind][name] = (image, ~info["unknown_pixels"], cam, lig)
+            out[kind][name] = (image, ~info["unknown_pixels"], ~info["undetermined_pixels"], cam, lig)
     rows = []
     for name in out["true"]:
-        img_t, known_t, cam, lig = out["true"][name]
-        img_f, known_f, _, _ = out["fitted"][name]
+        img_t, known_t, _, cam, lig = out["true"][name]
+        img_f, known_f, determined, _, _ = out["fitted"][name]
         camera = Camera.load(cam) if cam else lab.camera
         lights = Lights.load(lig) if lig else lab.lights
         truth = render_reference(lab.scene, camera, lights, albedo=lab.albedo)
         known = known_t & known_f
+        sure = known & determined
         rows.append({"view": name, "true": psnr(img_t, truth, known), "fitted": psnr(img_f, truth, known),
-                     "known_fraction": float(known.mean())})
+                     "known_fraction": float(known.mean()),
+                     "true_determined": psnr(img_t, truth, sure), "fitted_determined": psnr(img_f, truth, sure),
+                     "determined_fraction": float(sure.mean())})
     return rows
 
 
@@ -95,8 +98,10 @@ if __name__ == "__main__":
         with tempfile.TemporaryDirectory() as tmp:
             rows = measure(w, h, Path(tmp), scene, args.noise)
         print(f"\n{scene} {w}x{h}, noise {args.noise:g} (total {time.perf_counter() - start:.1f} s)")
-        print("| view | true materials + texture | fitted materials + texture | difference | pixels compared |")
-        print("|---|---|---|---|---|")
+        print("| view | true materials + texture | fitted materials + texture | difference | pixels compared "
+              "| over determined pixels: true | fitted | difference | pixels |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for r in rows:
             print(f"| {r['view']} | {r['true']:.1f} dB | {r['fitted']:.1f} dB | {r['fitted'] - r['true']:+.1f} dB "
-                  f"| {100 * r['known_fraction']:.1f} % |")
+                  f"| {100 * r['known_fraction']:.1f} % | {r['true_determined']:.1f} dB | {r['fitted_determined']:.1f} dB "
+                  f"| {r['fitted_determined'] - r['true_determined']:+.1f} dB | {100 * r['determined_fraction']:.1f} % |")

@@ -20,8 +20,8 @@ def texture_section(src: Sources, model: dict | None = None, albedo: dict | None
             ("residual RMS per band", num(st.get("residual_rms"))),
             ("equations / unknowns / non-zeros", f"{st.get('rows')} / {st.get('unknowns')} / {st.get('nonzeros')}" if "rows" in st else None),
             ("CG iterations, active-set rounds", f"{st.get('iterations')}, {st.get('active_set_rounds')}" if "iterations" in st else None),
-            ("texels known / amplified > 10× / clipped", f"{st.get('texels_known')} / {st.get('texels_amplified')} / {st.get('texels_clipped')}"
-             if "texels_known" in st else None),
+            ("texels known / amplified > 10× / clipped / guessed", f"{st.get('texels_known')} / {st.get('texels_amplified')} / "
+             f"{st.get('texels_clipped')} / {st.get('texels_guessed', 0)}" if "texels_known" in st else None),
             ("time", f"{num(st.get('total_s'), 3)} s (maps {num(st.get('maps_s'), 2)}, system {num(st.get('system_s'), 2)}, "
                      f"solve {num(st.get('solve_s'), 2)}; trees {num(idx.get('trees_s'), 2)})" if "total_s" in st else None)])
     rounds = as_dict(as_dict(src.fit).get("texture_rounds")).get("rounds")
@@ -60,8 +60,10 @@ def texture_section(src: Sources, model: dict | None = None, albedo: dict | None
                 rgb[mask[:, :, 0] <= 0.5] = 90
             rgb[(flags & 1) > 0] = [220, 30, 30]
             rgb[(flags & 2) > 0] = [30, 90, 220]
+            rgb[(flags & 8) > 0] = [150, 60, 190]
             rgb[(flags & 4) > 0] = [230, 180, 0]
-            items.append((F.thumb(orient(rgb), 320, 240), "red: amplified > 10×, blue: saturated, yellow: clipped, grey: unknown"))
+            items.append((F.thumb(orient(rgb), 320, 240), "red: amplified > 10×, blue: saturated, yellow: clipped, "
+                                                          "purple: guessed (from light resting on undetermined parameters), grey: unknown"))
         size = f"{e.get('width')}×{e.get('height')} texels of {num(1e3 * e['texel_size'], 3)} mm" if isinstance(e.get("texel_size"), (int, float)) else ""
         sec.images(items, f"{name}: {e.get('kind', '')} {size}, {e.get('texels_known')} known, {e.get('texels_amplified')} amplified")
     return sec
