@@ -21,6 +21,7 @@ that parameter. A linear parameter's σ is never NaN: directions the data do not
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import csr_matrix, diags
 
 from inverse.factorization import BANDS
 from inverse.problem import NOISE_FLOOR, Free, Params, Problem
@@ -126,26 +127,30 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
     H = np.zeros((n, n))
     scores = None
     if res is not None:
-        from scipy.sparse import csr_matrix
-
         tile, n_tiles = tiles
         P = csr_matrix((np.ones(len(tile)), (np.arange(len(tile)), tile)), shape=(len(tile), n_tiles))
         wr = weights[:, None] * res  # (3, R)
         scores = np.zeros((n, n_tiles))
         if len(q):
             scores[n_lin:] = np.asarray((P.T @ (img * wr).sum(axis=1).T).T)
+    # In monomial space: (A D)ᵀ(A D) = Dᵀ(AᵀA)D, (A D)ᵀ img = Dᵀ(Aᵀ img) and the tiles' sums
+    # Pᵀ diag(w r) A D = (Aᵀ diag(w r) P)ᵀ D, so no (pixels × parameters) product is formed
+    # (as :func:`inverse.ftbo._theta_curvature`; 640×480 textured fit: 0.95 → 0.3 s in all).
+    rows = None if keep is None else diags(np.asarray(keep, dtype=np.float64))
     off = 0
     for c in range(BANDS):
         D = blocks[c]
         k = D.shape[1]
-        AD = A[c] @ D  # (R, k): image derivatives of band c's linear parameters
-        if keep is not None:
-            AD = AD * keep[:, None]
-        if scores is not None and k:
-            scores[off:off + k] = np.asarray((P.T @ (AD * wr[c][:, None])).T)
-        H[off:off + k, off:off + k] = weights[c] * (AD.T @ AD)
+        if k == 0:
+            continue
+        Ac = A[c] if rows is None else (rows @ A[c]).tocsr()
+        At = Ac.T.tocsr()
+        H[off:off + k, off:off + k] = weights[c] * (D.T @ (At @ Ac).toarray() @ D)
+        if scores is not None:
+            Pw = csr_matrix((wr[c], (np.arange(len(tile)), tile)), shape=P.shape)
+            scores[off:off + k] = D.T @ (At @ Pw).toarray()
         if len(q):
-            cross = weights[c] * (AD.T @ img[:, c, :].T)
+            cross = weights[c] * (D.T @ np.asarray(At @ img[:, c, :].T))
             H[off:off + k, n_lin:] = cross
             H[n_lin:, off:off + k] = cross.T
         off += k
