@@ -29,10 +29,10 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    import open3d
+    from hardware.open3d_env import open3d
 
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"numpy {np.__version__}, open3d {open3d.__version__}")
+            f"numpy {np.__version__}, open3d {open3d().__version__}")
 
 
 def load_scene(workspace):
@@ -100,7 +100,8 @@ def compare_ray_casters(scene, camera, repeats: int = 3) -> dict:
 
     The rays are the camera's pixel rays; both casters get the same triangles.
     """
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     from hardware.mitsuba_env import mitsuba
 

@@ -184,7 +184,8 @@ def locate(vertices: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> t
     Open3D's closest-point query (float32) picks the triangle; the barycentric coordinates are
     recomputed in float64 and clamped to the triangle.
     """
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
@@ -305,7 +306,8 @@ def _planar_tri_uv(vertices, triangles, charts, texel_size, path="", where="") -
 
 def _uvatlas(vertices, triangles, texel_size) -> tuple[np.ndarray, int, float]:
     """Open3D UV atlas sized so that a texel is about ``texel_size``: (tri_uv, side, texel_size)."""
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     v = vertices[triangles]
     area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()

@@ -213,7 +213,8 @@ class _Caster:
     """The scene in an Open3D RaycastingScene plus the float64 mesh data to refine its hits."""
 
     def __init__(self, scene):
-        import open3d as o3d
+        from hardware.open3d_env import open3d
+        o3d = open3d()
 
         self.o3d = o3d
         self.rc = o3d.t.geometry.RaycastingScene()

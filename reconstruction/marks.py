@@ -83,7 +83,8 @@ def read_surfaces(path) -> tuple[dict, list[dict]]:
 
 def _first_hit(scene: Scene, camera: Camera, uv: np.ndarray) -> int:
     """Index of the surface the input view's ray through pixel ``uv`` meets first (-1: none)."""
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     rc = o3d.t.geometry.RaycastingScene()
     ids = [rc.add_triangles(o3d.core.Tensor(s.mesh.vertices.astype(np.float32)),

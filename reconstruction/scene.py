@@ -147,7 +147,8 @@ class Mesh:
         path = Path(path)
         if not path.exists():
             raise WorkspaceError(path, expected="a mesh file (PLY or OBJ)", got="missing")
-        import open3d as o3d
+        from hardware.open3d_env import open3d
+        o3d = open3d()
 
         m = o3d.io.read_triangle_mesh(str(path))
         if len(m.triangles) == 0:
@@ -159,7 +160,8 @@ class Mesh:
         return cls(v, np.asarray(m.triangles), normals)
 
     def save(self, path) -> Path:
-        import open3d as o3d
+        from hardware.open3d_env import open3d
+        o3d = open3d()
 
         m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(self.triangles.astype(np.int32)))
         if self.normals is not None:

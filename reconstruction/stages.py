@@ -102,7 +102,8 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     dict
         ``report`` (as written to sfm.json), ``R``, ``t`` (world-frame poses), ``points``, ``names``.
     """
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     from hardware.images import read_image
     from hardware.workspace import atomic_path, write_json
@@ -191,7 +192,8 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
 
 def load_views(ws, camera: Camera):
     """Registered shots (:class:`reconstruction.surfaces.Views`) and sparse points from sfm.json / sparse.ply."""
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     from hardware.workspace import as_array, read_json
     from reconstruction.surfaces import Views

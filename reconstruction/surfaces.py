@@ -96,7 +96,8 @@ def fit_ground(points: np.ndarray, threshold: float = 0.002, up=(0.0, 0.0, 1.0),
         ``normal @ x + offset = 0`` on the plane.
     inliers : (N,) bool ndarray
     """
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     points = np.asarray(points, dtype=np.float64)
     up = np.asarray(up, dtype=np.float64)
@@ -345,7 +346,8 @@ def fit_scene_points(points: np.ndarray, *, camera: Camera | None = None, ground
     fewer than ``min_ground`` points within ``ground_threshold`` of z = 0: given the ``camera``,
     it is then the plane z = 0 spanning the input view (:func:`view_ground_mesh`).
     """
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     points = np.asarray(points, dtype=np.float64)
     on_frame_ground = np.abs(points[:, 2]) < ground_threshold
@@ -751,7 +753,8 @@ def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -
 
 def distance_to_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Unsigned distance (N,) of points to a mesh's surface (Open3D ray-casting scene)."""
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))

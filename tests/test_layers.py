@@ -271,3 +271,19 @@ def test_command_modules_are_thin():
     assert len(commands) > 10 and ROOT / "app" / "commands" / "calibrate" / "lights.py" in commands
     long = {p.relative_to(ROOT).as_posix(): n for p in commands if (n := len(p.read_text().splitlines())) > COMMAND_LINES}
     assert not long, f"command modules over {COMMAND_LINES} lines (move the work into a stage): {long}"
+
+
+def test_open3d_loads_without_its_plotly_viewer():
+    """hardware.open3d_env: no stage draws with plotly/dash, 0.3 s of every command that reads a
+    mesh; the viewer still loads when called (its stand-in imports the real module)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from hardware.open3d_env import open3d; o3d = open3d(); "
+            "assert 'dash' not in sys.modules and 'plotly' not in sys.modules, 'viewer loaded'; "
+            "o3d.io.read_triangle_mesh; from open3d.visualization import draw_plotly as d; "
+            "assert sys.modules['open3d.visualization.draw_plotly']._reflab_stand_in; "
+            "from hardware.open3d_env import _real_plotly; assert hasattr(_real_plotly(), 'get_plotly_fig'); "
+            "assert 'dash' in sys.modules; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT))
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

@@ -146,7 +146,8 @@ class ReconstructPage(StepPage):
 
 
 def _read_ply_points(path) -> np.ndarray:
-    import open3d as o3d
+    from hardware.open3d_env import open3d
+    o3d = open3d()
 
     return np.asarray(o3d.io.read_point_cloud(str(path)).points)
 

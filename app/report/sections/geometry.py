@@ -31,7 +31,8 @@ def _sparse_points(src: Sources) -> np.ndarray | None:
     if not path.is_file():
         return None
     try:
-        import open3d as o3d
+        from hardware.open3d_env import open3d
+        o3d = open3d()
 
         return np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
     except Exception as err:  # noqa: BLE001
