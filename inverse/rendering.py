@@ -91,9 +91,26 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
     return basis, dbasis
 
 
+#: The last :func:`linear_basis` (trees, key, basis): a texture round asks for the same one up to
+#: three times (direct share, texture system, texture test), 60 ms each at 640×480.
+_LAST_BASIS: list = [None, None, None]
+
+
 def linear_basis(trees, materials, intensities) -> np.ndarray:
-    """(N, 3, L) coefficients of each node's linear parameters (see :func:`linear_basis_and_grad`)."""
-    return linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
+    """(N, 3, L) coefficients of each node's linear parameters (see :func:`linear_basis_and_grad`).
+
+    Read-only: the last one is kept and handed out again for the same trees, models, θ and
+    intensities (the only inputs it depends on).
+    """
+    _check(trees, materials)
+    key = (tuple((m.brdf, get_model(m.brdf).theta_of(m).tobytes()) for m in materials),
+           np.asarray(intensities, dtype=np.float64).tobytes())
+    if _LAST_BASIS[0] is trees and _LAST_BASIS[1] == key:
+        return _LAST_BASIS[2]
+    basis = linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
+    basis.flags.writeable = False
+    _LAST_BASIS[:] = [trees, key, basis]
+    return basis
 
 
 def path_products(trees, materials) -> np.ndarray:

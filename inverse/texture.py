@@ -238,9 +238,15 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
                             basis=basis)
     Q = np.stack([np.bincount(trees.pixel, weights=q_nodes[:, c], minlength=npix) for c in range(3)], axis=1)
 
-    # Textured nodes in pixel order, so that the entries below come out sorted by row.
+    # Textured nodes in pixel order, so that the entries below come out sorted by row. An excluded
+    # pixel's nodes only flag the texels a saturated pixel touches: the others are dropped here.
     nodes = np.flatnonzero(textured)
-    nodes = nodes[np.argsort(trees.pixel[nodes], kind="stable")]
+    if exclude is not None:
+        pix = trees.pixel[nodes]
+        nodes = nodes[~np.asarray(exclude, dtype=bool).reshape(npix)[pix] | saturated[pix].any(axis=1)]
+    pix = trees.pixel[nodes]
+    if np.any(pix[1:] < pix[:-1]):
+        nodes = nodes[np.argsort(pix, kind="stable")]
     n = len(nodes)
     idx = np.zeros((n, 4), dtype=np.int64)
     w = np.zeros((n, 4))
@@ -284,7 +290,16 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
     # Compress columns to the texels that some entry touches, rows to the pixels that have entries;
     # the entries are already in row order, so E is built in CSR form directly.
     col_global, cols = _compress(cols_all, 3 * total)
-    row_ids, rows = _compress(row_of.ravel()[bn], 3 * npix)
+    # Rows: the (band, node) pairs with entries, whose keys are already sorted; two nodes of one
+    # pixel (two paths) share a row.
+    has = np.zeros(3 * n, dtype=bool)
+    has[bn] = True
+    keys = row_of.ravel()[has]
+    first = np.ones(len(keys), dtype=bool)
+    first[1:] = keys[1:] != keys[:-1]
+    rank = np.zeros(3 * n, dtype=np.int64)
+    rank[has] = np.cumsum(first) - 1
+    row_ids, rows = keys[first], rank[bn]
     indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(row_ids)))])
     E = sp.csr_matrix((coef.ravel()[bn] * wv, cols, indptr), shape=(len(row_ids), len(col_global)))
     E.sum_duplicates()  # a pixel seeing one texel twice (two paths) gets one entry
@@ -500,7 +515,7 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None,
-                    exclude=None, guess=None, task=None) -> TextureResult:
+                    exclude=None, guess=None, task=None, maps=None) -> TextureResult:
     """Recover the diffuse texture of every textured surface the trees reach.
 
     Parameters
@@ -524,6 +539,9 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
         them is a guess, flagged :data:`GUESSED` (kept: it is the best guess the fit allows).
     task : hardware.task.Task, optional
         Progress and cancellation, checked every conjugate-gradient iteration.
+    maps : dict, optional
+        The texel maps of an earlier call with the same scene, trees and options
+        (``TextureResult.maps``), instead of building them again.
 
     Returns
     -------
@@ -537,7 +555,7 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     if not np.all(np.isfinite(image)):
         raise ValueError("image: NaN or inf pixel values")
     t0 = time.perf_counter()
-    maps = build_maps(scene, trees, options)
+    maps = build_maps(scene, trees, options) if maps is None else maps
     t_maps = time.perf_counter()
     system = build_system(trees, materials, intensities, image, maps, options, exclude)
     t_sys = time.perf_counter()
