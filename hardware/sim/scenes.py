@@ -25,9 +25,10 @@ from reconstruction.scene import Material, Mesh, Scene, Surface
 NAMES = ("shiny_box", "floor_mirror", "curved")
 
 
-def _pattern(points, scale: float, colours) -> np.ndarray:
-    """A smooth two-colour pattern (waves and soft blobs) of world points, features ~``scale``."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+def _pattern(points, scale: float, colours, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """A smooth two-colour pattern (waves and soft blobs) of world points, features ~``scale``,
+    moved by ``shift`` (metres)."""
+    x, y, z = (points - np.asarray(shift, dtype=np.float64)).T
     w = 0.5 + 0.5 * np.sin(2 * np.pi * (x + 0.4 * y) / scale) * np.cos(2 * np.pi * (y - 0.3 * z) / (1.3 * scale))
     w = 0.5 + 0.5 * np.tanh(3.0 * (w - 0.5) + np.sin(2 * np.pi * z / (0.9 * scale)))
     a, b = (np.asarray(c, dtype=np.float64) for c in colours)
@@ -63,29 +64,43 @@ def _mean(mesh: Mesh, fn) -> np.ndarray:
     return fn(mesh.sample_points(20000)).mean(axis=0)
 
 
-def build(name: str, width: int = 160, height: int = 120) -> SimLab:
-    """One of :data:`NAMES` at ``width`` x ``height`` (camera, lamps, true materials, true albedo)."""
+def _realisation(scale: float, colours, seed: int | None):
+    """The albedo function of one texture realisation: ``seed`` None gives the scenes' own; else
+    the pattern moved by up to three features, its features 0.8–1.25× as large and its colours
+    moved by up to ±0.08 (docs/figures/fit_calibration.py's texture realisations)."""
+    if seed is None:
+        return lambda p: _pattern(p, scale, colours)
+    rng = np.random.default_rng(seed)
+    shift = rng.uniform(0.0, 3.0 * scale, 3)
+    scale = scale * float(np.exp(rng.uniform(np.log(0.8), np.log(1.25))))
+    colours = [np.clip(np.asarray(c) + rng.uniform(-0.08, 0.08, 3), 0.1, 0.9) for c in colours]
+    return lambda p: _pattern(p, scale, colours, shift)
+
+
+def build(name: str, width: int = 160, height: int = 120, texture_seed: int | None = None) -> SimLab:
+    """One of :data:`NAMES` at ``width`` x ``height`` (camera, lamps, true materials, true albedo);
+    ``texture_seed`` picks another realisation of its texture (:func:`_realisation`)."""
     camera = Camera.look_at(640, 480, fov_x_deg=36.0, eye=(0.0, -0.38, 0.36), target=(0.0, 0.02, 0.02))
     camera = camera.scaled(width, height) if (width, height) != (640, 480) else camera
     ground = plane_mesh((-0.8, 0.8), (-0.5, 1.2))
     lamp = np.array([1.0, 0.92, 0.8])
     if name == "shiny_box":
         box = box_mesh((0.14, 0.10, 0.05), (0.0, 0.03, 0.025), _rot_z(15.0))
-        tex = lambda p: _pattern(p, 0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]))  # noqa: E731
+        tex = _realisation(0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]), texture_seed)
         surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.45, 0.42, 0.38]), False, ground),
                     Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex), ks=0.3, ns=40.0), True, box)]
         lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
         textures = {1: tex}
     elif name == "floor_mirror":
         mirror = box_mesh((0.22, 0.006, 0.16), (0.05, 0.10, 0.08), _rot_z(-8.0))
-        tex = lambda p: _pattern(p, 0.04, ([0.8, 0.7, 0.5], [0.15, 0.3, 0.35]))  # noqa: E731
+        tex = _realisation(0.04, ([0.8, 0.7, 0.5], [0.15, 0.3, 0.35]), texture_seed)
         surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex), ks=0.04, ns=12.0), True, ground),
                     Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85), False, mirror)]
         lights = [PointLight([-0.15, -0.2, 0.35], 0.1 * lamp)]
         textures = {0: tex}
     elif name == "curved":
         cyl = cylinder_mesh(0.04, 0.18, (0.0, 0.03, 0.0401), axis_deg=20.0)
-        tex = lambda p: _pattern(p, 0.025, ([0.75, 0.7, 0.3], [0.2, 0.25, 0.6]))  # noqa: E731
+        tex = _realisation(0.025, ([0.75, 0.7, 0.3], [0.2, 0.25, 0.6]), texture_seed)
         surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.42]), False, ground),
                     Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
         lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
