@@ -262,44 +262,58 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
     if exclude is not None:
         ok &= ~np.asarray(exclude, dtype=bool).reshape(npix)[pix][None, :]
 
-    # Entries (band, node, corner) as (3, n, 4) arrays; column key band * total + texel.
-    key = idx[None, :, :] + (np.arange(3) * total)[:, None, None]
-    wk = np.where(ok[:, :, None] & (w > 0)[None], w[None], 0.0)
+    # Entries (band, node, corner) as (nb, n, 4) arrays; column key band * total + texel. When every
+    # band keeps the same nodes (none saturated or unlit in one band alone: the usual case) the
+    # entries' structure is the same in each band: it is worked out for one and repeated
+    # (nb = 1; 640x480 textured scene: 0.55 -> 0.35 s), with each band's own values.
+    shared = bool(np.array_equal(ok[0], ok[1]) and np.array_equal(ok[0], ok[2]))
+    nb = 1 if shared else 3
+    key = idx[None, :, :] + (np.arange(nb) * total)[:, None, None]
+    wk = np.where(ok[:nb, :, None] & (w > 0)[None], w[None], 0.0)
     # Texels that carry less than min_coverage pixels of weight are not modelled: each node's
     # weights are renormalised over its supported texels, and a pixel whose node keeps less than
     # half its weight is dropped. This removes the near-null columns at the edges of what the
     # image sees, which would otherwise dominate the solver's iterations.
-    supported = np.bincount(key.ravel(), weights=wk.ravel(), minlength=3 * total) >= options.min_coverage
+    supported = np.bincount(key.ravel(), weights=wk.ravel(), minlength=nb * total) >= options.min_coverage
     wk *= supported[key]
-    kept = wk.sum(axis=2)  # (3, n)
-    row_of = pix[None, :] + (np.arange(3) * npix)[:, None]  # (3, n) row key band * npix + pixel
-    bad_row = np.zeros(3 * npix, dtype=bool)
-    bad_row[row_of[ok & (kept < 0.5)]] = True
-    good = ok & ~bad_row[row_of]
+    kept = wk.sum(axis=2)  # (nb, n)
+    row_of = pix[None, :] + (np.arange(nb) * npix)[:, None]  # (nb, n) row key band * npix + pixel
+    bad_row = np.zeros(nb * npix, dtype=bool)
+    bad_row[row_of[ok[:nb] & (kept < 0.5)]] = True
+    good = ok[:nb] & ~bad_row[row_of]
     wk *= np.where(good, 1.0 / np.maximum(kept, 1e-300), 0.0)[:, :, None]
 
     flat = np.flatnonzero(wk)  # band-major, then pixel: sorted by row key
     wv = wk.ravel()[flat]
-    bn = flat // 4  # (band, node) flat index into (3, n) arrays
+    bn = flat // 4  # (band, node) flat index into (nb, n) arrays
     cols_all = key.ravel()[flat]
-    coverage = np.bincount(cols_all, weights=wv, minlength=3 * total)
-    weight = np.bincount(cols_all, weights=wv * seen.ravel()[bn], minlength=3 * total)
-    saturated_touch = np.zeros(3 * total, dtype=bool)
-    saturated_touch[key[lit & saturated[pix].T]] = True
-
     # Compress columns to the texels that some entry touches, rows to the pixels that have entries;
-    # the entries are already in row order, so E is built in CSR form directly.
-    col_global, cols = _compress(cols_all, 3 * total)
-    # Rows: the (band, node) pairs with entries, whose keys are already sorted; two nodes of one
-    # pixel (two paths) share a row.
-    has = np.zeros(3 * n, dtype=bool)
+    # the entries are already in row order, so E is built in CSR form directly. Rows: the (band,
+    # node) pairs with entries, whose keys are sorted; two nodes of one pixel (two paths) share one.
+    col_global, cols = _compress(cols_all, nb * total)
+    has = np.zeros(nb * n, dtype=bool)
     has[bn] = True
     keys = row_of.ravel()[has]
     first = np.ones(len(keys), dtype=bool)
     first[1:] = keys[1:] != keys[:-1]
-    rank = np.zeros(3 * n, dtype=np.int64)
+    rank = np.zeros(nb * n, dtype=np.int64)
     rank[has] = np.cumsum(first) - 1
     row_ids, rows = keys[first], rank[bn]
+    if shared:  # band b: band 0's entries in its own columns and rows
+        bands = range(3)
+        bn = np.concatenate([bn + b * n for b in bands])
+        wv = np.tile(wv, 3)
+        cols_all = np.concatenate([cols_all + b * total for b in bands])
+        cols = np.concatenate([cols + b * len(col_global) for b in bands])
+        col_global = np.concatenate([col_global + b * total for b in bands])
+        rows = np.concatenate([rows + b * len(row_ids) for b in bands])
+        row_ids = np.concatenate([row_ids + b * npix for b in bands])
+        bad_row = np.tile(bad_row, 3)
+    coverage = np.bincount(cols_all, weights=wv, minlength=3 * total)
+    weight = np.bincount(cols_all, weights=wv * seen.ravel()[bn], minlength=3 * total)
+    saturated_touch = np.zeros(3 * total, dtype=bool)
+    band, node = np.nonzero(lit & saturated[pix].T)
+    saturated_touch[(idx[node] + (band * total)[:, None]).ravel()] = True
     indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(row_ids)))])
     E = sp.csr_matrix((coef.ravel()[bn] * wv, cols, indptr), shape=(len(row_ids), len(col_global)))
     E.sum_duplicates()  # a pixel seeing one texel twice (two paths) gets one entry
