@@ -78,6 +78,22 @@ class Layout:
         return int(self.theta_offset[-1])
 
 
+class Matrices(list):
+    """The system's A_c per band (CSR), with each band's dense Gram matrix A_cᵀA_c computed once,
+    when first asked for: the inner solve, the θ curvature and the σ of one θ all use it."""
+
+    def gram(self, c: int) -> np.ndarray:
+        grams = self.__dict__.setdefault("_grams", {})
+        if c not in grams:
+            grams[c] = (self[c].T @ self[c]).toarray()
+        return grams[c]
+
+
+def gram(A, c: int) -> np.ndarray:
+    """A_cᵀA_c (dense) of a :class:`Matrices` (kept) or of any list of sparse matrices."""
+    return A.gram(c) if isinstance(A, Matrices) else (A[c].T @ A[c]).toarray()
+
+
 def canonical_paths(paths) -> tuple[np.ndarray, list]:
     """Map ordered paths to their multiset of factors.
 
@@ -322,10 +338,10 @@ class Factorization:
         """A_c(θ) for each band: CSR (rows × columns)."""
         return self._assemble(self._entries(theta, grad=False))
 
-    def _assemble(self, a) -> list:
+    def _assemble(self, a) -> "Matrices":
         import scipy.sparse as sp
 
-        out = []
+        out = Matrices()
         for c in range(BANDS):
             data = np.bincount(self.entry_slot, weights=a[:, c], minlength=self._n_slots)
             out.append(sp.csr_matrix((data, self._indices, self._indptr), shape=(self.n_rows, self.n_columns)))

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from inverse.factorization import BANDS
+from inverse.factorization import BANDS, gram
 from inverse.problem import BUDGET_MESSAGE, SCAN_POINTS, Free, Params, Problem, step_message, trace_point
 from inverse.ranges import linear_upper
 
@@ -107,7 +107,7 @@ class _Inner:
 
     def __init__(self, problem: Problem, A):
         self.pb = problem
-        self.G = [(A[c].T @ A[c]).toarray() for c in range(BANDS)]
+        self.G = [gram(A, c) for c in range(BANDS)]
         self.h = [A[c].T @ problem.b[c] for c in range(BANDS)]
 
     def upper(self, p: Params) -> np.ndarray:
@@ -334,7 +334,7 @@ def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
     for c in range(BANDS):
         D, _ = pb.dy(p, c, inner)
         if D.shape[1]:
-            blocks.append(D.T @ (A[c].T @ A[c]).toarray() @ D)
+            blocks.append(D.T @ gram(A, c) @ D)
             cross.append(D.T @ np.asarray(A[c].T @ img[:, c, :].T))
     n_lin = sum(b.shape[0] for b in blocks)
     if n_lin == 0:

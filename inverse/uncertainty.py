@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix, diags
 
-from inverse.factorization import BANDS
+from inverse.factorization import BANDS, gram
 from inverse.problem import NOISE_FLOOR, Free, Params, Problem
 
 #: Target number of tiles across the image's shorter side (tile size = shorter side / this, ≥ 4 px).
@@ -145,7 +145,7 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
             continue
         Ac = A[c] if rows is None else (rows @ A[c]).tocsr()
         At = Ac.T.tocsr()
-        H[off:off + k, off:off + k] = weights[c] * (D.T @ (At @ Ac).toarray() @ D)
+        H[off:off + k, off:off + k] = weights[c] * (D.T @ (gram(A, c) if rows is None else (At @ Ac).toarray()) @ D)
         if scores is not None:
             Pw = csr_matrix((wr[c], (np.arange(len(tile)), tile)), shape=P.shape)
             scores[off:off + k] = D.T @ (At @ Pw).toarray()
