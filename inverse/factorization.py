@@ -360,8 +360,8 @@ class Factorization:
         A : list of 3 CSR matrices
         grad : callable
             ``grad(residual (3, R), y (3, C))`` returns the derivative of ``Σ_c residualᵀ A_c y_c``
-            with respect to each θ (residual held fixed), and ``grad.images(y)`` returns the (Q, 3, R)
-            image derivatives ``∂(A_c y_c)/∂θ_q``.
+            with respect to each θ (residual held fixed), and ``grad.images(y, which=None)`` returns
+            the (Q, 3, R) image derivatives ``∂(A_c y_c)/∂θ_q`` (only the θ ``which`` names, in its order).
         """
         a, das = self._entries(theta, grad=True)
         A = self._assemble(a)
@@ -370,14 +370,22 @@ class Factorization:
 
         R = self.n_rows
 
-        def images(y):
-            out = np.zeros((Q, BANDS, R))
+        def images(y, which=None):
+            # Only the θ asked for (``which``): the others' (3, R) images would be allocated and
+            # filled for nothing (a 640x480 fit frees two or three of its six θ at a time).
+            which = np.arange(Q) if which is None else np.asarray(which, dtype=np.int64)
+            at = np.full(Q, -1)
+            at[which] = np.arange(len(which))
+            out = np.zeros((len(which), BANDS, R))
             for start, count, d, q0 in das:  # per surface; the 3 bands in one bincount
+                wanted = [p for p in range(d.shape[0]) if at[q0 + p] >= 0]
+                if not wanted:
+                    continue
                 sl = slice(start, start + count)
                 slot = (rows[sl][None, :] + R * np.arange(BANDS)[:, None]).ravel()
                 yc = y[:, cols[sl]]  # (3, n)
-                for p in range(d.shape[0]):
-                    out[q0 + p] = np.bincount(slot, weights=(d[p] * yc).ravel(), minlength=BANDS * R).reshape(BANDS, R)
+                for p in wanted:
+                    out[at[q0 + p]] = np.bincount(slot, weights=(d[p] * yc).ravel(), minlength=BANDS * R).reshape(BANDS, R)
             return out
 
         def grad(residual, y):

@@ -328,7 +328,7 @@ def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
     # :func:`inverse.uncertainty.normal_matrix`'s blocks, in monomial space: (A D)ᵀ(A D) = Dᵀ(AᵀA)D and (A D)ᵀ img =
     # Dᵀ(Aᵀ img), so no (pixels × parameters) product is formed (640×480: 78 → 30 ms).
     q = np.flatnonzero(free.theta)
-    img = grad.images(pb.fac.y(p.x, p.s))[q]  # (nq, 3, R)
+    img = grad.images(pb.fac.y(p.x, p.s), q)  # (nq, 3, R)
     Hqq = np.einsum("qcr,pcr->qp", img, img)
     blocks, cross = [], []
     for c in range(BANDS):

@@ -157,7 +157,7 @@ def _directional(pb: Problem, st: dict, m: "_NFMap", dz) -> np.ndarray:
         dy += np.where(e[:, None] > 0, e[:, None] * p.s[f][None, :] ** np.maximum(e[:, None] - 1, 0) * rest, 0.0) * p.x[fac.col_x] * ds[f][None, :]
     out = np.stack([st["A"][c] @ dy[:, c] for c in range(BANDS)])
     if len(m.q):
-        img = st["grad"].images(st["y"])[m.q]
+        img = st["grad"].images(st["y"], m.q)
         out += np.einsum("q,qcr->cr", dpar[nx + ns:], img)
     return out
 

@@ -113,7 +113,7 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
         A, grad = fac.matrices_and_grad(p.theta)
     y = fac.y(p.x, p.s)
     q = np.flatnonzero(free.theta)
-    img = grad.images(y)[q] if len(q) else np.zeros((0, BANDS, fac.n_rows))  # (nq, 3, R)
+    img = grad.images(y, q) if len(q) else np.zeros((0, BANDS, fac.n_rows))  # (nq, 3, R)
     if keep is not None:
         img = img * keep
         res = None if res is None else res * keep
