@@ -45,3 +45,9 @@ def test_shiny_textured_box_renders_say_where_they_guess(tmp_path):
     mask = read_image(tmp_path / "fitted_undetermined.png", linear=False)[:, :, 0] > 0.5
     assert 0.02 < mask.mean() < 0.5
     assert np.isfinite(read_image(tmp_path / "fitted.exr")).all()
+    # The guided window's novel view says it too (app/gui/pages/results.py).
+    from app.gui.pages.results import novel_view
+
+    for kind, expected in (("fitted", True), ("true", False)):
+        text = novel_view(tmp_path / kind, 15.0, 0.0, [1.0, 1.0])[1]
+        assert ("rest on values the photograph did not determine" in text) == expected, text

@@ -148,4 +148,7 @@ def novel_view(workspace, azimuth: float, elevation: float, dims) -> tuple:
         image, info = render_workspace(workspace, moved, dimmed)
     text = (f"orbit {azimuth:+.0f}°, raise {elevation:+.0f}°, lamps "
             + ", ".join(f"{100 * d:.0f}%" for d in dims) + f" — trees {info['trees_s']:.1f} s, render {info['render_s']:.1f} s")
+    guess = float(np.mean(info["undetermined_pixels"]))
+    if guess:  # docs/fit.md, "Renders that say where they guess"
+        text += f"; {100 * guess:.0f}% of the pixels rest on values the photograph did not determine (a guess)"
     return image, text
