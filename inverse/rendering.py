@@ -93,9 +93,10 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
     return basis, dbasis
 
 
-#: The last :func:`linear_basis` (trees, key, basis): a texture round asks for the same one up to
-#: three times (direct share, texture system, texture test), 60 ms each at 640×480.
-_LAST_BASIS: list = [None, None, None]
+#: The last :func:`linear_basis` as one (trees, key, basis) tuple (read and replaced whole, so
+#: threads never see a mix): a texture round asks for the same one up to three times (direct
+#: share, texture system, texture test), 60 ms each at 640×480.
+_LAST_BASIS: list = [None]
 
 
 def linear_basis(trees, materials, intensities) -> np.ndarray:
@@ -107,11 +108,12 @@ def linear_basis(trees, materials, intensities) -> np.ndarray:
     _check(trees, materials)
     key = (tuple((m.brdf, get_model(m.brdf).theta_of(m).tobytes()) for m in materials),
            np.asarray(intensities, dtype=np.float64).tobytes())
-    if _LAST_BASIS[0] is trees and _LAST_BASIS[1] == key:
-        return _LAST_BASIS[2]
+    last = _LAST_BASIS[0]
+    if last is not None and last[0] is trees and last[1] == key:
+        return last[2]
     basis = linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
     basis.flags.writeable = False
-    _LAST_BASIS[:] = [trees, key, basis]
+    _LAST_BASIS[0] = (trees, key, basis)
     return basis
 
 

@@ -128,3 +128,26 @@ def test_theta_derivative_matches_finite_differences(lab80):
         live += scale > 0
         np.testing.assert_allclose(imgs[q], num, rtol=1e-5, atol=1e-7 * scale + 1e-15)
     assert live >= 2  # the box's and the tile's highlights are in view
+
+
+def test_linear_basis_is_reused_only_for_the_same_inputs():
+    """rendering.linear_basis keeps its last result (read-only) for the same trees, θ and lamps,
+    and computes anew when any of them changes (the same values as computing it afresh)."""
+    from hardware.sim.lab import build_lab
+    from inverse.rendering import linear_basis, linear_basis_and_grad
+    from inverse.trees import build_trees
+
+    lab = build_lab(40, 30)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=2)
+    mats = [s.material for s in lab.scene]
+    first = linear_basis(trees, mats, lab.lights.intensities)
+    assert linear_basis(trees, mats, lab.lights.intensities) is first and not first.flags.writeable
+    other = [m.copy() for m in mats]
+    i = next(k for k, m in enumerate(other) if m.brdf == "phong")
+    other[i].params["ns"] = float(other[i]["ns"]) * 2
+    for args in ((trees, other, lab.lights.intensities), (trees, mats, 2 * lab.lights.intensities),
+                 (build_trees(lab.scene, lab.camera, lab.lights, depth=2), mats, lab.lights.intensities)):
+        again = linear_basis(*args)
+        assert again is not first
+        assert np.array_equal(again, linear_basis_and_grad(*args, grad=False)[0])
+    assert not np.array_equal(linear_basis(trees, other, lab.lights.intensities), first)
