@@ -335,8 +335,20 @@ class Factorization:
         return self.models[s].linear.index("kd")
 
     def matrices(self, theta) -> list:
-        """A_c(θ) for each band: CSR (rows × columns)."""
-        return self._assemble(self._entries(theta, grad=False))
+        """A_c(θ) for each band: CSR (rows × columns) (:meth:`matrices_and_grad`'s when it kept them)."""
+        kept = self._kept(theta)
+        return kept[0] if kept is not None else self._assemble(self._entries(theta, grad=False))
+
+    #: :meth:`matrices_and_grad` keeps its last results for this many θ: the fit's bookkeeping (σ,
+    #: holding, outliers) asks again for the θ of the search's last accepted step or its last trial.
+    KEEP = 2
+
+    def _kept(self, theta):
+        key = np.asarray(theta, dtype=np.float64).tobytes()
+        for k, value in getattr(self, "_memo", ()):
+            if k == key:
+                return value
+        return None
 
     def _assemble(self, a) -> "Matrices":
         import scipy.sparse as sp
@@ -363,6 +375,9 @@ class Factorization:
             with respect to each θ (residual held fixed), and ``grad.images(y, which=None)`` returns
             the (Q, 3, R) image derivatives ``∂(A_c y_c)/∂θ_q`` (only the θ ``which`` names, in its order).
         """
+        kept = self._kept(theta)
+        if kept is not None:
+            return kept
         a, das = self._entries(theta, grad=True)
         A = self._assemble(a)
         rows, cols = self.entry_row, self.entry_col
@@ -397,6 +412,8 @@ class Factorization:
             return out
 
         grad.images = images
+        memo = getattr(self, "_memo", [])
+        self._memo = [(np.asarray(theta, dtype=np.float64).tobytes(), (A, grad))] + memo[: self.KEEP - 1]
         return A, grad
 
     # ------------------------------------------------------------------ monomials
