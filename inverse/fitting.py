@@ -124,6 +124,9 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         # A textured surface's r or t that only its own free texture's pixels show: held at 0 (a
         # refit given this structure starts from materials that hold it there already).
         confounded = texture_confounded(pb, p, materials, textured) & free.s
+        for i, given in enumerate(held or []):  # a value the user gave stays theirs
+            confounded[2 * i] &= "r" not in given
+            confounded[2 * i + 1] &= "t" not in given
         free.s &= ~confounded
         init.s[confounded], p.s[confounded] = 0.0, 0.0
     else:

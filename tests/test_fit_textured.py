@@ -174,3 +174,27 @@ def test_sigma_holds_over_noise_and_texture_realisations():
     assert len(ratios) > 60 and np.all(np.isfinite(ratios))
     assert np.mean(ratios <= 3) >= 0.95, np.sort(ratios)[-5:]
     assert all(bar), np.sort(ratios)[-5:]
+
+
+def test_a_reflection_the_user_gave_is_not_zeroed_as_confounded():
+    """The shiny box's r is confounded with its texture and held at 0 when unknown; a value the
+    user wrote in scene.json is held at that value instead."""
+    from hardware.sim.scenes import build, render
+    from inverse.texture_fit import fit_with_texture
+    from inverse.trees import build_trees
+    from reconstruction.scene import Material
+
+    ts = build("shiny_box", W, H)
+    img = render(ts)
+    init = user_materials(ts.scene)
+    box = [i for i, s in enumerate(ts.scene) if s.textured][0]
+    init[box] = Material.from_json({"brdf": "phong", "ior": None, "r": 0.05}, "scene.json", "box")
+    user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
+    trees = build_trees(user, ts.camera, ts.lights, depth=3)
+    models = [get_model(m.brdf) for m in init]
+    held = [{n for n in m.params if n not in m.defaulted} for m in init]
+    assert "r" in held[box]
+    fac = Factorization(trees, models, ts.lights.intensities)
+    start = fit(fac, img, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)
+    res, _ = fit_with_texture(trees, user, models, ts.lights.intensities, img, start, rounds=2, held=held)
+    assert np.allclose(res.materials[box]["r"], 0.05) and np.allclose(start.materials[box]["r"], 0.05)
