@@ -215,7 +215,8 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         node of the pixel's tree had unknown albedo, so the homogeneous kd stood in),
         ``undetermined_pixels`` ((H, W) bool: the pixel's predicted light rests on parameters fit.json
         calls undetermined, or on texels the texture stage flagged guessed,
-        :func:`inverse.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``, ``render_s``, ``trees``.
+        :func:`inverse.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``,
+        ``render_s``, ``trees``.
     """
     from hardware.workspace import Workspace
     from inverse.rendering import render as render_trees, render_albedo, undetermined_pixels
@@ -247,12 +248,14 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
             homogeneous = np.array([m["kd"] for m in materials])[trees.surface]
             kd_nodes = np.where(np.isfinite(kd_nodes), kd_nodes, homogeneous)
         image = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
-    undetermined = load_undetermined(ws, scene)
-    guessed = guessed_nodes(ws, scene, trees) if kd_nodes is not None else None
-    info["undetermined_pixels"] = (undetermined_pixels(trees, materials, lig.intensities, undetermined, kd_nodes=kd_nodes,
-                                                       textured=[s.textured for s in scene], guessed=guessed)
-                                   if aov is None and (any(undetermined) or (guessed is not None and guessed.any()))
-                                   else np.zeros((cam.height, cam.width), dtype=bool))
+    info["undetermined_pixels"] = np.zeros((cam.height, cam.width), dtype=bool)
+    if aov is None:
+        undetermined = load_undetermined(ws, scene)
+        guessed = guessed_nodes(ws, scene, trees) if kd_nodes is not None else None
+        if any(undetermined) or (guessed is not None and guessed.any()):
+            info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, undetermined,
+                                                              kd_nodes=kd_nodes, guessed=guessed,
+                                                              textured=[s.textured for s in scene])
     info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees)
     return image, info
 
