@@ -77,7 +77,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
                              got="no pixel sees a lit surface")
     # What the user gave in scene.json is held (Material.defaulted names the rest).
-    held = [{n for n in s.material.params if n not in s.material.defaulted} for s in scene]
+    held = [s.material.given for s in scene]
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
     refit = texture_rounds > 0 and seen_textured.any()
     # With texture rounds to follow, the homogeneous fit's σ is computed only if it is the one kept.

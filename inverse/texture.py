@@ -159,7 +159,7 @@ def load_undetermined(workspace, scene) -> list:
     for item in read_json(ws.fit).get("surfaces", []):
         if isinstance(item, dict) and item.get("name") in scene.names:
             s = scene.index(item["name"])
-            given = {n for n in scene[s].material.params if n not in scene[s].material.defaulted}
+            given = scene[s].material.given
             out[s] = {n for n in item.get("undetermined", []) if n.partition("[")[0] not in given}
     return out
 

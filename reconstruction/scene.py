@@ -48,6 +48,11 @@ class Material:
     def transparent(self) -> bool:
         return self.ior is not None
 
+    @property
+    def given(self) -> set[str]:
+        """The parameter names the user wrote in scene.json (not :attr:`defaulted`): the fit holds them."""
+        return {n for n in self.params if n not in self.defaulted}
+
     def __getitem__(self, name: str) -> np.ndarray:
         return self.params[name]
 

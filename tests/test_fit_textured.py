@@ -22,7 +22,7 @@ def _fit_scene(ts, image):
     user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
     trees = build_trees(user, ts.camera, ts.lights, depth=3)
     models = [get_model(m.brdf) for m in init]
-    held = [{n for n in m.params if n not in m.defaulted} for m in init]
+    held = [m.given for m in init]
     fac = Factorization(trees, models, ts.lights.intensities)
     start = fit(fac, image, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)
     res, _ = fit_with_texture(trees, user, models, ts.lights.intensities, image, start, rounds=2, held=held)
@@ -192,7 +192,7 @@ def test_a_reflection_the_user_gave_is_not_zeroed_as_confounded():
     user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
     trees = build_trees(user, ts.camera, ts.lights, depth=3)
     models = [get_model(m.brdf) for m in init]
-    held = [{n for n in m.params if n not in m.defaulted} for m in init]
+    held = [m.given for m in init]
     assert "r" in held[box]
     fac = Factorization(trees, models, ts.lights.intensities)
     start = fit(fac, img, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)

@@ -65,7 +65,7 @@ def main(argv=None):
         user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
         trees = build_trees(user, ts.camera, ts.lights, depth=3)
         models = [get_model(m.brdf) for m in init]
-        held = [{n for n in m.params if n not in m.defaulted} for m in init]
+        held = [m.given for m in init]
         truth = [s.material for s in ts.scene]
         z, undetermined, t0 = [], Counter(), time.perf_counter()
         for seed in range(args.realisations):
