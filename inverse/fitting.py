@@ -123,10 +123,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         free = structural_free(pb, p)
         # A textured surface's r or t that only its own free texture's pixels show: held at 0 (a
         # refit given this structure starts from materials that hold it there already).
-        confounded = texture_confounded(pb, p, materials, textured) & free.s
-        for i, given in enumerate(held or []):  # a value the user gave stays theirs
-            confounded[2 * i] &= "r" not in given
-            confounded[2 * i + 1] &= "t" not in given
+        unheld = free.copy()
+        if held is not None:
+            hold(fac, unheld, held)  # a value the user gave stays theirs
+        confounded = texture_confounded(pb, p, materials, textured) & unheld.s
         free.s &= ~confounded
         init.s[confounded], p.s[confounded] = 0.0, 0.0
     else:
