@@ -16,6 +16,7 @@ import numpy as np
 from inverse.factorization import BANDS, gram
 from inverse.problem import BUDGET_MESSAGE, SCAN_POINTS, Free, Params, Problem, step_message, trace_point
 from inverse.ranges import linear_upper
+from inverse.uncertainty import normal_matrix
 
 
 #: Sweeps of the scan over the θs at most.
@@ -323,29 +324,18 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
 
 
 def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
-    """JᵀJ of θ with the linear parameters profiled out (Schur complement), natural units."""
+    """JᵀJ of θ with the linear parameters profiled out (Schur complement), natural units.
+
+    The blocks are :func:`inverse.uncertainty.normal_matrix`'s (unit band weights), formed in
+    monomial space: no (pixels × parameters) product.
+    """
     inner = Free(free.x & (p.x > 0), free.s & (p.s > 0) & (p.s < 1), free.theta)  # bounds active: held
-    # :func:`inverse.uncertainty.normal_matrix`'s blocks, in monomial space: (A D)ᵀ(A D) = Dᵀ(AᵀA)D and (A D)ᵀ img =
-    # Dᵀ(Aᵀ img), so no (pixels × parameters) product is formed (640×480: 78 → 30 ms).
-    q = np.flatnonzero(free.theta)
-    img = grad.images(pb.fac.y(p.x, p.s), q)  # (nq, 3, R)
-    Hqq = np.einsum("qcr,pcr->qp", img, img)
-    blocks, cross = [], []
-    for c in range(BANDS):
-        D, _ = pb.dy(p, c, inner)
-        if D.shape[1]:
-            blocks.append(D.T @ gram(A, c) @ D)
-            cross.append(D.T @ np.asarray(A[c].T @ img[:, c, :].T))
-    n_lin = sum(b.shape[0] for b in blocks)
+    H, _ = normal_matrix(pb, p, inner, np.ones(BANDS), A, grad)
+    n_lin = H.shape[0] - int(np.count_nonzero(free.theta))
+    Hqq = H[n_lin:, n_lin:]
     if n_lin == 0:
         return Hqq
-    Hll = np.zeros((n_lin, n_lin))
-    off = 0
-    for b in blocks:
-        Hll[off:off + len(b), off:off + len(b)] = b
-        off += len(b)
-    Hlq = np.concatenate(cross)
-    w, V = np.linalg.eigh(Hll)
+    w, V = np.linalg.eigh(H[:n_lin, :n_lin])
     keep = w > max(w.max(), 0.0) * 1e-13
-    proj = V[:, keep].T @ Hlq
+    proj = V[:, keep].T @ H[:n_lin, n_lin:]
     return Hqq - proj.T @ (proj / w[keep][:, None])
