@@ -220,7 +220,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     """
     from hardware.workspace import Workspace
     from inverse.rendering import render as render_trees, render_albedo, undetermined_pixels
-    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_undetermined
+    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_texture_maps, load_undetermined
     from inverse.trees import trees_for_workspace
 
     task = ensure(task)
@@ -231,7 +231,8 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     t0 = time.perf_counter()
     trees = trees_for_workspace(ws, scene, cam, lig, depth=depth, log=log, task=task)
     t1 = time.perf_counter()
-    kd_nodes = albedo_nodes(ws, scene, trees) if ws.textures.is_dir() else None
+    textures = load_texture_maps(ws, scene) if ws.textures.is_dir() else None  # read once: albedo and guesses
+    kd_nodes = albedo_nodes(ws, scene, trees, textures) if textures is not None else None
     info = {"materials": source, "texture_nodes": None, "unknown_albedo": 0,
             "unknown_pixels": np.zeros((cam.height, cam.width), dtype=bool)}
     if kd_nodes is not None:
@@ -251,7 +252,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     info["undetermined_pixels"] = np.zeros((cam.height, cam.width), dtype=bool)
     if aov is None:
         undetermined = load_undetermined(ws, scene)
-        guessed = guessed_nodes(ws, scene, trees) if kd_nodes is not None else None
+        guessed = guessed_nodes(ws, scene, trees, textures) if textures is not None else None
         if any(undetermined) or (guessed is not None and guessed.any()):
             info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, undetermined,
                                                               kd_nodes=kd_nodes, guessed=guessed,

@@ -713,15 +713,16 @@ def sample_texture(texel_map: TexelMap, kd: np.ndarray, mask: np.ndarray, triang
     return np.where((wsum >= 0.5)[:, None], val, np.nan)
 
 
-def albedo_nodes(workspace, scene, trees) -> np.ndarray:
+def albedo_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
     """Recovered diffuse albedo (N, 3) at every tree node; NaN where it is unknown.
 
     Textured surfaces: bilinear blend of their known texels (weights renormalised over the known
     ones; NaN when the known ones carry less than half the weight, e.g. beyond the region the
     input saw). Untextured surfaces: their homogeneous ``kd`` (fit.json, else scene.json).
-    Textured surfaces that the texture stage never saw: NaN.
+    Textured surfaces that the texture stage never saw: NaN. ``textures``: the workspace's
+    :func:`load_texture_maps`, when the caller has read them already.
     """
-    textures = load_texture_maps(workspace, scene)
+    textures = load_texture_maps(workspace, scene) if textures is None else textures
     materials, _ = load_materials(workspace, scene)
     out = np.full((len(trees), 3), np.nan)
     for s, surf in enumerate(scene):
@@ -735,15 +736,16 @@ def albedo_nodes(workspace, scene, trees) -> np.ndarray:
     return out
 
 
-def guessed_nodes(workspace, scene, trees) -> np.ndarray:
-    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½)."""
+def guessed_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
+    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½);
+    ``textures`` as for :func:`albedo_nodes`."""
     from hardware.images import read_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     out = np.zeros(len(trees), dtype=bool)
     entries = {item.get("surface"): item for item in read_json(ws.texture_index).get("surfaces", [])
                if isinstance(item, dict)}
-    for s, (m, _, mask) in load_texture_maps(ws, scene).items():
+    for s, (m, _, mask) in (load_texture_maps(ws, scene) if textures is None else textures).items():
         diag = ws.textures / str(entries[scene[s].name].get("files", {}).get("diag", ""))
         sel = np.nonzero(trees.surface == s)[0]
         if not diag.is_file() or len(sel) == 0:
