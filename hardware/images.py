@@ -1,7 +1,8 @@
 """Image I/O: float32 OpenEXR by default, 16-bit PNG/TIFF read as value / 65535.
 
 Arrays are float32, shape (H, W, 3), RGB order (OpenCV's BGR is hidden here). OpenEXR goes
-through Mitsuba's Bitmap: the OpenCV 5 wheels are built without OpenEXR.
+through Mitsuba's Bitmap (the OpenCV 5 wheels are built without OpenEXR), with no variant set: a
+variant starts Dr.Jit's LLVM back end, 0.15 s that a command reading an image does not need.
 
 Two kinds of reader (INTERFACES.md, Images): photometric stages need linear radiance
 (:func:`read_image`, then :func:`check_radiance`); geometric stages take any image a camera
@@ -23,17 +24,20 @@ def _cv2():
     return cv2
 
 
-def _read_exr(path: Path) -> np.ndarray:
-    from hardware.mitsuba_env import mitsuba
+def _bitmap():
+    import mitsuba as mi  # Bitmap is in Mitsuba's core: no variant needed
 
-    bmp = mitsuba().Bitmap(str(path))
-    return np.array(bmp, dtype=np.float32, copy=True).reshape(bmp.height(), bmp.width(), -1)
+    return mi
+
+
+def read_exr(path, dtype=np.float32) -> np.ndarray:
+    """The pixels of an OpenEXR file as they are, (H, W, channels); RuntimeError when unreadable."""
+    bmp = _bitmap().Bitmap(str(path))
+    return np.array(bmp, dtype=dtype, copy=True).reshape(bmp.height(), bmp.width(), -1)
 
 
 def _write_exr(path: Path, img: np.ndarray) -> None:
-    from hardware.mitsuba_env import mitsuba
-
-    mi = mitsuba()
+    mi = _bitmap()
     fmt = mi.Bitmap.PixelFormat.RGB if img.ndim == 3 else mi.Bitmap.PixelFormat.Y
     mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32), fmt).write(str(path))
 
@@ -97,7 +101,7 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
                              else "a folder")
     if path.suffix.lower() == ".exr":
         try:
-            img = _read_exr(path)
+            img = read_exr(path)
         except RuntimeError:
             raise WorkspaceError(path, expected="a readable OpenEXR image", got="a damaged or cut-off file") from None
         if img.shape[2] >= 3:

@@ -74,10 +74,9 @@ class Sources:
             self._images[path] = None
             if path.is_file():
                 try:
-                    from hardware.mitsuba_env import mitsuba
+                    from hardware.images import read_exr
 
-                    bmp = mitsuba().Bitmap(str(path))
-                    img = np.array(bmp, dtype=np.float64).reshape(bmp.height(), bmp.width(), -1)
+                    img = read_exr(path, np.float64)
                     if img.shape[2] < 3 or np.isinf(img).any():
                         raise ValueError(f"expected finite or NaN kd in 3 bands, got {img.shape[2]} bands"
                                          + (" with inf" if np.isinf(img).any() else ""))
