@@ -28,11 +28,16 @@ def _check(trees, materials, intensities=None):
     return intensities
 
 
-def _groups(trees):
-    """(surface index, node indices) for each surface that has nodes."""
+def _groups(trees) -> list:
+    """(surface index, node indices) for each surface that has nodes (sorted once per trees)."""
+    cached = getattr(trees, "_surface_groups", None)
+    if cached is not None and cached[0] is trees.surface:
+        return cached[1]
     order = np.argsort(trees.surface, kind="stable")
     surfaces, starts = np.unique(trees.surface[order], return_index=True)
-    return zip(surfaces.tolist(), np.split(order, starts[1:]))
+    groups = list(zip(surfaces.tolist(), np.split(order, starts[1:])))
+    trees._surface_groups = (trees.surface, groups)  # keyed by the array: a new one sorts again
+    return groups
 
 
 def node_parameters(trees, materials) -> tuple[np.ndarray, np.ndarray]:
@@ -71,31 +76,38 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
         d basis / d θ_p of the node's surface, zero-padded to P.
     """
     intensities = _check(trees, materials, intensities)
-    n, k = len(trees), trees.n_lights
+    n = len(trees)
     basis = np.zeros((n, 3, MAX_LINEAR))
     dbasis = np.zeros((n, 3, MAX_LINEAR, MAX_NONLINEAR)) if grad else None
     for s, idx in _groups(trees):
-        model = get_model(materials[s].brdf)
-        theta = np.repeat(model.theta_of(materials[s])[None], len(idx) * k, axis=0)
-        normal = np.repeat(trees.normal[idx], k, axis=0)
-        view = np.repeat(trees.view[idx], k, axis=0)
-        light = trees.light_dir[idx].reshape(-1, 3)
-        weight = trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx]  # (n_s, K)
-        L, P = model.n_linear, model.n_nonlinear
-        if grad:
-            g, dg = model.g_and_dg(theta, normal, light, view)
-            dbasis[idx, :, :L, :P] = np.einsum("nk,kc,nklp->nclp", weight, intensities, dg.reshape(len(idx), k, L, P),
-                                               optimize=True)
-        else:
-            g = model.g(theta, normal, light, view)
-        # optimize: contracted pairwise (3x faster than the three-operand loop at 640x480).
-        basis[idx, :, :L] = np.einsum("nk,kc,nkl->ncl", weight, intensities, g.reshape(len(idx), k, L), optimize=True)
+        _surface_basis(trees, materials[s], idx, intensities, basis, dbasis)
     return basis, dbasis
+
+
+def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> None:
+    """Fill ``basis`` (and ``dbasis``) at the nodes ``idx`` of one surface, whose material is ``material``."""
+    k = trees.n_lights
+    model = get_model(material.brdf)
+    theta = np.repeat(model.theta_of(material)[None], len(idx) * k, axis=0)
+    normal = np.repeat(trees.normal[idx], k, axis=0)
+    view = np.repeat(trees.view[idx], k, axis=0)
+    light = trees.light_dir[idx].reshape(-1, 3)
+    weight = trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx]  # (n_s, K)
+    L, P = model.n_linear, model.n_nonlinear
+    if dbasis is not None:
+        g, dg = model.g_and_dg(theta, normal, light, view)
+        dbasis[idx, :, :L, :P] = np.einsum("nk,kc,nklp->nclp", weight, intensities, dg.reshape(len(idx), k, L, P),
+                                           optimize=True)
+    else:
+        g = model.g(theta, normal, light, view)
+    # optimize: contracted pairwise (3x faster than the three-operand loop at 640x480).
+    basis[idx, :, :L] = np.einsum("nk,kc,nkl->ncl", weight, intensities, g.reshape(len(idx), k, L), optimize=True)
 
 
 #: The last :func:`linear_basis` as one (trees, key, basis) tuple (read and replaced whole, so
 #: threads never see a mix): a texture round asks for the same one up to three times (direct
-#: share, texture system, texture test), 60 ms each at 640×480.
+#: share, texture system, texture test), 60 ms each at 640×480; the next asks for one where only
+#: a few small surfaces' θ moved (a matte ground, a mirror, a pane keep theirs).
 _LAST_BASIS: list = [None]
 
 
@@ -103,15 +115,24 @@ def linear_basis(trees, materials, intensities) -> np.ndarray:
     """(N, 3, L) coefficients of each node's linear parameters (see :func:`linear_basis_and_grad`).
 
     Read-only: the last one is kept and handed out again for the same trees, models, θ and
-    intensities (the only inputs it depends on).
+    intensities (the only inputs it depends on); from it, only the surfaces whose model or θ
+    changed are computed again.
     """
     _check(trees, materials)
-    key = (tuple((m.brdf, get_model(m.brdf).theta_of(m).tobytes()) for m in materials),
-           np.asarray(intensities, dtype=np.float64).tobytes())
+    surfaces = tuple((m.brdf, get_model(m.brdf).theta_of(m).tobytes()) for m in materials)
+    key = (surfaces, np.asarray(intensities, dtype=np.float64).tobytes())
     last = _LAST_BASIS[0]
     if last is not None and last[0] is trees and last[1] == key:
         return last[2]
-    basis = linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
+    if last is not None and last[0] is trees and last[1][1] == key[1] and len(last[1][0]) == len(surfaces):
+        basis = last[2].copy()
+        intensities = _check(trees, materials, intensities)
+        for s, idx in _groups(trees):
+            if last[1][0][s] != surfaces[s]:
+                basis[idx] = 0.0  # another model may fill fewer slots
+                _surface_basis(trees, materials[s], idx, intensities, basis)
+    else:
+        basis = linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
     basis.flags.writeable = False
     _LAST_BASIS[0] = (trees, key, basis)
     return basis
