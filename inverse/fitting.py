@@ -34,7 +34,7 @@ from inverse.determined import (RESOLVE_THETA, hold, structural_free, texture_ab
 from inverse.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
 from inverse.factorization import Factorization, one_blas_thread
 from inverse.fit_result import FitResult, fit_json
-from inverse.ftbo import ftbo
+from inverse.ftbo import SEED_STOP_GAIN, STOP_GAIN, ftbo
 from inverse.nftbo import nftbo
 from inverse.photograph import check_image, saturated_pixels
 from inverse.problem import Free, Params, Problem, materials_of, params_of, trace_point
@@ -143,7 +143,8 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         t_method = time.perf_counter()
         if method == "ftbo":
             # The global scan picks the basins once; later rounds only hold parameters.
-            p, nit, message = ftbo(pb, p, free, t0, trace, scan=scan and rounds == 1, **kw)
+            p, nit, message = ftbo(pb, p, free, t0, trace, scan=scan and rounds == 1,
+                                   stop_gain=STOP_GAIN if uncertainty else SEED_STOP_GAIN, **kw)
         else:
             p, nit, message = nftbo(pb, p, free, t0, trace, **kw)
         pb.phases["refinement"] += time.perf_counter() - t_method
@@ -194,8 +195,20 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
              "noise": [float(v) for v in pb.noise], "scan_evaluations": pb.scan_evaluations,
              "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}
     if not uncertainty:
-        complete = lambda: _complete(pb, p, init, free, found, res, A, materials, textured, names, method,  # noqa: E731
-                                     trace, rounds, iterations, message, fitted, stats)
+        def complete():
+            # A seed stopped early (SEED_STOP_GAIN): converged as the reported fit is, then its σ.
+            q, nit, msg, A_q, res_q, spent = p, iterations, message, A, res, 0.0
+            if method == "ftbo" and not message.startswith("stopped"):
+                t_polish = time.perf_counter()
+                q, more, msg = ftbo(pb, p.copy(), free, t_polish - fitted, trace, scan=False)
+                nit += more
+                A_q = fac.matrices(q.theta)
+                res_q = pb.residual(A_q, fac.y(q.x, q.s))
+                spent = time.perf_counter() - t_polish
+                pb.phases["refinement"] += spent
+            return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
+                             nit, msg, fitted + spent, stats)
+
         return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},

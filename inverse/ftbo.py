@@ -32,12 +32,16 @@ COARSE_ROWS = 15_000
 #: below this: Levenberg–Marquardt otherwise creeps along a flat valley for dozens of iterations,
 #: each gaining 1e-9 of the error (measured on the textured demo).
 STOP_GAIN = 1e-8
+#: The same for a fit that only seeds another (a textured scene's homogeneous start and early
+#: texture rounds, refitted against a new texture): its last iterations on a large-residual
+#: problem each gain half the one before (GN's curvature lacks the residual's second-order term).
+SEED_STOP_GAIN = 1e-6
 #: A scan candidate must lower the squared error by this many times the image noise variance (per
 #: band): far beyond what fitting noise with a band's linear parameters gains (≈ 1 each).
 SCAN_GAIN = 25.0
 
 
-def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True):
+def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True, stop_gain=STOP_GAIN):
     """F-TBO: θ (search space) by Levenberg–Marquardt over the exact inner linear solution.
 
     With ``scan``, a coarse global step (:func:`_scan`) first picks each θ's basin.
@@ -78,7 +82,7 @@ def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True):
             break
         S = _theta_curvature(pb, cur, free, A, grad) * np.outer(srch.dtheta_du(cur.theta)[q], srch.dtheta_du(cur.theta)[q])
         S = 2.0 * S / pb.norm
-        if _predicted_gain(S, g, u, lo, hi) <= STOP_GAIN * E:
+        if _predicted_gain(S, g, u, lo, hi) <= stop_gain * E:
             message = "converged: the Gauss-Newton step predicts no further gain"
             break
         improved = False

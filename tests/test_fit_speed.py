@@ -98,7 +98,9 @@ def test_phases_add_up_over_a_rejection_refit():
     assert sum(res.stats["phases_s"].values()) <= res.time_s + 1e-5  # phases are rounded to µs
     assert sum(res.stats["phases_s"].values()) > 0.8 * res.time_s
     # σ later (a fit whose σ may never be reported, e.g. a textured scene's homogeneous start):
-    # completing it gives the fit with σ, the outlier refit's merge included.
+    # completing it gives the fit with σ, the outlier refit's merge included. Such a seed stops its
+    # search earlier (SEED_STOP_GAIN); completing it converges it as the reported fit is, to the
+    # same answer along another path (1e-13 to 5e-7 apart here).
     later = fit(fac, img, start, "ftbo", textured=[True, False, False, False, False], uncertainty=False)
     assert np.all(np.isinf(later.sigma.x)) and "complete" in later.stats
     now = fit(fac, img, start, "ftbo", textured=[True, False, False, False, False])
@@ -106,6 +108,6 @@ def test_phases_add_up_over_a_rejection_refit():
     assert "complete" not in done.stats and done.undetermined == now.undetermined
     assert done.stats["rejected"] == now.stats["rejected"] and done.stats["warnings"] == now.stats["warnings"]
     for name in ("x", "s", "theta"):
-        np.testing.assert_array_equal(getattr(done.params, name), getattr(now.params, name))
-        np.testing.assert_array_equal(getattr(done.sigma, name), getattr(now.sigma, name))
+        np.testing.assert_allclose(getattr(done.params, name), getattr(now.params, name), rtol=1e-5, atol=1e-9)
+        np.testing.assert_allclose(getattr(done.sigma, name), getattr(now.sigma, name), rtol=1e-3)
     assert abs(done.time_s - now.time_s) < 0.5 * now.time_s
