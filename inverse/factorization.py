@@ -373,7 +373,9 @@ class Factorization:
         grad : callable
             ``grad(residual (3, R), y (3, C))`` returns the derivative of ``Σ_c residualᵀ A_c y_c``
             with respect to each θ (residual held fixed), and ``grad.images(y, which=None)`` returns
-            the (Q, 3, R) image derivatives ``∂(A_c y_c)/∂θ_q`` (only the θ ``which`` names, in its order).
+            the (Q, 3, R) image derivatives ``∂(A_c y_c)/∂θ_q`` (only the θ ``which`` names, in its order);
+            with ``compact=True``, ``(images (Q, 3, R'), rows (R',))``: only the used-pixel rows
+            where those θ act (:meth:`_theta_rows`; zero elsewhere).
         """
         kept = self._kept(theta)
         if kept is not None:
@@ -385,23 +387,25 @@ class Factorization:
 
         R = self.n_rows
 
-        def images(y, which=None):
+        def images(y, which=None, compact=False):
             # Only the θ asked for (``which``): the others' (3, R) images would be allocated and
             # filled for nothing (a 640x480 fit frees two or three of its six θ at a time).
             which = np.arange(Q) if which is None else np.asarray(which, dtype=np.int64)
             at = np.full(Q, -1)
             at[which] = np.arange(len(which))
-            out = np.zeros((len(which), BANDS, R))
+            used, local = self._theta_rows(which) if compact else (None, rows)
+            n = R if used is None else len(used)
+            out = np.zeros((len(which), BANDS, n))
             for start, count, d, q0 in das:  # per surface; the 3 bands in one bincount
                 wanted = [p for p in range(d.shape[0]) if at[q0 + p] >= 0]
                 if not wanted:
                     continue
                 sl = slice(start, start + count)
-                slot = (rows[sl][None, :] + R * np.arange(BANDS)[:, None]).ravel()
+                slot = (local[sl][None, :] + n * np.arange(BANDS)[:, None]).ravel()
                 yc = y[:, cols[sl]]  # (3, n)
                 for p in wanted:
-                    out[at[q0 + p]] = np.bincount(slot, weights=(d[p] * yc).ravel(), minlength=BANDS * R).reshape(BANDS, R)
-            return out
+                    out[at[q0 + p]] = np.bincount(slot, weights=(d[p] * yc).ravel(), minlength=BANDS * n).reshape(BANDS, n)
+            return (out, used) if compact else out
 
         def grad(residual, y):
             out = np.zeros(Q)
@@ -415,6 +419,28 @@ class Factorization:
         memo = getattr(self, "_memo", [])
         self._memo = [(np.asarray(theta, dtype=np.float64).tobytes(), (A, grad))] + memo[: self.KEEP - 1]
         return A, grad
+
+    def _theta_rows(self, which) -> tuple[np.ndarray, np.ndarray]:
+        """The rows (sorted) where the θ ``which`` act, and each entry's index among them (−1: none).
+
+        A surface's θ moves only the pixels its nodes reach (a small cube's shininess: a few
+        thousand of 300 000), so the θ blocks of the normal matrix need only those rows.
+        """
+        key = tuple(int(q) for q in which)
+        cache = self.__dict__.setdefault("_theta_rows_cache", {})
+        if key not in cache:
+            lay = self.layout
+            owners = {s for s in range(len(self.models)) for q in key
+                      if lay.theta_offset[s] <= q < lay.theta_offset[s + 1]}
+            touched = np.zeros(self.n_rows, dtype=bool)
+            for s, idx, start, J in self._groups:
+                if s in owners:
+                    touched[self.entry_row[start:start + len(idx) * J]] = True
+            used = np.flatnonzero(touched)
+            at = np.full(self.n_rows, -1, dtype=np.int64)
+            at[used] = np.arange(len(used))
+            cache[key] = (used, at[self.entry_row])
+        return cache[key]
 
     # ------------------------------------------------------------------ monomials
     def y(self, x, s) -> np.ndarray:
