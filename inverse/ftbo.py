@@ -36,6 +36,10 @@ STOP_GAIN = 1e-8
 #: texture rounds, refitted against a new texture): its last iterations on a large-residual
 #: problem each gain half the one before (GN's curvature lacks the residual's second-order term).
 SEED_STOP_GAIN = 1e-6
+#: ... or below this share of the image's squared norm, whatever ε is: the inner solve's rounding.
+#: At a noise-free fit's exact solution (ε ≈ 1e-22) a flat θ (a lobe with no signal) otherwise
+#: chases "gains" of 1e-23 for a hundred iterations, each lowering ε by its own rounding.
+STOP_FLOOR = 1e-20
 #: A scan candidate must lower the squared error by this many times the image noise variance (per
 #: band): far beyond what fitting noise with a band's linear parameters gains (≈ 1 each).
 SCAN_GAIN = 25.0
@@ -82,7 +86,7 @@ def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True, 
             break
         S = _theta_curvature(pb, cur, free, A, grad) * np.outer(srch.dtheta_du(cur.theta)[q], srch.dtheta_du(cur.theta)[q])
         S = 2.0 * S / pb.norm
-        if _predicted_gain(S, g, u, lo, hi) <= stop_gain * E:
+        if _predicted_gain(S, g, u, lo, hi) <= stop_gain * E + STOP_FLOOR:
             message = "converged: the Gauss-Newton step predicts no further gain"
             break
         improved = False

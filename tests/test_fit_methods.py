@@ -114,7 +114,10 @@ def test_stiff_truth_sharp_highlight_and_bounds(lab):
             judged[ks_mirror] = False
             t = params_of(fac, stiff)
             np.testing.assert_allclose(res.params.x[judged], t.x[judged], rtol=1e-4, atol=1e-6)
-            np.testing.assert_allclose(res.params.s[res.free.s], t.s[res.free.s], rtol=1e-4, atol=1e-6)
+            # The sheet's red t = 0 transmits nothing from a dim red background: its σ (0.055, at the
+            # noise floor) is 10^4 times what a 1e-6 tolerance asks; a thousandth of it is exact enough.
+            err = np.abs(res.params.s - t.s)[res.free.s]
+            assert np.all(err <= 1e-4 * t.s[res.free.s] + np.maximum(1e-6, 1e-3 * res.sigma.s[res.free.s])), err
             np.testing.assert_allclose(res.params.theta[res.free.theta], t.theta[res.free.theta], rtol=1e-4)
             assert res.free.theta[[0, 3]].all()  # box and tile (ns = 2^12) shininess fitted
 
