@@ -168,6 +168,37 @@ def texture_confounded(pb: Problem, p: Params, materials, textured) -> np.ndarra
     return out
 
 
+def _free_texture_nodes(tr, textured) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool twice: nodes of textured surfaces; those whose texel no direct view pins (free).
+
+    Geometry only: kept on the trees for the same ``textured`` flags (a fit asks twice).
+    """
+    flags = tuple(bool(t) for t in textured)
+    cached = getattr(tr, "_free_texture", None)
+    if cached is not None and cached[0] == flags and cached[1] is tr.point:
+        return cached[2]
+    surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
+    tex = np.asarray(flags, dtype=bool)[surf]
+    free_tex = tex & (level == 1)
+    for s in np.flatnonzero(flags):
+        direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
+        if not seen_else.any():
+            continue
+        if not direct.any():
+            free_tex |= seen_else
+            continue
+        ext = np.sort(np.ptp(pts[direct], axis=0))[::-1]
+        cell = 2.0 * np.sqrt(max(ext[0] * ext[1], 1e-12) / direct.sum())
+        key = np.floor(pts / cell).astype(np.int64)
+        both = direct | seen_else
+        lo = key[both].min(axis=0)
+        span = key[both].max(axis=0) - lo + 1
+        flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
+        free_tex |= seen_else & ~np.isin(flat, flat[direct])
+    tr._free_texture = (flags, tr.point, (tex, free_tex))
+    return tex, free_tex
+
+
 def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tuple[np.ndarray, np.ndarray]:
     """(R,) bool twice: used pixels where free texture carries at least :data:`ABSORB_SHARE` of the
     predicted light in some band; and the same counting every textured node as free.
@@ -186,25 +217,8 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tupl
     from inverse.rendering import node_radiance
 
     tr = fac.trees
-    surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
     light = np.abs(node_radiance(tr, materials_of(fac, p, materials), fac._args[0]))
-    tex = np.asarray(textured, dtype=bool)[surf]
-    free_tex = tex & (level == 1)
-    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
-        direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
-        if not seen_else.any():
-            continue
-        if not direct.any():
-            free_tex |= seen_else
-            continue
-        ext = np.sort(np.ptp(pts[direct], axis=0))[::-1]
-        cell = 2.0 * np.sqrt(max(ext[0] * ext[1], 1e-12) / direct.sum())
-        key = np.floor(pts / cell).astype(np.int64)
-        both = direct | seen_else
-        lo = key[both].min(axis=0)
-        span = key[both].max(axis=0) - lo + 1
-        flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
-        free_tex |= seen_else & ~np.isin(flat, flat[direct])
+    tex, free_tex = _free_texture_nodes(tr, textured)
     npix = fac.width * fac.height
     out, anywhere = np.zeros(fac.n_rows, dtype=bool), np.zeros(fac.n_rows, dtype=bool)
     for c in range(BANDS):
