@@ -49,8 +49,8 @@ def structural_free(pb: Problem, p: Params) -> Free:
         live |= now
         if lay.n_theta:
             # θ acts through the columns of its surface's x: only those with signal count.
-            img = grad.images(now.T.astype(np.float64))
-            th_free |= np.abs(img).max(axis=(1, 2)) > floor
+            img, _ = grad.images(now.T.astype(np.float64), compact=True)  # only the rows θ reach
+            th_free |= np.abs(img).max(axis=(1, 2), initial=0.0) > floor
             if th_free.all() and k > 0:
                 break
     x_free = np.zeros((lay.n_x, BANDS), dtype=bool)
