@@ -212,7 +212,14 @@ class Factorization:
         self.col_x = x_off[mono_surf[col_mono]] + col_j
         self.exponents = mono_exp[col_mono]
         self._used = np.flatnonzero(self.exponents.any(axis=0))  # factors that occur at all
-        self._exp_used = self.exponents[:, self._used]
+        # Each column's factors as indices into the used factors, repeated by degree and padded
+        # with the index of a row of ones: a product is a few gathers (factor_products).
+        exp_used = self.exponents[:, self._used]
+        degree = int(exp_used.sum(axis=1).max()) if exp_used.size else 0
+        self._factor_index = np.full((n_col, max(degree, 1)), len(self._used), dtype=np.int64)
+        for c in np.flatnonzero(exp_used.any(axis=1)):  # one row per column
+            idx = np.repeat(np.arange(len(self._used)), exp_used[c])
+            self._factor_index[c, :len(idx)] = idx
         self.col_surface = mono_surf[col_mono]
 
         # Entries: one per (kept node, linear parameter of its surface), grouped by surface so
@@ -449,11 +456,15 @@ class Factorization:
 
     def factor_products(self, s, skip: int | None = None) -> np.ndarray:
         """Π_f s_f^e of each column (C, 3), optionally leaving factor ``skip`` out."""
-        e = self._exp_used
+        ext = np.ones((len(self._used) + 1, BANDS))  # the last row: an absent factor (1)
+        ext[:-1] = np.asarray(s)[self._used]
         if skip is not None:
-            e = np.where(self._used == skip, 0, e)
-        # 0^0 = 1: a factor that is absent from a monomial leaves it unchanged.
-        return np.prod(np.asarray(s)[self._used][None, :, :] ** e[:, :, None], axis=1)
+            ext[:-1][self._used == skip] = 1.0
+        idx = self._factor_index
+        out = ext[idx[:, 0]]
+        for k in range(1, idx.shape[1]):
+            out *= ext[idx[:, k]]
+        return out
 
     def render(self, theta, x, s) -> np.ndarray:
         """Model radiance (3, R) of the used pixels for the given parameters."""
