@@ -84,15 +84,29 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
     return basis, dbasis
 
 
+def _surface_geometry(trees, idx) -> tuple:
+    """Normals, light directions and views per (node, light) of one surface's nodes ``idx``, and
+    their known weights ``fresnel · visible / dist²`` (n, K): kept on the trees (a fit's texture
+    rounds evaluate the same surfaces again at other θ)."""
+    cache = getattr(trees, "_surface_geometry", None)
+    if cache is None or cache[0] is not trees.normal:
+        cache = trees._surface_geometry = (trees.normal, {})
+    key = (int(idx[0]), len(idx)) if len(idx) else (-1, 0)
+    hit = cache[1].get(key)
+    if hit is None or hit[0] is not idx:
+        k = trees.n_lights
+        hit = cache[1][key] = (idx, np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
+                               np.repeat(trees.view[idx], k, axis=0),
+                               trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
+    return hit[1:]
+
+
 def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> None:
     """Fill ``basis`` (and ``dbasis``) at the nodes ``idx`` of one surface, whose material is ``material``."""
     k = trees.n_lights
     model = get_model(material.brdf)
-    theta = np.repeat(model.theta_of(material)[None], len(idx) * k, axis=0)
-    normal = np.repeat(trees.normal[idx], k, axis=0)
-    view = np.repeat(trees.view[idx], k, axis=0)
-    light = trees.light_dir[idx].reshape(-1, 3)
-    weight = trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx]  # (n_s, K)
+    normal, light, view, weight = _surface_geometry(trees, idx)
+    theta = np.broadcast_to(model.theta_of(material), (len(idx) * k, model.n_nonlinear))
     L, P = model.n_linear, model.n_nonlinear
     if dbasis is not None:
         g, dg = model.g_and_dg(theta, normal, light, view)
