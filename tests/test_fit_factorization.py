@@ -128,6 +128,14 @@ def test_theta_derivative_matches_finite_differences(lab80):
         live += scale > 0
         np.testing.assert_allclose(imgs[q], num, rtol=1e-5, atol=1e-7 * scale + 1e-15)
     assert live >= 2  # the box's and the tile's highlights are in view
+    # Compact images: the rows a θ's surface reaches, where they equal the full ones; zero elsewhere.
+    for which in ([0], [2, 0], list(range(fac.layout.n_theta))):
+        small, rows = grad.images(y, which, compact=True)
+        full = imgs[which]
+        np.testing.assert_array_equal(small, full[:, :, rows])
+        off = np.ones(fac.n_rows, dtype=bool)
+        off[rows] = False
+        assert not np.any(full[:, :, off]) and 0 < len(rows) < fac.n_rows
 
 
 def test_linear_basis_is_reused_only_for_the_same_inputs():
