@@ -366,8 +366,9 @@ def pixel_footprint(pixel: np.ndarray, path: np.ndarray, point: np.ndarray, widt
     used = np.zeros(int(path.max()) + 1, dtype=bool)
     used[path] = True
     npath = int(used.sum())
-    key = pixel * npath + (np.cumsum(used) - 1)[path]
-    table = np.full((int(pixel.max()) + width + 2) * npath, -1, dtype=np.int64)
+    # Pixels counted from the surface's first: the table spans its rows of the image, not all of them.
+    key = (pixel - int(pixel.min())) * npath + (np.cumsum(used) - 1)[path]
+    table = np.full((int(pixel.max() - pixel.min()) + width + 2) * npath, -1, dtype=np.int64)
     table[key] = np.arange(len(key))
     offsets = []
     for step in (1, width):
