@@ -283,7 +283,10 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
         np.add(col_rank, col, out=indices[at:at + m], casting="unsafe")
         indptr[row + 1:row + r + 1] = np.cumsum(np.bincount(row_rank, minlength=r)) + at
         row_ids[row:row + r], col_global[col:col + k] = row_pixels + b * npix, col_texels + b * total
-        coverage[b * total:(b + 1) * total] = np.bincount(texel, weights=wv, minlength=total)
+        # A shared band's coverage is band 0's (same entries, same weights): a copy, not a count
+        # over every texel again (a floor 20 times larger than its view: 1.4 M texels).
+        coverage[b * total:(b + 1) * total] = (coverage[:total] if shared and b else
+                                               np.bincount(texel, weights=wv, minlength=total))
         weight[b * total:(b + 1) * total] = np.bincount(texel, weights=wv * seen[b][node], minlength=total)
         at, row, col = at + m, row + r, col + k
     n_bad = sum(e[7] for e in bands)
@@ -607,22 +610,40 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     full, clipped, saturated3 = full.reshape(3, total), clipped.reshape(3, total), system.saturated_touch.reshape(3, total)
 
     result = TextureResult(maps, {}, {}, {}, {}, {}, {})
+    column_texel = system.col_global % max(total, 1)
     for s, m in maps.items():
-        sl = slice(system.offsets[s], system.offsets[s] + m.n_texels)
-        kn3, w3 = known3[:, sl], weight3[:, sl]
+        off, n = system.offsets[s], m.n_texels
+        sl = slice(off, off + n)
+        # Known, amplified, clipped and guessed texels are columns of the system, saturated ones
+        # touch a saturated pixel: the rest keep the defaults. A map can be far larger than what
+        # the image sees (a floor under a small view: 1.4 M texels, 56 k known).
+        act = np.union1d(column_texel[(column_texel >= off) & (column_texel < off + n)] - off,
+                         np.flatnonzero(saturated3[:, sl].any(axis=0)))
+        kn3, w3 = known3[:, sl][:, act], weight3[:, sl]
         known = kn3.all(axis=0)
-        kd = np.where(known, np.nan_to_num(full[:, sl], nan=0.0), np.asarray(materials[s]["kd"], float)[:, None])
-        amp = np.divide(coverage3[:, sl], w3, out=np.zeros(w3.shape), where=kn3 & (w3 > 0))
-        amp[kn3 & (w3 <= 0)] = np.inf
-        flags = (np.where((amp > options.amplification_limit).any(0) & known, AMPLIFIED, 0)
-                 | np.where(saturated3[:, sl].any(0), SATURATED, 0)
-                 | np.where(clipped[:, sl].any(0) & known, CLIPPED, 0)
-                 | np.where(guessed3[:, sl].any(0) & known, GUESSED, 0)).astype(np.uint8)
+        values = full[:, sl][:, act]
+        if not np.isfinite(values).all():
+            values = np.nan_to_num(values, nan=0.0)
+        mean = np.asarray(materials[s]["kd"], float)
+        kd = np.empty((n, 3))
+        kd[:] = mean
+        kd[act] = np.where(known, values, mean[:, None]).T
+        w3a = w3[:, act]
+        amp_act = np.divide(coverage3[:, sl][:, act], w3a, out=np.zeros(w3a.shape), where=kn3 & (w3a > 0))
+        amp_act[kn3 & (w3a <= 0)] = np.inf
+        amp = np.zeros((n, 3))
+        amp[act] = amp_act.T
+        flags, mask = np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=bool)
+        flags[act] = (np.where((amp_act > options.amplification_limit).any(0) & known, AMPLIFIED, 0)
+                      | np.where(saturated3[:, sl][:, act].any(0), SATURATED, 0)
+                      | np.where(clipped[:, sl][:, act].any(0) & known, CLIPPED, 0)
+                      | np.where(guessed3[:, sl][:, act].any(0) & known, GUESSED, 0))
+        mask[act] = known
         shape = (m.height, m.width)
-        result.kd[s] = kd.T.reshape(*shape, 3)
-        result.mask[s] = known.reshape(shape)
+        result.kd[s] = kd.reshape(*shape, 3)
+        result.mask[s] = mask.reshape(shape)
         result.weight[s] = w3.T.reshape(*shape, 3)
-        result.amplification[s] = amp.T.reshape(*shape, 3)
+        result.amplification[s] = amp.reshape(*shape, 3)
         result.flags[s] = flags.reshape(shape)
     stats.update(
         rows=int(system.E.shape[0]), unknowns=int(system.E.shape[1]), nonzeros=int(system.E.nnz),
