@@ -251,6 +251,7 @@ class Factorization:
         self._static = {}
         self._last = {}  # surface -> (θ, entry values, their θ-derivatives or None): the last evaluation
         self._geometry = {}  # surface -> (normals, light directions, views) per (node, light)
+        self._theta_rows_cache = {}  # θ indices -> (rows they act on, each entry's index among them)
 
     def without(self, pixels) -> "Factorization":
         """The same system with the flat pixel indices ``pixels`` left out too (rejected outliers)."""
@@ -434,7 +435,7 @@ class Factorization:
         thousand of 300 000), so the θ blocks of the normal matrix need only those rows.
         """
         key = tuple(int(q) for q in which)
-        cache = self.__dict__.setdefault("_theta_rows_cache", {})
+        cache = self._theta_rows_cache
         if key not in cache:
             lay = self.layout
             owners = {s for s in range(len(self.models)) for q in key
