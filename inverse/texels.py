@@ -235,8 +235,18 @@ def _min_area_frame(points2: np.ndarray, edges2: np.ndarray) -> tuple[np.ndarray
     return cand[best], perp[best]
 
 
-def _planar_charts(vertices, triangles, texel_size) -> tuple[list[Chart], np.ndarray, int, int]:
-    """Charts of a piecewise-planar mesh, shelf-packed: (charts, tri_chart, width, height)."""
+#: A cropped chart (``region``) reaches this many texels beyond the outermost point it must hold.
+CROP_MARGIN = 2
+
+
+def _planar_charts(vertices, triangles, texel_size, region=None) -> tuple[list[Chart], np.ndarray, int, int]:
+    """Charts of a piecewise-planar mesh, shelf-packed: (charts, tri_chart, width, height).
+
+    ``region`` = (triangle (M,), points (M, 3)): each chart covers only the part of its plane
+    these points span (plus :data:`CROP_MARGIN` texels), on the same texel lattice as the whole
+    chart; a chart with none of them keeps a single texel. Points elsewhere on the mesh fall
+    outside their chart's block.
+    """
     n, d, label = _canonical_planes(vertices, triangles)
     frames = []
     for g in range(label.max() + 1):
@@ -253,8 +263,17 @@ def _planar_charts(vertices, triangles, texel_size) -> tuple[list[Chart], np.nda
         du, dv = _min_area_frame(p2, edges2)
         axis_u, axis_v = du[0] * e0 + du[1] * e1, dv[0] * e0 + dv[1] * e1
         cu, cv = pts @ axis_u, pts @ axis_v
-        lo = np.array([cu.min(), cv.min()])
-        ext = np.array([cu.max(), cv.max()]) - lo
+        lo, hi = np.array([cu.min(), cv.min()]), np.array([cu.max(), cv.max()])
+        if region is not None:
+            inside = region[1][label[region[0]] == g]
+            if len(inside):
+                ru, rv = inside @ axis_u, inside @ axis_v
+                first = np.floor((np.array([ru.min(), rv.min()]) - lo) / texel_size) - CROP_MARGIN
+                lo = lo + np.maximum(first, 0.0) * texel_size  # the same lattice, moved by whole texels
+                hi = np.maximum(np.minimum(hi, np.array([ru.max(), rv.max()]) + CROP_MARGIN * texel_size), lo)
+            else:
+                hi = lo
+        ext = hi - lo
         cols, rows = (np.ceil(ext / texel_size).astype(int) + 1 + 2 * PAD)
         origin = lo[0] * axis_u + lo[1] * axis_v + (normal @ pts[0]) * normal
         frames.append((origin, axis_u, axis_v, rows, cols))
@@ -324,11 +343,14 @@ def _uvatlas(vertices, triangles, texel_size) -> tuple[np.ndarray, int, float]:
     return tri_uv, side, float(np.sqrt(area / 0.6) / side)
 
 
-def build_texel_map(surface: int, name: str, mesh, texel_size: float, *, max_planar_charts: int = MAX_PLANAR_CHARTS) -> TexelMap:
+def build_texel_map(surface: int, name: str, mesh, texel_size: float, *, max_planar_charts: int = MAX_PLANAR_CHARTS,
+                    region=None) -> TexelMap:
     """The texel atlas of one surface's mesh at ``texel_size`` metres per texel.
 
     Piecewise-planar meshes (at most ``max_planar_charts`` planes) get planar charts, others the
-    UV atlas. A request beyond :data:`MAX_TEXELS` texels is coarsened to fit.
+    UV atlas. A request beyond :data:`MAX_TEXELS` texels is coarsened to fit. ``region`` =
+    (triangle (M,), points (M, 3)) crops planar charts to what those points span
+    (:func:`_planar_charts`): for a map only those points will ever be looked up in.
     """
     if not (np.isfinite(texel_size) and texel_size > 0):
         raise ValueError(f"surface {name!r}: texel size must be a positive number, got {texel_size!r}")
@@ -336,7 +358,7 @@ def build_texel_map(surface: int, name: str, mesh, texel_size: float, *, max_pla
     _, _, label = _canonical_planes(vertices, triangles)
     if label.max() + 1 <= max_planar_charts:
         for _ in range(8):
-            charts, _, width, height = _planar_charts(vertices, triangles, texel_size)
+            charts, _, width, height = _planar_charts(vertices, triangles, texel_size, region)
             if width * height <= MAX_TEXELS:
                 break
             texel_size *= np.sqrt(width * height / MAX_TEXELS) * 1.05

@@ -164,8 +164,13 @@ def load_undetermined(workspace, scene) -> list:
     return out
 
 
-def build_maps(scene, trees, options: TextureOptions) -> dict[int, TexelMap]:
-    """A texel atlas for each textured surface that some node lies on, sized from its footprint."""
+def build_maps(scene, trees, options: TextureOptions, crop: bool = False) -> dict[int, TexelMap]:
+    """A texel atlas for each textured surface that some node lies on, sized from its footprint.
+
+    ``crop``: planar charts cover only what the trees' nodes span (a map that only these trees'
+    nodes will be looked up in, such as the fit's texture rounds'; a written texture is not
+    cropped: other views see more of the surface).
+    """
     maps = {}
     for s, surf in enumerate(scene):
         sel = np.nonzero(trees.surface == s)[0]
@@ -177,7 +182,8 @@ def build_maps(scene, trees, options: TextureOptions) -> dict[int, TexelMap]:
             size = choose_texel_size(fp, options.texel_scale, options.texel_quantile)
         if size is None:  # isolated single-pixel sightings only: one texel per pixel-ish
             size = float(np.ptp(surf.mesh.vertices, axis=0).max()) / max(trees.width, trees.height)
-        maps[s] = build_texel_map(s, surf.name, surf.mesh, size)
+        region = (trees.triangle[sel], trees.point[sel]) if crop else None
+        maps[s] = build_texel_map(s, surf.name, surf.mesh, size, region=region)
     return maps
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from inverse.factorization import Factorization
 from inverse.fitting import FitResult, fit
 from inverse.rendering import linear_basis, node_radiance, path_products
-from inverse.texture import TextureOptions, recover_texture, sample_texture
+from inverse.texture import TextureOptions, build_maps, recover_texture, sample_texture
 
 #: A round whose fit leaves an RMS residual more than RISE times the best so far is not kept. Each
 #: round's residual is against its own texture, so the rounds share no objective: a lower RMS does
@@ -188,7 +188,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         share = direct_share(trees, result.materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
         tex = recover_texture(scene, trees, result.materials, intensities, image, options, exclude=left_out,
-                              maps=None if tex is None else tex.maps)
+                              maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps)
         relative = relative_albedo(trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)

@@ -45,6 +45,31 @@ def test_box_charts_reproduce_a_linear_albedo_exactly():
     assert abs(ch.axis_u @ ch.axis_v) < 1e-12
 
 
+def test_cropped_charts_hold_their_region_on_the_same_lattice():
+    # The fit's texture rounds crop each chart to what the trees see: a corner of a box, nothing of
+    # some faces. Every region point's bilinear footprint stays in its own chart's block, reading
+    # the same linear albedo exactly, and the texel centres are the uncropped map's.
+    mesh = box_mesh((0.10, 0.07, 0.06), (-0.07, 0.03, 0.03), _rot_z(12.0))
+    tri, bary, pts = _random_surface_points(mesh, 4000, seed=3)
+    near = np.linalg.norm(pts - mesh.vertices[0], axis=1) < 0.04
+    full = build_texel_map(1, "box", mesh, 0.002)
+    crop = build_texel_map(1, "box", mesh, 0.002, region=(tri[near], pts[near]))
+    assert crop.n_texels < full.n_texels / 3
+    _, centres_full = full.texel_centers()
+    idx, centres = crop.texel_centers()
+    assert len(np.unique(idx)) == len(idx) and idx.max() < crop.n_texels
+    a, c = np.array([3.0, -2.0, 5.0]), 0.4
+    values = np.zeros(crop.n_texels)
+    values[idx] = centres @ a + c
+    index, weight = crop.bilinear(tri[near], bary[near, 1:])
+    assert np.all(np.isin(index[weight > 0], idx)), "a region point reads outside its chart"
+    np.testing.assert_allclose((weight * values[index]).sum(1), pts[near] @ a + c, atol=1e-9)
+    # Same lattice: every cropped texel centre is one of the full map's.
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(centres_full).query(centres)[0].max() < 1e-9
+
+
 def test_box_face_chart_is_the_minimum_rectangle():
     # A 10 cm x 6 cm face rotated in the plane: its chart must be aligned with its edges.
     mesh = box_mesh((0.10, 0.06, 0.001), (0, 0, 0), _rot_z(33.0))
