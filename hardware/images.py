@@ -24,7 +24,7 @@ def _cv2():
     return cv2
 
 
-def _bitmap():
+def _mitsuba_core():
     import mitsuba as mi  # Bitmap is in Mitsuba's core: no variant needed
 
     return mi
@@ -32,12 +32,12 @@ def _bitmap():
 
 def read_exr(path, dtype=np.float32) -> np.ndarray:
     """The pixels of an OpenEXR file as they are, (H, W, channels); RuntimeError when unreadable."""
-    bmp = _bitmap().Bitmap(str(path))
+    bmp = _mitsuba_core().Bitmap(str(path))
     return np.array(bmp, dtype=dtype, copy=True).reshape(bmp.height(), bmp.width(), -1)
 
 
 def _write_exr(path: Path, img: np.ndarray) -> None:
-    mi = _bitmap()
+    mi = _mitsuba_core()
     fmt = mi.Bitmap.PixelFormat.RGB if img.ndim == 3 else mi.Bitmap.PixelFormat.Y
     mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32), fmt).write(str(path))
 

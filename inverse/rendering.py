@@ -91,13 +91,12 @@ def _surface_geometry(trees, idx) -> tuple:
     cache = getattr(trees, "_surface_geometry", None)
     if cache is None or cache[0] is not trees.normal:
         cache = trees._surface_geometry = (trees.normal, {})
-    key = (int(idx[0]), len(idx)) if len(idx) else (-1, 0)
-    hit = cache[1].get(key)
+    hit = cache[1].get(id(idx))  # idx: one of _groups' arrays, kept with the trees
     if hit is None or hit[0] is not idx:
         k = trees.n_lights
-        hit = cache[1][key] = (idx, np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
-                               np.repeat(trees.view[idx], k, axis=0),
-                               trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
+        hit = cache[1][id(idx)] = (idx, np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
+                                   np.repeat(trees.view[idx], k, axis=0),
+                                   trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
     return hit[1:]
 
 

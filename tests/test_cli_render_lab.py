@@ -19,10 +19,9 @@ def _rel_rms(a, b):
 
 def _read_with_nan(path):
     """An EXR that may hold NaN (albedo AOV: unknown), which read_image rightly refuses."""
-    from hardware.mitsuba_env import mitsuba
+    from hardware.images import read_exr
 
-    bmp = mitsuba().Bitmap(str(path))
-    return np.array(bmp, dtype=np.float32).reshape(bmp.height(), bmp.width(), -1)[:, :, :3]
+    return read_exr(path)[:, :, :3]
 
 
 @pytest.fixture()

@@ -5,10 +5,10 @@ from pathlib import Path
 from app.cli import main
 from hardware.sim.lab import build_lab
 from inverse.trees import build_trees
-from hardware.mitsuba_env import mitsuba
+from hardware.images import read_exr
 ws = Path(sys.argv[1] if len(sys.argv) > 1 else 'demo-workspace')  # made by `make demo` (320x240)
 assert main(["render", str(ws), "--aov", "albedo", "-o", "/tmp/alb.exr"]) == 0
-bmp = mitsuba().Bitmap('/tmp/alb.exr'); alb = np.array(bmp).reshape(240, 320, -1)[:, :, :3].reshape(-1, 3)
+alb = read_exr('/tmp/alb.exr')[:, :, :3].reshape(-1, 3)
 lab = build_lab(320, 240)
 tr = build_trees(lab.scene, lab.camera, lab.lights, depth=1)
 true = np.full((320*240, 3), np.nan); true[tr.pixel] = lab.albedo_at(tr.surface, tr.point)
