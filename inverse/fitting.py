@@ -245,6 +245,14 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
     loose = unresolved(pb, p, init, free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+    # Nor its shininess without its height: a lobe whose ks is held or undetermined in every band
+    # may not be there (a glass block's highlight out of view, only a faint tail seen: ns 106 ± 36
+    # for a true 250 beside ks 0.013, true 0.15), so its θ is reported undetermined too.
+    for s, model in enumerate(fac.models):
+        shaped = [lay.x_offset[s] + j for j in model.shaped if not (textured is not None and textured[s] and model.linear[j] == "kd")]
+        th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
+        if shaped and all(np.all(~free.x[k] | loose.x[k]) for k in shaped):
+            loose.theta[th] |= free.theta[th]
     # A lobe's ks means nothing without its shininess: held or undetermined θ makes its ks so too.
     for k, (s, name) in enumerate(lay.x_names):
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])

@@ -8,7 +8,10 @@ independent renderer (:func:`hardware.sim.reference.render_reference`):
 - ``floor_mirror``: a matte textured floor (phong ks 0.04, ns 12) seen directly and in an upright
   mirror (r 0.85), one lamp;
 - ``curved``: a textured cylinder (curved mesh, phong ks 0.2, ns 20) lying on a plain matte
-  ground, two lamps.
+  ground, two lamps;
+- ``glass_block``: a thick glass block (index 1.5, 2.5 cm, faintly green) standing on a matte
+  textured floor, which the camera sees directly, through the block (refracted twice, displaced)
+  and in the block's faces; two lamps.
 
 The camera looks down at about 40° from 0.5 m (like the lab's); textures are smooth procedural
 functions of the surface point in [0.1, 0.9] with features of 1–3 cm.
@@ -22,7 +25,7 @@ from calibration.lights import Lights, PointLight
 from hardware.sim.lab import SimLab, _material, _rot_z, box_mesh, plane_mesh
 from reconstruction.scene import Material, Mesh, Scene, Surface
 
-NAMES = ("shiny_box", "floor_mirror", "curved")
+NAMES = ("shiny_box", "floor_mirror", "curved", "glass_block")
 
 
 def _pattern(points, scale: float, colours, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -105,6 +108,14 @@ def build(name: str, width: int = 160, height: int = 120, texture_seed: int | No
                     Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
         lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
         textures = {1: tex}
+    elif name == "glass_block":
+        block = box_mesh((0.14, 0.025, 0.07), (0.0, 0.06, 0.036), _rot_z(10.0))  # lifted 1 mm off the floor
+        tex = _realisation(0.03, ([0.85, 0.8, 0.7], [0.25, 0.2, 0.45]), texture_seed)
+        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                    Surface("block", "meshes/block.ply", _material("phong", ior=1.5, kd=[0.004, 0.006, 0.004], ks=0.15,
+                                                                   ns=250.0, r=1.0, t=[0.88, 0.93, 0.90]), False, block)]
+        lights = [PointLight([0.15, 0.35, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
+        textures = {0: tex}
     else:
         raise ValueError(f"unknown scene {name!r}; one of {NAMES}")
     return SimLab(camera, Lights(lights), Scene(surfaces), textures)
