@@ -52,7 +52,7 @@ METHODS = ("ftbo", "nftbo")
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
-        structure: Free | None = None, uncertainty: bool = True) -> FitResult:
+        structure: Free | None = None, uncertainty: bool = True, guessed=None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -87,6 +87,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     held : list of set of str, optional
         Per surface, the parameter names the user gave (scene.json): held at their value, never
         fitted (default: none; :func:`inverse.fit_stage.fit_workspace` passes every name not ``defaulted``).
+    guessed : list of set of str, optional
+        Per surface, names held at a guessed value (a textured surface's grey lobe,
+        :func:`inverse.texture_fit.grey_lobes`): held and reported undetermined like ``held``, but
+        every σ counts them as free, so that the others' σ keeps the guess's uncertainty.
     reject : bool or int
         Passes (True: :data:`inverse.diagnosis.REJECT_PASSES`) in which outlier pixels
         (:func:`inverse.diagnosis.outliers`: residual beyond ``REJECT_SIGMAS`` image-noise σ,
@@ -135,6 +139,12 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     pb.phases["structure"] = time.perf_counter() - t0
     if held is not None:
         hold(fac, free, held)
+    # What the σ counts free: all but what the user gave. A parameter held at a guess (below, or
+    # by the holding rounds for want of signal) leaves the others' σ as wide as its uncertainty
+    # makes them: holding it would tighten them around a value nobody knows.
+    guess = free.copy()
+    if guessed is not None:
+        hold(fac, free, guessed)
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
@@ -188,7 +198,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                               rounds, pb.evaluations, iterations, message,
                               {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
-                                  task=task, held=held, passes=REJECT_PASSES if reject is True else int(reject),
+                                  task=task, held=held, guessed=guessed, passes=REJECT_PASSES if reject is True else int(reject),
                                   max_seconds=None if max_seconds is None else max_seconds - fitted,
                                   uncertainty=uncertainty)
     stats = {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
@@ -207,22 +217,27 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                 spent = time.perf_counter() - t_polish
                 pb.phases["refinement"] += spent
             return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
-                             nit, msg, fitted + spent, stats)
+                             nit, msg, fitted + spent, stats, guess)
 
         return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
                           "complete": complete}, found)
     return _complete(pb, p, init, free, found, res, A, materials, textured, names, method, trace, rounds, iterations,
-                     message, fitted, stats)
+                     message, fitted, stats, guess)
 
 
 def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
-              method, trace, rounds, iterations, message, fitted, stats) -> FitResult:
-    """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted."""
+              method, trace, rounds, iterations, message, fitted, stats, guess: Free | None = None) -> FitResult:
+    """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted.
+
+    ``guess``: parameters held at a guessed value whose uncertainty the σ still counts (free in
+    every σ computation: holding them would tighten the σ of all that shares pixels with them).
+    """
     t0 = time.perf_counter()
     fac = pb.fac
-    sig = sigmas(pb, p, free, res)
+    sf = free if guess is None else guess
+    sig = sigmas(pb, p, sf, res)
     lay = fac.layout
     absorbed, anywhere = texture_absorbed(fac, p, materials, textured)
     if absorbed.any():
@@ -230,7 +245,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # (kd of a textured surface is its texture's mean: its σ stays the one from every pixel).
         tex_kd = np.array([bool(textured[s]) and name == "kd" for s, name in lay.x_names], dtype=bool)
         # The texture (its mean kd included) counts as known from the pixels that see it directly.
-        sig_t = sigmas(pb, p, Free(free.x & ~tex_kd[:, None], free.s, free.theta), res, keep=~absorbed)
+        sig_t = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~absorbed)
         sig = Params(np.where(tex_kd[:, None], sig.x, np.fmax(sig.x, sig_t.x)), np.fmax(sig.s, sig_t.s),
                      np.fmax(sig.theta, sig_t.theta))
         # A textured surface's own lobe (ks, θ): the view that pins its texture (the direct one)
@@ -239,8 +254,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # (left free on the demo it fitted box ns 2.5 ± 0.7, true 30, from the box in the mirror).
         own = np.array([bool(textured[s]) and name != "kd" for s, name in lay.x_names], dtype=bool)
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
-        if (own[:, None] & free.x).any() or (own_theta & free.theta).any():
-            sig_o = sigmas(pb, p, Free(free.x & ~tex_kd[:, None], free.s, free.theta), res, keep=~anywhere)
+        if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any():
+            sig_o = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~anywhere)
             sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
