@@ -136,8 +136,10 @@ def at_bound(fac, p, free) -> list:
                 out[s][band(name, c)] = side
     for q, (s, name) in enumerate(lay.theta_names):
         if free.theta[q]:
-            lo, hi = np.log2(lo_t[q]), np.log2(hi_t[q])
-            side = _side(np.log2(max(p.theta[q], 1e-300)), lo, hi) if name in ("ns", "alpha") else _side(p.theta[q], lo_t[q], hi_t[q])
+            # Shininess and roughness in log2 (as the fit searches them); Oren-Nayar's σ, whose
+            # range starts at 0, linearly.
+            side = (_side(np.log2(max(p.theta[q], 1e-300)), np.log2(lo_t[q]), np.log2(hi_t[q])) if name in ("ns", "alpha")
+                    else _side(p.theta[q], lo_t[q], hi_t[q]))
             if side:
                 out[s][name] = side
     return out

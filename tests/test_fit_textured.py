@@ -188,6 +188,27 @@ def test_plausible_ranges_are_kept_and_flagged():
     assert at_bound(fac, p, every)[1]["ks[0]"] == "upper"
 
 
+def test_an_oren_nayar_roughness_at_zero_is_flagged_quietly():
+    """Oren-Nayar's σ range starts at 0 (ns and Ward's α are judged in log2): at σ = 0 it is flagged
+    at its lower bound, with no log of zero on the way (it warned "divide by zero")."""
+    import warnings
+
+    from hardware.sim.lab import build_lab, _material
+    from inverse.trees import build_trees
+
+    lab = build_lab(W, H, textured=False)
+    mats = [s.material for s in lab.scene]
+    mats[1] = _material("oren-nayar", kd=0.4, sigma=0.0)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    fac = Factorization(trees, [get_model(m.brdf) for m in mats], lab.lights.intensities)
+    p = params_of(fac, mats)
+    every = Free(np.ones_like(p.x, dtype=bool), np.ones_like(p.s, dtype=bool), np.ones_like(p.theta, dtype=bool))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        flags = at_bound(fac, p, every)
+    assert flags[1]["sigma"] == "lower"
+
+
 def test_values_given_in_scene_json_are_held():
     """A shininess the user wrote down is kept, even a wrong one; the rest is fitted around it."""
     from hardware.sim.lab import build_lab
