@@ -278,16 +278,87 @@ def undetermined_radiance(trees, materials, intensities, undetermined, *, kd_nod
     return np.where(per_path[trees.path], terms.sum(axis=2), part)
 
 
+def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, textured=None) -> np.ndarray:
+    """(N, 3) one-sigma of each node's radiance from the σ of the parameters the fit determined.
+
+    Parameters
+    ----------
+    sigma : list of dict
+        Per surface, fit.json's ``sigma``: name -> (3,) per band or a float for θ; None (or a
+        missing name) where the fit holds or calls the value undetermined (those are
+        :func:`undetermined_radiance`'s) or the user gave it.
+    kd_nodes, textured
+        As for :func:`undetermined_radiance`; a textured surface's kd is the texture's (judged by
+        the texture stage), so its σ is not counted.
+
+    Each parameter's part is its derivative times its σ, linearised; the parts add in quadrature
+    at a node (as if independent). A reflection or transmission coefficient that is exactly 0 in
+    every band has no branch in the trees, so its σ shows nowhere.
+    """
+    intensities = _check(trees, materials, intensities)
+    x, _ = node_parameters(trees, materials)
+    if kd_nodes is not None:
+        x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)
+    n_s = len(materials)
+
+    def sig(s, name, shape):
+        v = sigma[s].get(name) if s < len(sigma) and sigma[s] else None
+        a = np.broadcast_to(np.asarray([np.nan if e is None else e for e in np.atleast_1d(v)] if v is not None else np.nan,
+                                       dtype=np.float64), shape)
+        return np.where(np.isfinite(a), a, 0.0)
+
+    sx = np.zeros((n_s, 3, MAX_LINEAR))
+    st = np.zeros((n_s, MAX_NONLINEAR))
+    sf = np.zeros((n_s, 2, 3))  # r, t
+    for s in range(n_s):
+        model = get_model(materials[s].brdf)
+        for j, name in enumerate(model.linear):
+            if not (j == 0 and textured is not None and textured[s]):
+                sx[s, :, j] = sig(s, name, (3,))
+        for j, name in enumerate(model.nonlinear):
+            st[s, j] = sig(s, name, (1,))[0]
+        sf[s] = [sig(s, "r", (3,)), sig(s, "t", (3,))]
+    basis, dbasis = linear_basis_and_grad(trees, materials, intensities, grad=bool(st.any()))
+    prod = path_products(trees, materials)
+    var = ((basis * sx[trees.surface]) ** 2).sum(axis=2) * prod**2
+    if dbasis is not None:
+        dtheta = np.einsum("nclp,ncl->ncp", dbasis, x) * st[trees.surface][:, None, :]
+        var += (dtheta**2).sum(axis=2) * prod**2
+    # d(path product)/d(factor) · σ, one distinct path at a time: the product of the path's other
+    # factors times the factor's exponent and power below (a zero factor's branch still counts).
+    dpath = np.zeros((len(trees.paths), 3))
+    for i, path in enumerate(trees.paths):
+        count = {}
+        for s, kind in path:
+            count[(s, int(bool(kind)))] = count.get((s, int(bool(kind))), 0) + 1
+        for (s, kind), e in count.items():
+            others = np.ones(3)
+            for (s2, k2), e2 in count.items():
+                if (s2, k2) != (s, kind):
+                    others *= np.asarray(materials[s2]["t" if k2 else "r"], dtype=np.float64) ** e2
+            value = np.asarray(materials[s]["t" if kind else "r"], dtype=np.float64)
+            dpath[i] += (e * value ** (e - 1) * others * sf[s, kind]) ** 2
+    var += np.einsum("ncl,ncl->nc", basis, x) ** 2 * dpath[trees.path]
+    return np.sqrt(var)
+
+
 def undetermined_pixels(trees, materials, intensities, undetermined, *, kd_nodes=None, textured=None, guessed=None,
-                        image=None, share: float = UNDETERMINED_SHARE, floor: float = UNDETERMINED_FLOOR) -> np.ndarray:
+                        image=None, sigma=None, share: float = UNDETERMINED_SHARE,
+                        floor: float = UNDETERMINED_FLOOR) -> np.ndarray:
     """(H, W) bool: pixels whose predicted light rests for more than ``share`` of it on undetermined
     parameters (and for more than ``floor`` of the peak); see :func:`undetermined_radiance`.
 
     ``image`` (H, W, 3), optional: the photograph to measure the share against (the texture stage,
-    before any texture is known); default the prediction itself.
+    before any texture is known); default the prediction itself. ``sigma`` (fit.json's, per
+    surface), optional: the one-sigma the determined parameters give the pixel
+    (:func:`uncertain_radiance`) counts too, so that a value known only to ±60 % (a faint
+    reflection) does not pass for determined.
     """
     part = accumulate(trees, np.abs(undetermined_radiance(trees, materials, intensities, undetermined,
                                                           kd_nodes=kd_nodes, textured=textured, guessed=guessed)))
+    if sigma is not None and any(sigma):
+        part = part + accumulate(trees, uncertain_radiance(trees, materials, intensities, sigma, kd_nodes=kd_nodes,
+                                                           textured=textured))
     if image is None:
         total = render(trees, materials, intensities, kd_nodes=kd_nodes)
     else:

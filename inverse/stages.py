@@ -220,7 +220,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     """
     from hardware.workspace import Workspace
     from inverse.rendering import render as render_trees, render_albedo, undetermined_pixels
-    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_texture_maps, load_undetermined
+    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_sigma, load_texture_maps, load_undetermined
     from inverse.trees import trees_for_workspace
 
     task = ensure(task)
@@ -251,11 +251,11 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         image = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
     info["undetermined_pixels"] = np.zeros((cam.height, cam.width), dtype=bool)
     if aov is None:
-        undetermined = load_undetermined(ws, scene)
+        undetermined, sigma = load_undetermined(ws, scene), load_sigma(ws, scene)
         guessed = guessed_nodes(ws, scene, trees, textures) if textures is not None else None
-        if any(undetermined) or (guessed is not None and guessed.any()):
+        if any(undetermined) or any(sigma) or (guessed is not None and guessed.any()):
             info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, undetermined,
-                                                              kd_nodes=kd_nodes, guessed=guessed,
+                                                              kd_nodes=kd_nodes, guessed=guessed, sigma=sigma,
                                                               textured=[s.textured for s in scene])
     info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees)
     return image, info

@@ -164,6 +164,28 @@ def load_undetermined(workspace, scene) -> list:
     return out
 
 
+def load_sigma(workspace, scene) -> list:
+    """Per surface, fit.json's ``sigma`` of the values it determined (name -> per-band list, None in
+    bands it calls undetermined, or a float): what scene.json gives is known and left out, as are
+    undetermined values (:func:`load_undetermined`'s); empty dicts without fit.json."""
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    out = [{} for _ in scene]
+    if not ws.fit.exists():
+        return out
+    for item in read_json(ws.fit).get("surfaces", []):
+        if not (isinstance(item, dict) and item.get("name") in scene.names and isinstance(item.get("sigma"), dict)):
+            continue
+        s = scene.index(item["name"])
+        loose = set(item.get("undetermined", []))
+        for name, v in item["sigma"].items():
+            if name in scene[s].material.given or name in loose:
+                continue
+            if isinstance(v, list):
+                v = [None if f"{name}[{c}]" in loose else e for c, e in enumerate(v)]
+            out[s][name] = v
+    return out
+
+
 def build_maps(scene, trees, options: TextureOptions, crop: bool = False) -> dict[int, TexelMap]:
     """A texel atlas for each textured surface that some node lies on, sized from its footprint.
 
