@@ -11,7 +11,8 @@ model within 3 dB of the true-material one (goal 1 dB).
 The textured scenes of our own (:mod:`hardware.sim.scenes`) are measured the same way
 (``--scene``): their novel view turns the input camera 40° about its target and rises 8 cm.
 
-Usage: ``python docs/figures/fit_psnr.py [WIDTH HEIGHT] [--scene lab|shiny_box|floor_mirror|curved|all] [--noise 0.01]``
+Usage: ``python docs/figures/fit_psnr.py [WIDTH HEIGHT] [--scene lab|shiny_box|floor_mirror|curved|glass_block|all]
+[--noise 0.01] [--texture-seed K]``
 (default 320 240, the lab).
 """
 import argparse
@@ -53,8 +54,9 @@ def views(root: Path, width: int, height: int, lab, scene: str):
             ("novel view" + (" (box back face)" if scene == "lab" else ""), root / "novel.json", None)]
 
 
-def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float = 0.0, seed: int = 0) -> list[dict]:
-    lab = build_lab(width, height) if scene == "lab" else build(scene, width, height)
+def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float = 0.0, seed: int = 0,
+            texture_seed: int | None = None) -> list[dict]:
+    lab = build_lab(width, height) if scene == "lab" else build(scene, width, height, texture_seed=texture_seed)
     photo = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)
     if noise:  # Gaussian, sigma = noise x the image's peak, the same photograph for both models
         photo = photo + np.random.default_rng(seed).normal(0.0, noise * photo.max(), photo.shape)
@@ -91,12 +93,14 @@ if __name__ == "__main__":
     ap.add_argument("size", nargs="*", type=int, default=[320, 240])
     ap.add_argument("--scene", default="lab", help="lab, one of " + ", ".join(NAMES) + ", or all")
     ap.add_argument("--noise", type=float, default=0.0, help="Gaussian noise on the photograph, fraction of its peak")
+    ap.add_argument("--texture-seed", type=int, help="another realisation of our scenes' textures (hardware.sim.scenes.build)")
     args = ap.parse_args()
     w, h = args.size
     for scene in (("lab",) + NAMES if args.scene == "all" else (args.scene,)):
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            rows = measure(w, h, Path(tmp), scene, args.noise)
+            rows = measure(w, h, Path(tmp), scene, args.noise,
+                           texture_seed=None if scene == "lab" else args.texture_seed)
         print(f"\n{scene} {w}x{h}, noise {args.noise:g} (total {time.perf_counter() - start:.1f} s)")
         print("| view | true materials + texture | fitted materials + texture | difference | pixels compared "
               "| over determined pixels: true | fitted | difference | pixels |")
