@@ -10,6 +10,7 @@ bar), the worst |error|/σ, and how often each parameter was reported undetermin
 
     python docs/figures/fit_calibration.py --size 80x60 --realisations 20 --noise 0.01 [--vary-texture] [--json out.json]
     python docs/figures/fit_calibration.py --size 160x120 --realisations 1 --noise 0 --verbose   # one fit per scene
+    python docs/figures/fit_calibration.py --scenes more ...   # the further designs (hardware.sim.scenes.MORE)
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from hardware.sim.scenes import NAMES, build, determined, render, user_materials  # noqa: E402
+from hardware.sim.scenes import MORE, NAMES, build, determined, render, user_materials  # noqa: E402
 from inverse.factorization import Factorization  # noqa: E402
 from inverse.fitting import fit  # noqa: E402
 from inverse.models import get_model  # noqa: E402
@@ -50,7 +51,7 @@ def main(argv=None):
     ap.add_argument("--size", default="80x60")
     ap.add_argument("--realisations", type=int, default=20)
     ap.add_argument("--noise", type=float, default=0.01)
-    ap.add_argument("--scenes", default=",".join(NAMES))
+    ap.add_argument("--scenes", default=",".join(NAMES), help="comma-separated names, or 'more' for " + ", ".join(MORE))
     ap.add_argument("--json")
     ap.add_argument("--verbose", action="store_true", help="print every determined parameter of every fit")
     ap.add_argument("--vary-texture", action="store_true",
@@ -58,7 +59,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     W, H = (int(v) for v in args.size.split("x"))
     report, pooled = {}, []
-    for name in args.scenes.split(","):
+    for name in (MORE if args.scenes == "more" else args.scenes.split(",")):
         ts = build(name, W, H)
         clean = render(ts)
         init = user_materials(ts.scene)

@@ -12,7 +12,7 @@ The textured scenes of our own (:mod:`hardware.sim.scenes`) are measured the sam
 (``--scene``): their novel view turns the input camera 40° about its target and rises 8 cm.
 
 Usage: ``python docs/figures/fit_psnr.py [WIDTH HEIGHT] [--scene lab|shiny_box|floor_mirror|curved|glass_block|all]
-[--noise 0.01] [--texture-seed K]``
+[--noise 0.01] [--texture-seed K]``; ``--scene more`` measures :data:`hardware.sim.scenes.MORE`.
 (default 320 240, the lab).
 """
 import argparse
@@ -33,7 +33,7 @@ from calibration.lights import Lights  # noqa: E402
 from hardware.images import write_image  # noqa: E402
 from hardware.sim.lab import build_lab, write_lab  # noqa: E402
 from hardware.sim.reference import render_reference  # noqa: E402
-from hardware.sim.scenes import NAMES, build  # noqa: E402
+from hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
 from inverse.stages import render_workspace  # noqa: E402
 
 
@@ -91,12 +91,13 @@ def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("size", nargs="*", type=int, default=[320, 240])
-    ap.add_argument("--scene", default="lab", help="lab, one of " + ", ".join(NAMES) + ", or all")
+    ap.add_argument("--scene", default="lab",
+                    help="lab, one of " + ", ".join(NAMES + MORE) + ", all (the lab and " + ", ".join(NAMES) + ") or more (" + ", ".join(MORE) + ")")
     ap.add_argument("--noise", type=float, default=0.0, help="Gaussian noise on the photograph, fraction of its peak")
     ap.add_argument("--texture-seed", type=int, help="another realisation of our scenes' textures (hardware.sim.scenes.build)")
     args = ap.parse_args()
     w, h = args.size
-    for scene in (("lab",) + NAMES if args.scene == "all" else (args.scene,)):
+    for scene in {"all": ("lab",) + NAMES, "more": MORE}.get(args.scene, (args.scene,)):
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
             rows = measure(w, h, Path(tmp), scene, args.noise,

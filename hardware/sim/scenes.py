@@ -13,6 +13,13 @@ independent renderer (:func:`hardware.sim.reference.render_reference`):
   textured floor, which the camera sees directly, through the block (refracted twice, displaced)
   and in the block's faces; two lamps.
 
+:data:`MORE` are further designs, each stressing one thing (docs/fit.md, "Other designs"):
+``ward_tile`` (a textured Ward tile beside a plain glossy box), ``near_lamp`` (a lamp 3 cm above
+a textured floor), ``oren_mirror`` (a textured Oren–Nayar box before a mirror), ``sheet_flat``
+(a thin transparent sheet held flat over a textured floor), ``high_ns`` (a plain tile of
+shininess 3000 whose highlight is in view, on a textured floor), ``two_textured`` (a glossy
+textured box on a glossy textured floor).
+
 The camera looks down at about 40° from 0.5 m (like the lab's); textures are smooth procedural
 functions of the surface point in [0.1, 0.9] with features of 1–3 cm.
 """
@@ -22,10 +29,11 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.lights import Lights, PointLight
-from hardware.sim.lab import SimLab, _material, _rot_z, box_mesh, plane_mesh
+from hardware.sim.lab import SimLab, _material, _rot_x, _rot_z, box_mesh, plane_mesh
 from reconstruction.scene import Material, Mesh, Scene, Surface
 
 NAMES = ("shiny_box", "floor_mirror", "curved", "glass_block")
+MORE = ("ward_tile", "near_lamp", "oren_mirror", "sheet_flat", "high_ns", "two_textured")
 
 
 def _pattern(points, scale: float, colours, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -81,7 +89,7 @@ def _realisation(scale: float, colours, seed: int | None):
 
 
 def build(name: str, width: int = 160, height: int = 120, texture_seed: int | None = None) -> SimLab:
-    """One of :data:`NAMES` at ``width`` x ``height`` (camera, lamps, true materials, true albedo);
+    """One of :data:`NAMES` or :data:`MORE` at ``width`` x ``height`` (camera, lamps, true materials, true albedo);
     ``texture_seed`` picks another realisation of its texture (:func:`_realisation`)."""
     camera = Camera.look_at(640, 480, fov_x_deg=36.0, eye=(0.0, -0.38, 0.36), target=(0.0, 0.02, 0.02))
     camera = camera.scaled(width, height) if (width, height) != (640, 480) else camera
@@ -116,8 +124,56 @@ def build(name: str, width: int = 160, height: int = 120, texture_seed: int | No
                                                                    ns=250.0, r=1.0, t=[0.88, 0.93, 0.90]), False, block)]
         lights = [PointLight([0.15, 0.35, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
         textures = {0: tex}
+    elif name == "ward_tile":
+        tile = box_mesh((0.12, 0.12, 0.008), (0.02, 0.02, 0.0041), _rot_z(20.0))
+        box = box_mesh((0.06, 0.06, 0.06), (-0.12, 0.10, 0.0301), _rot_z(-25.0))
+        tex = _realisation(0.03, ([0.8, 0.75, 0.6], [0.15, 0.3, 0.5]), texture_seed)
+        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.35, 0.35, 0.33]), False, ground),
+                    Surface("tile", "meshes/tile.ply", _material("ward", kd=_mean(tile, tex), ks=0.15, alpha=0.12), True, tile),
+                    Surface("box", "meshes/box.ply", _material("phong", kd=[0.6, 0.2, 0.15], ks=0.4, ns=80.0), False, box)]
+        lights = [PointLight([0.10, 0.35, 0.35], 0.12 * lamp), PointLight([-0.30, -0.10, 0.30], 0.08 * lamp)]
+        textures = {1: tex}
+    elif name == "near_lamp":
+        box = box_mesh((0.08, 0.08, 0.05), (0.06, 0.05, 0.0251), _rot_z(30.0))
+        tex = _realisation(0.03, ([0.85, 0.8, 0.7], [0.3, 0.2, 0.4]), texture_seed)
+        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                    Surface("box", "meshes/box.ply", _material("phong", kd=[0.2, 0.5, 0.3], ks=0.3, ns=60.0), False, box)]
+        lights = [PointLight([-0.06, 0.0, 0.03], 0.004 * lamp), PointLight([0.2, 0.3, 0.4], 0.1 * lamp)]
+        textures = {0: tex}
+    elif name == "oren_mirror":
+        box = box_mesh((0.10, 0.07, 0.06), (0.0, 0.0, 0.0301), _rot_z(25.0))
+        mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
+        tex = _realisation(0.025, ([0.7, 0.5, 0.3], [0.2, 0.35, 0.6]), texture_seed)
+        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.4]), False, ground),
+                    Surface("box", "meshes/box.ply", _material("oren-nayar", kd=_mean(box, tex), sigma=0.4), True, box),
+                    Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.8), False, mirror)]
+        lights = [PointLight([0.25, -0.2, 0.35], 0.1 * lamp), PointLight([-0.25, -0.15, 0.3], 0.07 * lamp)]
+        textures = {1: tex}
+    elif name == "sheet_flat":
+        sheet = box_mesh((0.16, 0.12, 0.003), (0.0, 0.04, 0.04), _rot_z(5.0) @ _rot_x(8.0))
+        tex = _realisation(0.03, ([0.8, 0.7, 0.55], [0.2, 0.3, 0.5]), texture_seed)
+        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                    Surface("sheet", "meshes/sheet.ply", _material("phong", ior=1.49, kd=[0.01, 0.01, 0.03], ks=0.2, ns=300.0,
+                                                                   r=1.0, t=[0.7, 0.85, 0.95]), False, sheet)]
+        lights = [PointLight([0.3, -0.1, 0.25], 0.1 * lamp), PointLight([-0.3, 0.3, 0.3], 0.1 * lamp)]
+        textures = {0: tex}
+    elif name == "high_ns":
+        tile = box_mesh((0.10, 0.10, 0.006), (0.0, 0.04, 0.0031), _rot_z(10.0))
+        tex = _realisation(0.03, ([0.8, 0.75, 0.6], [0.2, 0.25, 0.45]), texture_seed)
+        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                    Surface("tile", "meshes/tile.ply", _material("phong", kd=[0.05, 0.05, 0.06], ks=0.5, ns=3000.0), False, tile)]
+        lights = [PointLight([0.0, 0.40, 0.33], 0.1 * lamp), PointLight([-0.3, -0.2, 0.3], 0.06 * lamp)]
+        textures = {0: tex}
+    elif name == "two_textured":
+        box = box_mesh((0.10, 0.08, 0.05), (0.0, 0.03, 0.0251), _rot_z(15.0))
+        tex_box = _realisation(0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]), texture_seed)
+        tex_floor = _realisation(0.04, ([0.8, 0.75, 0.6], [0.3, 0.3, 0.2]), None if texture_seed is None else texture_seed + 100)
+        surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex_floor), ks=0.05, ns=15.0), True, ground),
+                    Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex_box), ks=0.25, ns=50.0), True, box)]
+        lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
+        textures = {0: tex_floor, 1: tex_box}
     else:
-        raise ValueError(f"unknown scene {name!r}; one of {NAMES}")
+        raise ValueError(f"unknown scene {name!r}; one of {NAMES + MORE}")
     return SimLab(camera, Lights(lights), Scene(surfaces), textures)
 
 
