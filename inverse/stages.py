@@ -214,7 +214,8 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         ``unknown_albedo`` (nodes whose albedo was unknown), ``unknown_pixels`` ((H, W) bool: a
         node of the pixel's tree had unknown albedo, so the homogeneous kd stood in),
         ``undetermined_pixels`` ((H, W) bool: the pixel's predicted light rests on parameters fit.json
-        calls undetermined, or on texels the texture stage flagged guessed,
+        calls undetermined, on determined ones whose σ leaves it loose, or on texels the texture
+        stage flagged guessed,
         :func:`inverse.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``,
         ``render_s``, ``trees``.
     """

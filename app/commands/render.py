@@ -40,6 +40,7 @@ def run(args) -> int:
     print(f"wrote {r.path} ({w}x{h}{', albedo' if args.aov else ''}) and {r.preview} in {time.perf_counter() - start:.1f} s")
     if r.undetermined is not None:
         n = int(info["undetermined_pixels"].sum())
-        print(f"{n} pixels ({100 * n / (w * h):.1f} %) rest on parameters fit.json calls undetermined or on texels "
-              f"the texture stage guessed: a guess, not a prediction (white in {r.undetermined})")
+        print(f"{n} pixels ({100 * n / (w * h):.1f} %) rest on parameters fit.json calls undetermined, on values its σ "
+              f"leaves loose (over 5 % of the light) or on texels the texture stage guessed: a guess, not a prediction "
+              f"(white in {r.undetermined})")
     return 0
