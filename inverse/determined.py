@@ -14,6 +14,7 @@ import numpy as np
 
 from inverse.factorization import BANDS, Factorization
 from inverse.problem import SCAN_POINTS, Free, Params, Problem, materials_of
+from inverse.trees import derived
 
 
 #: A parameter whose one-sigma exceeds this fraction of its scale (its value or initial value for
@@ -174,29 +175,29 @@ def _free_texture_nodes(tr, textured) -> tuple[np.ndarray, np.ndarray]:
     Geometry only: kept on the trees for the same ``textured`` flags (a fit asks twice).
     """
     flags = tuple(bool(t) for t in textured)
-    cached = getattr(tr, "_free_texture", None)
-    if cached is not None and cached[0] == flags and cached[1] is tr.point:
-        return cached[2]
-    surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
-    tex = np.asarray(flags, dtype=bool)[surf]
-    free_tex = tex & (level == 1)
-    for s in np.flatnonzero(flags):
-        direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
-        if not seen_else.any():
-            continue
-        if not direct.any():
-            free_tex |= seen_else
-            continue
-        ext = np.sort(np.ptp(pts[direct], axis=0))[::-1]
-        cell = 2.0 * np.sqrt(max(ext[0] * ext[1], 1e-12) / direct.sum())
-        key = np.floor(pts / cell).astype(np.int64)
-        both = direct | seen_else
-        lo = key[both].min(axis=0)
-        span = key[both].max(axis=0) - lo + 1
-        flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
-        free_tex |= seen_else & ~np.isin(flat, flat[direct])
-    tr._free_texture = (flags, tr.point, (tex, free_tex))
-    return tex, free_tex
+
+    def nodes():
+        surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
+        tex = np.asarray(flags, dtype=bool)[surf]
+        free_tex = tex & (level == 1)
+        for s in np.flatnonzero(flags):
+            direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
+            if not seen_else.any():
+                continue
+            if not direct.any():
+                free_tex |= seen_else
+                continue
+            ext = np.sort(np.ptp(pts[direct], axis=0))[::-1]
+            cell = 2.0 * np.sqrt(max(ext[0] * ext[1], 1e-12) / direct.sum())
+            key = np.floor(pts / cell).astype(np.int64)
+            both = direct | seen_else
+            lo = key[both].min(axis=0)
+            span = key[both].max(axis=0) - lo + 1
+            flat = np.ravel_multi_index(tuple((key - lo).clip(0).T), tuple(span), mode="clip")
+            free_tex |= seen_else & ~np.isin(flat, flat[direct])
+        return tex, free_tex
+
+    return derived(tr, "free texture nodes", (flags, tr.point), nodes)
 
 
 def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from inverse.models import MAX_LINEAR, MAX_NONLINEAR, get_model
+from inverse.trees import derived
 
 
 def _check(trees, materials, intensities=None):
@@ -30,14 +31,12 @@ def _check(trees, materials, intensities=None):
 
 def _groups(trees) -> list:
     """(surface index, node indices) for each surface that has nodes (sorted once per trees)."""
-    cached = getattr(trees, "_surface_groups", None)
-    if cached is not None and cached[0] is trees.surface:
-        return cached[1]
-    order = np.argsort(trees.surface, kind="stable")
-    surfaces, starts = np.unique(trees.surface[order], return_index=True)
-    groups = list(zip(surfaces.tolist(), np.split(order, starts[1:])))
-    trees._surface_groups = (trees.surface, groups)  # keyed by the array: a new one sorts again
-    return groups
+    def groups():
+        order = np.argsort(trees.surface, kind="stable")
+        surfaces, starts = np.unique(trees.surface[order], return_index=True)
+        return list(zip(surfaces.tolist(), np.split(order, starts[1:])))
+
+    return derived(trees, "surface groups", (trees.surface,), groups)
 
 
 def node_parameters(trees, materials) -> tuple[np.ndarray, np.ndarray]:
@@ -88,16 +87,13 @@ def _surface_geometry(trees, idx) -> tuple:
     """Normals, light directions and views per (node, light) of one surface's nodes ``idx``, and
     their known weights ``fresnel · visible / dist²`` (n, K): kept on the trees (a fit's texture
     rounds evaluate the same surfaces again at other θ)."""
-    cache = getattr(trees, "_surface_geometry", None)
-    if cache is None or cache[0] is not trees.normal:
-        cache = trees._surface_geometry = (trees.normal, {})
-    hit = cache[1].get(id(idx))  # idx: one of _groups' arrays, kept with the trees
-    if hit is None or hit[0] is not idx:
+    def geometry():
         k = trees.n_lights
-        hit = cache[1][id(idx)] = (idx, np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
-                                   np.repeat(trees.view[idx], k, axis=0),
-                                   trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
-    return hit[1:]
+        return (np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
+                np.repeat(trees.view[idx], k, axis=0), trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
+
+    # idx: one of _groups' arrays, kept with the trees.
+    return derived(trees, f"surface geometry {id(idx)}", (trees.normal, idx), geometry)
 
 
 def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> None:

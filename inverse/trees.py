@@ -119,6 +119,25 @@ TREES_VERSION = 1
 CACHE_KEEP = 4
 
 
+def derived(trees, name: str, key: tuple, compute):
+    """A value derived from ``trees`` alone, computed once per ``name`` while ``key`` holds.
+
+    A fit asks for the same derived values many times (the nodes grouped by surface, each
+    surface's per-(node, light) geometry, the nodes whose texture no direct view pins): they are
+    kept on the trees object itself, so they live and die with it. ``key`` names what the value
+    depends on: arrays by identity (a field replaced by another array computes anew), the rest by
+    equality.
+    """
+    memo = trees.__dict__.setdefault("_derived", {})
+    hit = memo.get(name)
+    if hit is not None and len(hit[0]) == len(key) and all(
+            (a is b) if isinstance(b, np.ndarray) else (a == b) for a, b in zip(hit[0], key)):
+        return hit[1]
+    value = compute()
+    memo[name] = (key, value)
+    return value
+
+
 def trees_key(scene, camera, lights, depth: int, prune_tol: float) -> str:
     """SHA-1 of everything the trees depend on: camera, light positions, meshes, iors, r/t zeros."""
     h = hashlib.sha1()
