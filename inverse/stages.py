@@ -145,10 +145,11 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     solver.validate()
     trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=log, task=task)
     # Pixels whose light rests on what the fit left undetermined (a textured surface's own lobe,
-    # seen once): the texels they make are flagged guessed, and renders that use them say so.
-    undetermined = tex.load_undetermined(ws, scene)
-    guess = undetermined_pixels(trees, materials, lights.intensities, undetermined, image=image,
-                                textured=[s.textured for s in scene]).ravel() if any(undetermined) else None
+    # seen once) or knows only loosely (the ground seen through a sheet whose t is ± 20 %): the
+    # texels they make are flagged guessed, and renders that use them say so.
+    undetermined, sigma = tex.load_undetermined(ws, scene), tex.load_sigma(ws, scene)
+    guess = undetermined_pixels(trees, materials, lights.intensities, undetermined, image=image, sigma=sigma,
+                                textured=[s.textured for s in scene]).ravel() if any(undetermined) or any(sigma) else None
     result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, guess=guess, task=task)
     extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
              "undetermined_pixels": int(np.count_nonzero(guess)) if guess is not None else 0,

@@ -92,3 +92,23 @@ def test_bad_workspace_inputs(workspace, tmp_path, capsys):
     assert "scene.json" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["texture", str(ws), "--prior", "-1"])
+
+
+def test_texels_seen_through_a_loosely_known_sheet_are_guessed(workspace, tmp_path):
+    """The ground behind the sheet is seen only through it: with fit.json's sheet t known to
+    ± 0.3, the texels made from those pixels are flagged guessed (and renders mark them); known to
+    ± 0.001, none are. Nothing else in fit.json differs (the true materials, no undetermined)."""
+    root, lab, _ = workspace
+    import shutil
+
+    counts = {}
+    for sigma_t in (0.3, 0.001):
+        ws = tmp_path / f"ws-{sigma_t}"
+        write_lab(ws, lab, materials=False)  # scene.json: what a user knows; t is not given
+        shutil.copy(root / "input.exr", ws / "input.exr")
+        surfaces = [{"name": s.name, "material": s.material.to_json(), "undetermined": [],
+                     "sigma": {"t": [sigma_t] * 3} if s.name == "sheet" else {}} for s in lab.scene]
+        (ws / "fit.json").write_text(json.dumps({"depth": 3, "surfaces": surfaces}))
+        assert main(["texture", str(ws)]) == 0
+        counts[sigma_t] = json.loads((ws / "textures" / "index.json").read_text())["stats"]["texels_guessed"]
+    assert counts[0.3] > 0 and counts[0.001] == 0, counts
