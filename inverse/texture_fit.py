@@ -62,9 +62,9 @@ def grey_lobes(materials, textured, held=None) -> tuple[list, list]:
     at the surface, before the light reaches the pigment, so it has the lamp's colour (the
     neutral-interface assumption of the dichromatic reflection model; the lamp's colour is in the
     intensities, so its ks is the same in every band). Fitted per band, a lobe the photograph does
-    not determine takes up the texture's colour instead (shiny box, 160x120: ks [0.33, 0.29, 0.27]
-    for 0.3; held at their mean and the shininess refitted: 0.295, ns 40.6 for 40, the relit view
-    6.4 dB closer to the true materials'). Values the user gave (``held``) are left alone.
+    not determine takes up the texture's colour instead (shiny box, 160x120, 1 % noise: ks [0.33,
+    0.29, 0.26] for 0.3; held at their mean and the shininess refitted: 0.296, ns 41.3 for 40, the
+    relit view 6 dB closer to the true materials'). Values the user gave (``held``) are left alone.
 
     Returns
     -------
@@ -216,9 +216,14 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
             break
         if task is not None:
             task.step(k, rounds, "texture round")
-        share = direct_share(trees, result.materials, intensities, textured, relative)
+        # The last round holds textured surfaces' lobes grey (grey_lobes), its texture recovered
+        # under them: earlier rounds fit them per band, which sets the grey value; the last refits
+        # their shininess under it (can of texture_seed 4: relit −9.1 → −6.5 dB against the true
+        # materials when the texture, too, was made with the grey lobe).
+        materials, guessed = grey_lobes(result.materials, textured, held) if k == int(rounds) - 1 else (result.materials, None)
+        share = direct_share(trees, materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
-        tex = recover_texture(scene, trees, result.materials, intensities, image, options, exclude=left_out,
+        tex = recover_texture(scene, trees, materials, intensities, image, options, exclude=left_out,
                               maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps)
         relative = relative_albedo(trees, textured, tex)
         t1 = time.perf_counter()
@@ -227,9 +232,6 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         # a kept round, what it held stays held: its holding rounds would find it again (same
         # fit.json on the 640×480 benchmark scenes, 0.2 s less a round); after the homogeneous
         # start, whose holds the texture may undo, they start anew.
-        # The last round holds textured surfaces' lobes grey (grey_lobes): earlier rounds fit them
-        # per band, which sets the grey value; the last refits their shininess under it.
-        materials, guessed = grey_lobes(result.materials, textured, held) if k == int(rounds) - 1 else (result.materials, None)
         result = fit(fac, image, materials, method, textured=list(textured), names=scene.names, scan=False,
                      maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
                      held=held, guessed=guessed, reject=False, structure=start.structure if best_round == 0 else result.free,
