@@ -88,6 +88,119 @@ def _realisation(scale: float, colours, seed: int | None):
     return lambda p: _pattern(p, scale, colours, shift)
 
 
+# Each design: (surfaces, lights, textures) from the shared ground plane, lamp colour and texture seed.
+def _shiny_box(ground, lamp, texture_seed):
+    box = box_mesh((0.14, 0.10, 0.05), (0.0, 0.03, 0.025), _rot_z(15.0))
+    tex = _realisation(0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]), texture_seed)
+    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.45, 0.42, 0.38]), False, ground),
+                Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex), ks=0.3, ns=40.0), True, box)]
+    lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
+    textures = {1: tex}
+    return surfaces, lights, textures
+
+
+def _floor_mirror(ground, lamp, texture_seed):
+    mirror = box_mesh((0.22, 0.006, 0.16), (0.05, 0.10, 0.08), _rot_z(-8.0))
+    tex = _realisation(0.04, ([0.8, 0.7, 0.5], [0.15, 0.3, 0.35]), texture_seed)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex), ks=0.04, ns=12.0), True, ground),
+                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85), False, mirror)]
+    lights = [PointLight([-0.15, -0.2, 0.35], 0.1 * lamp)]
+    textures = {0: tex}
+    return surfaces, lights, textures
+
+
+def _curved(ground, lamp, texture_seed):
+    cyl = cylinder_mesh(0.04, 0.18, (0.0, 0.03, 0.0401), axis_deg=20.0)
+    tex = _realisation(0.025, ([0.75, 0.7, 0.3], [0.2, 0.25, 0.6]), texture_seed)
+    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.42]), False, ground),
+                Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
+    lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
+    textures = {1: tex}
+    return surfaces, lights, textures
+
+
+def _glass_block(ground, lamp, texture_seed):
+    block = box_mesh((0.14, 0.025, 0.07), (0.0, 0.06, 0.036), _rot_z(10.0))  # lifted 1 mm off the floor
+    tex = _realisation(0.03, ([0.85, 0.8, 0.7], [0.25, 0.2, 0.45]), texture_seed)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                Surface("block", "meshes/block.ply", _material("phong", ior=1.5, kd=[0.004, 0.006, 0.004], ks=0.15,
+                                                               ns=250.0, r=1.0, t=[0.88, 0.93, 0.90]), False, block)]
+    lights = [PointLight([0.15, 0.35, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
+    textures = {0: tex}
+    return surfaces, lights, textures
+
+
+def _ward_tile(ground, lamp, texture_seed):
+    tile = box_mesh((0.12, 0.12, 0.008), (0.02, 0.02, 0.0041), _rot_z(20.0))
+    box = box_mesh((0.06, 0.06, 0.06), (-0.12, 0.10, 0.0301), _rot_z(-25.0))
+    tex = _realisation(0.03, ([0.8, 0.75, 0.6], [0.15, 0.3, 0.5]), texture_seed)
+    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.35, 0.35, 0.33]), False, ground),
+                Surface("tile", "meshes/tile.ply", _material("ward", kd=_mean(tile, tex), ks=0.15, alpha=0.12), True, tile),
+                Surface("box", "meshes/box.ply", _material("phong", kd=[0.6, 0.2, 0.15], ks=0.4, ns=80.0), False, box)]
+    lights = [PointLight([0.10, 0.35, 0.35], 0.12 * lamp), PointLight([-0.30, -0.10, 0.30], 0.08 * lamp)]
+    textures = {1: tex}
+    return surfaces, lights, textures
+
+
+def _near_lamp(ground, lamp, texture_seed):
+    box = box_mesh((0.08, 0.08, 0.05), (0.06, 0.05, 0.0251), _rot_z(30.0))
+    tex = _realisation(0.03, ([0.85, 0.8, 0.7], [0.3, 0.2, 0.4]), texture_seed)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                Surface("box", "meshes/box.ply", _material("phong", kd=[0.2, 0.5, 0.3], ks=0.3, ns=60.0), False, box)]
+    lights = [PointLight([-0.06, 0.0, 0.03], 0.004 * lamp), PointLight([0.2, 0.3, 0.4], 0.1 * lamp)]
+    textures = {0: tex}
+    return surfaces, lights, textures
+
+
+def _oren_mirror(ground, lamp, texture_seed):
+    box = box_mesh((0.10, 0.07, 0.06), (0.0, 0.0, 0.0301), _rot_z(25.0))
+    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
+    tex = _realisation(0.025, ([0.7, 0.5, 0.3], [0.2, 0.35, 0.6]), texture_seed)
+    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.4]), False, ground),
+                Surface("box", "meshes/box.ply", _material("oren-nayar", kd=_mean(box, tex), sigma=0.4), True, box),
+                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.8), False, mirror)]
+    lights = [PointLight([0.25, -0.2, 0.35], 0.1 * lamp), PointLight([-0.25, -0.15, 0.3], 0.07 * lamp)]
+    textures = {1: tex}
+    return surfaces, lights, textures
+
+
+def _sheet_flat(ground, lamp, texture_seed):
+    sheet = box_mesh((0.16, 0.12, 0.003), (0.0, 0.04, 0.04), _rot_z(5.0) @ _rot_x(8.0))
+    tex = _realisation(0.03, ([0.8, 0.7, 0.55], [0.2, 0.3, 0.5]), texture_seed)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                Surface("sheet", "meshes/sheet.ply", _material("phong", ior=1.49, kd=[0.01, 0.01, 0.03], ks=0.2, ns=300.0,
+                                                               r=1.0, t=[0.7, 0.85, 0.95]), False, sheet)]
+    lights = [PointLight([0.3, -0.1, 0.25], 0.1 * lamp), PointLight([-0.3, 0.3, 0.3], 0.1 * lamp)]
+    textures = {0: tex}
+    return surfaces, lights, textures
+
+
+def _high_ns(ground, lamp, texture_seed):
+    tile = box_mesh((0.10, 0.10, 0.006), (0.0, 0.04, 0.0031), _rot_z(10.0))
+    tex = _realisation(0.03, ([0.8, 0.75, 0.6], [0.2, 0.25, 0.45]), texture_seed)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
+                Surface("tile", "meshes/tile.ply", _material("phong", kd=[0.05, 0.05, 0.06], ks=0.5, ns=3000.0), False, tile)]
+    lights = [PointLight([0.0, 0.40, 0.33], 0.1 * lamp), PointLight([-0.3, -0.2, 0.3], 0.06 * lamp)]
+    textures = {0: tex}
+    return surfaces, lights, textures
+
+
+def _two_textured(ground, lamp, texture_seed):
+    box = box_mesh((0.10, 0.08, 0.05), (0.0, 0.03, 0.0251), _rot_z(15.0))
+    tex_box = _realisation(0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]), texture_seed)
+    tex_floor = _realisation(0.04, ([0.8, 0.75, 0.6], [0.3, 0.3, 0.2]), None if texture_seed is None else texture_seed + 100)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex_floor), ks=0.05, ns=15.0), True, ground),
+                Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex_box), ks=0.25, ns=50.0), True, box)]
+    lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
+    textures = {0: tex_floor, 1: tex_box}
+    return surfaces, lights, textures
+
+
+_DESIGNS = {"shiny_box": _shiny_box, "floor_mirror": _floor_mirror, "curved": _curved, "glass_block": _glass_block,
+            "ward_tile": _ward_tile, "near_lamp": _near_lamp, "oren_mirror": _oren_mirror, "sheet_flat": _sheet_flat,
+            "high_ns": _high_ns, "two_textured": _two_textured}
+
+
 def build(name: str, width: int = 160, height: int = 120, texture_seed: int | None = None) -> SimLab:
     """One of :data:`NAMES` or :data:`MORE` at ``width`` x ``height`` (camera, lamps, true materials, true albedo);
     ``texture_seed`` picks another realisation of its texture (:func:`_realisation`)."""
@@ -95,85 +208,11 @@ def build(name: str, width: int = 160, height: int = 120, texture_seed: int | No
     camera = camera.scaled(width, height) if (width, height) != (640, 480) else camera
     ground = plane_mesh((-0.8, 0.8), (-0.5, 1.2))
     lamp = np.array([1.0, 0.92, 0.8])
-    if name == "shiny_box":
-        box = box_mesh((0.14, 0.10, 0.05), (0.0, 0.03, 0.025), _rot_z(15.0))
-        tex = _realisation(0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]), texture_seed)
-        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.45, 0.42, 0.38]), False, ground),
-                    Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex), ks=0.3, ns=40.0), True, box)]
-        lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
-        textures = {1: tex}
-    elif name == "floor_mirror":
-        mirror = box_mesh((0.22, 0.006, 0.16), (0.05, 0.10, 0.08), _rot_z(-8.0))
-        tex = _realisation(0.04, ([0.8, 0.7, 0.5], [0.15, 0.3, 0.35]), texture_seed)
-        surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex), ks=0.04, ns=12.0), True, ground),
-                    Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85), False, mirror)]
-        lights = [PointLight([-0.15, -0.2, 0.35], 0.1 * lamp)]
-        textures = {0: tex}
-    elif name == "curved":
-        cyl = cylinder_mesh(0.04, 0.18, (0.0, 0.03, 0.0401), axis_deg=20.0)
-        tex = _realisation(0.025, ([0.75, 0.7, 0.3], [0.2, 0.25, 0.6]), texture_seed)
-        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.42]), False, ground),
-                    Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
-        lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
-        textures = {1: tex}
-    elif name == "glass_block":
-        block = box_mesh((0.14, 0.025, 0.07), (0.0, 0.06, 0.036), _rot_z(10.0))  # lifted 1 mm off the floor
-        tex = _realisation(0.03, ([0.85, 0.8, 0.7], [0.25, 0.2, 0.45]), texture_seed)
-        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
-                    Surface("block", "meshes/block.ply", _material("phong", ior=1.5, kd=[0.004, 0.006, 0.004], ks=0.15,
-                                                                   ns=250.0, r=1.0, t=[0.88, 0.93, 0.90]), False, block)]
-        lights = [PointLight([0.15, 0.35, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
-        textures = {0: tex}
-    elif name == "ward_tile":
-        tile = box_mesh((0.12, 0.12, 0.008), (0.02, 0.02, 0.0041), _rot_z(20.0))
-        box = box_mesh((0.06, 0.06, 0.06), (-0.12, 0.10, 0.0301), _rot_z(-25.0))
-        tex = _realisation(0.03, ([0.8, 0.75, 0.6], [0.15, 0.3, 0.5]), texture_seed)
-        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.35, 0.35, 0.33]), False, ground),
-                    Surface("tile", "meshes/tile.ply", _material("ward", kd=_mean(tile, tex), ks=0.15, alpha=0.12), True, tile),
-                    Surface("box", "meshes/box.ply", _material("phong", kd=[0.6, 0.2, 0.15], ks=0.4, ns=80.0), False, box)]
-        lights = [PointLight([0.10, 0.35, 0.35], 0.12 * lamp), PointLight([-0.30, -0.10, 0.30], 0.08 * lamp)]
-        textures = {1: tex}
-    elif name == "near_lamp":
-        box = box_mesh((0.08, 0.08, 0.05), (0.06, 0.05, 0.0251), _rot_z(30.0))
-        tex = _realisation(0.03, ([0.85, 0.8, 0.7], [0.3, 0.2, 0.4]), texture_seed)
-        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
-                    Surface("box", "meshes/box.ply", _material("phong", kd=[0.2, 0.5, 0.3], ks=0.3, ns=60.0), False, box)]
-        lights = [PointLight([-0.06, 0.0, 0.03], 0.004 * lamp), PointLight([0.2, 0.3, 0.4], 0.1 * lamp)]
-        textures = {0: tex}
-    elif name == "oren_mirror":
-        box = box_mesh((0.10, 0.07, 0.06), (0.0, 0.0, 0.0301), _rot_z(25.0))
-        mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
-        tex = _realisation(0.025, ([0.7, 0.5, 0.3], [0.2, 0.35, 0.6]), texture_seed)
-        surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.4]), False, ground),
-                    Surface("box", "meshes/box.ply", _material("oren-nayar", kd=_mean(box, tex), sigma=0.4), True, box),
-                    Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.8), False, mirror)]
-        lights = [PointLight([0.25, -0.2, 0.35], 0.1 * lamp), PointLight([-0.25, -0.15, 0.3], 0.07 * lamp)]
-        textures = {1: tex}
-    elif name == "sheet_flat":
-        sheet = box_mesh((0.16, 0.12, 0.003), (0.0, 0.04, 0.04), _rot_z(5.0) @ _rot_x(8.0))
-        tex = _realisation(0.03, ([0.8, 0.7, 0.55], [0.2, 0.3, 0.5]), texture_seed)
-        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
-                    Surface("sheet", "meshes/sheet.ply", _material("phong", ior=1.49, kd=[0.01, 0.01, 0.03], ks=0.2, ns=300.0,
-                                                                   r=1.0, t=[0.7, 0.85, 0.95]), False, sheet)]
-        lights = [PointLight([0.3, -0.1, 0.25], 0.1 * lamp), PointLight([-0.3, 0.3, 0.3], 0.1 * lamp)]
-        textures = {0: tex}
-    elif name == "high_ns":
-        tile = box_mesh((0.10, 0.10, 0.006), (0.0, 0.04, 0.0031), _rot_z(10.0))
-        tex = _realisation(0.03, ([0.8, 0.75, 0.6], [0.2, 0.25, 0.45]), texture_seed)
-        surfaces = [Surface("floor", "meshes/floor.ply", _material("lambert", kd=_mean(ground, tex)), True, ground),
-                    Surface("tile", "meshes/tile.ply", _material("phong", kd=[0.05, 0.05, 0.06], ks=0.5, ns=3000.0), False, tile)]
-        lights = [PointLight([0.0, 0.40, 0.33], 0.1 * lamp), PointLight([-0.3, -0.2, 0.3], 0.06 * lamp)]
-        textures = {0: tex}
-    elif name == "two_textured":
-        box = box_mesh((0.10, 0.08, 0.05), (0.0, 0.03, 0.0251), _rot_z(15.0))
-        tex_box = _realisation(0.03, ([0.65, 0.25, 0.2], [0.2, 0.45, 0.7]), texture_seed)
-        tex_floor = _realisation(0.04, ([0.8, 0.75, 0.6], [0.3, 0.3, 0.2]), None if texture_seed is None else texture_seed + 100)
-        surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex_floor), ks=0.05, ns=15.0), True, ground),
-                    Surface("box", "meshes/box.ply", _material("phong", kd=_mean(box, tex_box), ks=0.25, ns=50.0), True, box)]
-        lights = [PointLight([0.07, 0.42, 0.40], 0.12 * lamp), PointLight([-0.30, -0.25, 0.30], 0.08 * lamp)]
-        textures = {0: tex_floor, 1: tex_box}
-    else:
-        raise ValueError(f"unknown scene {name!r}; one of {NAMES + MORE}")
+    try:
+        design = _DESIGNS[name]
+    except KeyError:
+        raise ValueError(f"unknown scene {name!r}; one of {NAMES + MORE}") from None
+    surfaces, lights, textures = design(ground, lamp, texture_seed)
     return SimLab(camera, Lights(lights), Scene(surfaces), textures)
 
 
