@@ -12,6 +12,8 @@ and a pixel's value is the sum over its nodes. ``materials`` is the list of
 """
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
 from inverse.models import MAX_LINEAR, MAX_NONLINEAR, get_model
@@ -297,11 +299,11 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
         x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)
     n_s = len(materials)
 
-    def sig(s, name, shape):
+    def sig(s, name, n):
+        """σ of ``name`` on surface s as n floats: 0 where fit.json gives none (null or missing)."""
         v = sigma[s].get(name) if s < len(sigma) and sigma[s] else None
-        a = np.broadcast_to(np.asarray([np.nan if e is None else e for e in np.atleast_1d(v)] if v is not None else np.nan,
-                                       dtype=np.float64), shape)
-        return np.where(np.isfinite(a), a, 0.0)
+        v = [0.0 if e is None else float(e) for e in (v if isinstance(v, list) else [v] * n)]
+        return np.nan_to_num(np.asarray(v, dtype=np.float64), nan=0.0, posinf=0.0)
 
     sx = np.zeros((n_s, 3, MAX_LINEAR))
     st = np.zeros((n_s, MAX_NONLINEAR))
@@ -310,10 +312,10 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
         model = get_model(materials[s].brdf)
         for j, name in enumerate(model.linear):
             if not (j == 0 and textured is not None and textured[s]):
-                sx[s, :, j] = sig(s, name, (3,))
+                sx[s, :, j] = sig(s, name, 3)
         for j, name in enumerate(model.nonlinear):
-            st[s, j] = sig(s, name, (1,))[0]
-        sf[s] = [sig(s, "r", (3,)), sig(s, "t", (3,))]
+            st[s, j] = sig(s, name, 1)[0]
+        sf[s] = [sig(s, "r", 3), sig(s, "t", 3)]
     basis, dbasis = linear_basis_and_grad(trees, materials, intensities, grad=bool(st.any()))
     prod = path_products(trees, materials)
     var = ((basis * sx[trees.surface]) ** 2).sum(axis=2) * prod**2
@@ -324,9 +326,7 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
     # factors times the factor's exponent and power below (a zero factor's branch still counts).
     dpath = np.zeros((len(trees.paths), 3))
     for i, path in enumerate(trees.paths):
-        count = {}
-        for s, kind in path:
-            count[(s, int(bool(kind)))] = count.get((s, int(bool(kind))), 0) + 1
+        count = Counter((s, int(bool(kind))) for s, kind in path)
         for (s, kind), e in count.items():
             others = np.ones(3)
             for (s2, k2), e2 in count.items():
