@@ -142,7 +142,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     # What the σ counts free: all but what the user gave. A parameter held at a guess (below, or
     # by the holding rounds for want of signal) leaves the others' σ as wide as its uncertainty
     # makes them: holding it would tighten them around a value nobody knows.
-    guess = free.copy()
+    sigma_free = free.copy()
     if guessed is not None:
         hold(fac, free, guessed)
     trace, iterations, message = [], 0, ""
@@ -217,26 +217,27 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                 spent = time.perf_counter() - t_polish
                 pb.phases["refinement"] += spent
             return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
-                             nit, msg, fitted + spent, stats, guess)
+                             nit, msg, fitted + spent, stats, sigma_free)
 
         return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
                           "complete": complete}, found)
     return _complete(pb, p, init, free, found, res, A, materials, textured, names, method, trace, rounds, iterations,
-                     message, fitted, stats, guess)
+                     message, fitted, stats, sigma_free)
 
 
 def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
-              method, trace, rounds, iterations, message, fitted, stats, guess: Free | None = None) -> FitResult:
+              method, trace, rounds, iterations, message, fitted, stats, sigma_free: Free | None = None) -> FitResult:
     """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted.
 
-    ``guess``: parameters held at a guessed value whose uncertainty the σ still counts (free in
-    every σ computation: holding them would tighten the σ of all that shares pixels with them).
+    ``sigma_free``: what every σ counts free, ``free`` and the parameters held at a guess (by the
+    holding rounds, or ``guessed``): holding those would tighten the σ of all that shares pixels
+    with them around a value nobody knows. Default ``free``.
     """
     t0 = time.perf_counter()
     fac = pb.fac
-    sf = free if guess is None else guess
+    sf = free if sigma_free is None else sigma_free
     sig = sigmas(pb, p, sf, res)
     lay = fac.layout
     absorbed, anywhere = texture_absorbed(fac, p, materials, textured)

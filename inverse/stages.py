@@ -147,7 +147,7 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     # Pixels whose light rests on what the fit left undetermined (a textured surface's own lobe,
     # seen once) or knows only loosely (the ground seen through a sheet whose t is ± 20 %): the
     # texels they make are flagged guessed, and renders that use them say so.
-    undetermined, sigma = tex.load_undetermined(ws, scene), tex.load_sigma(ws, scene)
+    undetermined, sigma = tex.load_uncertainty(ws, scene)
     guess = undetermined_pixels(trees, materials, lights.intensities, undetermined, image=image, sigma=sigma,
                                 textured=[s.textured for s in scene]).ravel() if any(undetermined) or any(sigma) else None
     result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, guess=guess, task=task)
@@ -222,7 +222,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     """
     from hardware.workspace import Workspace
     from inverse.rendering import render as render_trees, render_albedo, undetermined_pixels
-    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_sigma, load_texture_maps, load_undetermined
+    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_texture_maps, load_uncertainty
     from inverse.trees import trees_for_workspace
 
     task = ensure(task)
@@ -253,7 +253,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         image = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
     info["undetermined_pixels"] = np.zeros((cam.height, cam.width), dtype=bool)
     if aov is None:
-        undetermined, sigma = load_undetermined(ws, scene), load_sigma(ws, scene)
+        undetermined, sigma = load_uncertainty(ws, scene)
         guessed = guessed_nodes(ws, scene, trees, textures) if textures is not None else None
         if any(undetermined) or any(sigma) or (guessed is not None and guessed.any()):
             info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, undetermined,

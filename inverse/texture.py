@@ -149,41 +149,34 @@ def load_materials(workspace, scene) -> tuple[list, str]:
     return materials, "fit.json"
 
 
-def load_undetermined(workspace, scene) -> list:
-    """Per surface, the names fit.json calls undetermined, less what scene.json gives (a given
-    value is known); empty sets without fit.json (the user gave the materials)."""
-    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    out = [set() for _ in scene]
-    if not ws.fit.exists():
-        return out
-    for item in read_json(ws.fit).get("surfaces", []):
-        if isinstance(item, dict) and item.get("name") in scene.names:
-            s = scene.index(item["name"])
-            given = scene[s].material.given
-            out[s] = {n for n in item.get("undetermined", []) if n.partition("[")[0] not in given}
-    return out
+def load_uncertainty(workspace, scene) -> tuple[list, list]:
+    """What fit.json says the photograph did not pin down, per surface, less what scene.json gives
+    (a given value is known); empty without fit.json (the user gave the materials).
 
-
-def load_sigma(workspace, scene) -> list:
-    """Per surface, fit.json's ``sigma`` of the values it determined (name -> per-band list, None in
-    bands it calls undetermined, or a float): what scene.json gives is known and left out, as are
-    undetermined values (:func:`load_undetermined`'s); empty dicts without fit.json."""
+    Returns
+    -------
+    undetermined : list of set of str
+        The names fit.json calls undetermined (``"ks"``, ``"r[2]"``).
+    sigma : list of dict
+        fit.json's ``sigma`` of the values it determined: name -> per-band list (None in the bands
+        it calls undetermined) or a float; undetermined names are left out.
+    """
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    out = [{} for _ in scene]
+    undetermined, sigma = [set() for _ in scene], [{} for _ in scene]
     if not ws.fit.exists():
-        return out
+        return undetermined, sigma
     for item in read_json(ws.fit).get("surfaces", []):
-        if not (isinstance(item, dict) and item.get("name") in scene.names and isinstance(item.get("sigma"), dict)):
+        if not (isinstance(item, dict) and item.get("name") in scene.names):
             continue
         s = scene.index(item["name"])
+        given = scene[s].material.given
         loose = set(item.get("undetermined", []))
-        for name, v in item["sigma"].items():
-            if name in scene[s].material.given or name in loose:
+        undetermined[s] = {n for n in loose if n.partition("[")[0] not in given}
+        for name, v in (item.get("sigma") if isinstance(item.get("sigma"), dict) else {}).items():
+            if name in given or name in loose:
                 continue
-            if isinstance(v, list):
-                v = [None if f"{name}[{c}]" in loose else e for c, e in enumerate(v)]
-            out[s][name] = v
-    return out
+            sigma[s][name] = [None if f"{name}[{c}]" in loose else e for c, e in enumerate(v)] if isinstance(v, list) else v
+    return undetermined, sigma
 
 
 def build_maps(scene, trees, options: TextureOptions, crop: bool = False) -> dict[int, TexelMap]:
