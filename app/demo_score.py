@@ -176,6 +176,8 @@ def score_stage(stage: str, root, truth: dict) -> str:
         e = view_psnr(ws.root, truth, stage.split()[1])
         return (f"PSNR {e['psnr_db']:.1f} dB over the {e['known_pct']:.0f} % of pixels of known albedo "
                 f"({e['psnr_primary_db']:.1f} dB over the {e['primary_known_pct']:.0f} % whose seen surface's is known, "
-                f"{e['psnr_all_db']:.1f} dB over all, {e['psnr_determined_db']:.1f} dB over the {e['determined_pct']:.0f} % "
-                f"whose value rests on no undetermined parameter)")
+                f"{e['psnr_all_db']:.1f} dB over all, "
+                + (f"{e['psnr_determined_db']:.1f} dB over the {e['determined_pct']:.0f} % whose value rests on no "
+                   "undetermined parameter)" if np.isfinite(e["psnr_determined_db"]) else
+                   "no pixel whose value rests on determined parameters only)"))
     return ""

@@ -97,6 +97,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
                        "saturated_pixels": int(saturated.sum()),
+                       # the scale of fit.json's `noise`: renders judge a guess against noise / peak
+                       "peak": float(image.reshape(-1, image.shape[-1])[~saturated.reshape(-1)].max(initial=0.0)),
                        "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
              "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
              "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}

@@ -212,6 +212,10 @@ def render_albedo(trees, materials, kd_nodes=None) -> np.ndarray:
 UNDETERMINED_SHARE = 0.05
 #: ... unless that part is below this fraction of the image's peak (dark pixels, faint tails).
 UNDETERMINED_FLOOR = 1e-3
+#: Where the photograph's noise σ is known, a part above this many σ (at the view's peak) is
+#: undetermined whatever its share: a guess that moves the pixel by more than the photograph pins
+#: anything down is not determined (noise-free, every visible trace of a guessed lobe counts).
+UNDETERMINED_NOISE = 2.0
 
 
 def _named_bands(names) -> dict:
@@ -339,10 +343,14 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
 
 
 def undetermined_pixels(trees, materials, intensities, undetermined, *, kd_nodes=None, textured=None, guessed=None,
-                        image=None, sigma=None, share: float = UNDETERMINED_SHARE,
+                        image=None, sigma=None, noise=None, share: float = UNDETERMINED_SHARE,
                         floor: float = UNDETERMINED_FLOOR) -> np.ndarray:
     """(H, W) bool: pixels whose predicted light rests for more than ``share`` of it on undetermined
     parameters (and for more than ``floor`` of the peak); see :func:`undetermined_radiance`.
+
+    ``noise`` (3,), optional: the photograph's noise σ per band as a fraction of its peak
+    (:class:`inverse.texture.Uncertainty`): a part above :data:`UNDETERMINED_NOISE` times it (at
+    this view's peak) is undetermined too, however small its share.
 
     ``image`` (H, W, 3), optional: the photograph to measure the share against (the texture stage,
     before any texture is known); default the prediction itself. ``sigma`` (fit.json's, per
@@ -360,4 +368,7 @@ def undetermined_pixels(trees, materials, intensities, undetermined, *, kd_nodes
     else:
         total = np.asarray(image, dtype=np.float64).reshape(part.shape)
     peak = float(total.max()) if total.size else 0.0
-    return np.any((part > share * np.abs(total)) & (part > floor * peak), axis=2)
+    limit = np.maximum(share * np.abs(total), floor * peak)
+    if noise is not None:
+        limit = np.minimum(limit, UNDETERMINED_NOISE * np.asarray(noise, dtype=np.float64) * peak)
+    return np.any(part > limit, axis=2)

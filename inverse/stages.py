@@ -147,9 +147,10 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     # Pixels whose light rests on what the fit left undetermined (a textured surface's own lobe,
     # seen once) or knows only loosely (the ground seen through a sheet whose t is ± 20 %): the
     # texels they make are flagged guessed, and renders that use them say so.
-    undetermined, sigma = tex.load_uncertainty(ws, scene)
-    guess = undetermined_pixels(trees, materials, lights.intensities, undetermined, image=image, sigma=sigma,
-                                textured=[s.textured for s in scene]).ravel() if any(undetermined) or any(sigma) else None
+    u = tex.load_uncertainty(ws, scene)
+    guess = undetermined_pixels(trees, materials, lights.intensities, u.undetermined, image=image, sigma=u.sigma,
+                                noise=u.noise, textured=[s.textured for s in scene]).ravel() \
+        if any(u.undetermined) or any(u.sigma) else None
     result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, guess=guess, task=task)
     extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
              "undetermined_pixels": int(np.count_nonzero(guess)) if guess is not None else 0,
@@ -253,12 +254,12 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         image = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
     info["undetermined_pixels"] = np.zeros((cam.height, cam.width), dtype=bool)
     if aov is None:
-        undetermined, sigma = load_uncertainty(ws, scene)
+        u = load_uncertainty(ws, scene)
         guessed = guessed_nodes(ws, scene, trees, textures) if textures is not None else None
-        if any(undetermined) or any(sigma) or (guessed is not None and guessed.any()):
-            info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, undetermined,
-                                                              kd_nodes=kd_nodes, guessed=guessed, sigma=sigma,
-                                                              textured=[s.textured for s in scene])
+        if any(u.undetermined) or any(u.sigma) or (guessed is not None and guessed.any()):
+            info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, u.undetermined,
+                                                              kd_nodes=kd_nodes, guessed=guessed, sigma=u.sigma,
+                                                              noise=u.noise, textured=[s.textured for s in scene])
     info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees)
     return image, info
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -149,23 +150,28 @@ def load_materials(workspace, scene) -> tuple[list, str]:
     return materials, "fit.json"
 
 
-def load_uncertainty(workspace, scene) -> tuple[list, list]:
-    """What fit.json says the photograph did not pin down, per surface, less what scene.json gives
-    (a given value is known); empty without fit.json (the user gave the materials).
+class Uncertainty(NamedTuple):
+    """What fit.json says the photograph did not pin down (:func:`load_uncertainty`)."""
 
-    Returns
-    -------
-    undetermined : list of set of str
-        The names fit.json calls undetermined (``"ks"``, ``"r[2]"``).
-    sigma : list of dict
-        fit.json's ``sigma`` of the values it determined: name -> per-band list (None in the bands
-        it calls undetermined) or a float; undetermined names are left out.
-    """
+    #: Per surface, the names fit.json calls undetermined (``"ks"``, ``"r[2]"``).
+    undetermined: list
+    #: Per surface, fit.json's ``sigma`` of the values it determined: name -> per-band list (None
+    #: in the bands it calls undetermined) or a float; undetermined names are left out.
+    sigma: list
+    #: (3,) the photograph's noise σ per band as a fraction of its peak (fit.json's ``noise`` over
+    #: ``image.peak``); None without them.
+    noise: np.ndarray | None
+
+
+def load_uncertainty(workspace, scene) -> Uncertainty:
+    """What fit.json says the photograph did not pin down, per surface, less what scene.json gives
+    (a given value is known); empty without fit.json (the user gave the materials)."""
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     undetermined, sigma = [set() for _ in scene], [{} for _ in scene]
     if not ws.fit.exists():
-        return undetermined, sigma
-    for item in read_json(ws.fit).get("surfaces", []):
+        return Uncertainty(undetermined, sigma, None)
+    fit = read_json(ws.fit)
+    for item in fit.get("surfaces", []):
         if not (isinstance(item, dict) and item.get("name") in scene.names):
             continue
         s = scene.index(item["name"])
@@ -176,7 +182,9 @@ def load_uncertainty(workspace, scene) -> tuple[list, list]:
             if name in given or name in loose:
                 continue
             sigma[s][name] = [None if f"{name}[{c}]" in loose else e for c, e in enumerate(v)] if isinstance(v, list) else v
-    return undetermined, sigma
+    noise, peak = fit.get("noise"), (fit.get("image") or {}).get("peak")
+    ok = isinstance(noise, list) and len(noise) == 3 and isinstance(peak, (int, float)) and peak > 0
+    return Uncertainty(undetermined, sigma, np.asarray(noise, dtype=np.float64) / peak if ok else None)
 
 
 def build_maps(scene, trees, options: TextureOptions, crop: bool = False) -> dict[int, TexelMap]:

@@ -107,6 +107,9 @@ if __name__ == "__main__":
               "| over determined pixels: true | fitted | difference | pixels |")
         print("|---|---|---|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['view']} | {r['true']:.1f} dB | {r['fitted']:.1f} dB | {r['fitted'] - r['true']:+.1f} dB "
-                  f"| {100 * r['known_fraction']:.1f} % | {r['true_determined']:.1f} dB | {r['fitted_determined']:.1f} dB "
-                  f"| {r['fitted_determined'] - r['true_determined']:+.1f} dB | {100 * r['determined_fraction']:.1f} % |")
+            def db(v, sign=""):
+                return f"{v:{sign}.1f} dB" if np.isfinite(v) else "n/a"  # n/a: no pixel determined
+
+            print(f"| {r['view']} | {db(r['true'])} | {db(r['fitted'])} | {db(r['fitted'] - r['true'], '+')} "
+                  f"| {100 * r['known_fraction']:.1f} % | {db(r['true_determined'])} | {db(r['fitted_determined'])} "
+                  f"| {db(r['fitted_determined'] - r['true_determined'], '+')} | {100 * r['determined_fraction']:.1f} % |")

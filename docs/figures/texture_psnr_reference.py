@@ -44,9 +44,10 @@ def novel_camera(width: int, height: int) -> Camera:
 
 def psnr(image: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
     """PSNR (dB) of ``image`` against ``truth`` (peak = truth's maximum), optionally over a pixel mask."""
-    err = (image - truth) ** 2
-    mse = err[mask].mean() if mask is not None else err.mean()
-    return float(10 * np.log10(truth.max() ** 2 / max(mse, 1e-30)))
+    err = (image - truth) ** 2 if mask is None else (image - truth)[mask] ** 2
+    if err.size == 0:
+        return float("nan")  # no pixel to compare: the tables print n/a
+    return float(10 * np.log10(truth.max() ** 2 / max(err.mean(), 1e-30)))
 
 
 def measure(width: int, height: int, root: Path) -> list[dict]:
