@@ -15,6 +15,7 @@ import numpy as np
 from inverse.factorization import BANDS, Factorization
 from inverse.problem import SCAN_POINTS, Free, Params, Problem, materials_of
 from inverse.trees import derived
+from inverse.uncertainty import profiled, row_jacobian
 
 
 #: A parameter whose one-sigma exceeds this fraction of its scale (its value or initial value for
@@ -227,3 +228,80 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tupl
         out |= np.bincount(tr.pixel[free_tex], weights=light[free_tex, c], minlength=npix)[fac.rows] > total
         anywhere |= np.bincount(tr.pixel[tex], weights=light[tex, c], minlength=npix)[fac.rows] > total
     return out, anywhere
+
+
+def texel_groups(tr, textured) -> np.ndarray:
+    """(N,) each textured node's texel, as the index of a directly seen node; −1 elsewhere.
+
+    A directly seen node is its own texel (one pixel's worth of albedo, free); a node of the same
+    surface seen in a mirror or through glass joins the direct node nearest it when within half
+    the direct nodes' median spacing (the same point of the surface), and stays out otherwise.
+    Geometry only: kept on the trees for the same ``textured`` flags.
+    """
+    from scipy.spatial import cKDTree
+
+    flags = tuple(bool(t) for t in textured)
+
+    def groups():
+        surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
+        out = np.full(len(surf), -1, dtype=np.int64)
+        for s in np.flatnonzero(flags):
+            direct = np.flatnonzero((surf == s) & (level == 1))
+            other = np.flatnonzero((surf == s) & (level > 1))
+            if len(direct) < 2 or len(other) == 0:
+                continue
+            index = cKDTree(pts[direct])
+            spacing = float(np.median(index.query(pts[direct], k=2)[0][:, 1]))
+            dist, near = index.query(pts[other])
+            same = dist < 0.5 * spacing
+            out[direct] = direct
+            out[other[same]] = direct[near[same]]
+        return out
+
+    return derived(tr, "texel groups", (flags, tr.point), groups)
+
+
+def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res):
+    """``extra`` for :func:`inverse.uncertainty.sigmas`: what pixels of textured surfaces seen
+    twice (directly and in a mirror or through glass) say with each texel's albedo free; None
+    when no texel is seen twice.
+
+    A texel seen once is explained by its own albedo whatever the lobe; seen twice, at two angles,
+    its two pixels must share one albedo, and the lobe's (or the reflection's) part shows in how
+    they differ (:func:`inverse.uncertainty.profiled`). Only pixels ``anywhere`` marks (the others
+    already inform the σ fully) and with one textured node each; a texel with any other pixel
+    counts not at all.
+    """
+    if textured is None or not any(textured):
+        return None
+    from inverse.rendering import linear_basis, path_products
+
+    fac = pb.fac
+    tr = fac.trees
+    group = texel_groups(tr, textured)
+    row_of = np.full(fac.width * fac.height, -1, dtype=np.int64)
+    row_of[fac.rows] = np.arange(fac.n_rows)
+    row = row_of[tr.pixel]
+    tex = np.asarray(textured, dtype=bool)[tr.surface] & (row >= 0)
+    nodes = np.flatnonzero((group >= 0) & (row >= 0))
+    if len(nodes) == 0:
+        return None
+    n_textured = np.bincount(row[tex], minlength=fac.n_rows)
+    ok = (n_textured[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
+    ids, g = np.unique(group[nodes], return_inverse=True)
+    count = np.bincount(g, minlength=len(ids))
+    spoilt = np.bincount(g, weights=~ok, minlength=len(ids)) > 0
+    keep = (count >= 2) & ~spoilt
+    nodes = nodes[keep[g]]
+    if len(nodes) == 0:
+        return None
+    _, g = np.unique(group[nodes], return_inverse=True)
+    rows = row[nodes]
+    mats = materials_of(fac, p, materials)
+    e = (linear_basis(tr, mats, fac._args[0])[nodes, :, 0] * path_products(tr, mats)[nodes]).T  # (3, m)
+
+    def extra(free, weights, tiles):
+        tile, n_tiles = tiles
+        return profiled(row_jacobian(pb, p, free, rows), e, g, weights, res[:, rows], tile[rows], n_tiles)
+
+    return extra

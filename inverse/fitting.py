@@ -29,7 +29,8 @@ import time
 import numpy as np
 
 from hardware.task import Task, ensure
-from inverse.determined import (RESOLVE_THETA, hold, structural_free, texture_absorbed, texture_confounded, theta_resolution,
+from inverse.determined import (RESOLVE_THETA, hold, seen_twice, structural_free, texture_absorbed, texture_confounded,
+                                theta_resolution,
                                 undetermined_names, unresolved)
 from inverse.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
 from inverse.factorization import Factorization, one_blas_thread
@@ -143,8 +144,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     # by the holding rounds for want of signal) leaves the others' σ as wide as its uncertainty
     # makes them: holding it would tighten them around a value nobody knows.
     sigma_free = free.copy()
+    grey = None
     if guessed is not None:
         hold(fac, free, guessed)
+        grey = Free(sigma_free.x & ~free.x, sigma_free.s & ~free.s, sigma_free.theta & ~free.theta)
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
@@ -217,23 +220,26 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                 spent = time.perf_counter() - t_polish
                 pb.phases["refinement"] += spent
             return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
-                             nit, msg, fitted + spent, stats, sigma_free)
+                             nit, msg, fitted + spent, stats, sigma_free, grey)
 
         return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
                           "complete": complete}, found)
     return _complete(pb, p, init, free, found, res, A, materials, textured, names, method, trace, rounds, iterations,
-                     message, fitted, stats, sigma_free)
+                     message, fitted, stats, sigma_free, grey)
 
 
 def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
-              method, trace, rounds, iterations, message, fitted, stats, sigma_free: Free | None = None) -> FitResult:
+              method, trace, rounds, iterations, message, fitted, stats, sigma_free: Free | None = None,
+              grey: Free | None = None) -> FitResult:
     """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted.
 
     ``sigma_free``: what every σ counts free, ``free`` and the parameters held at a guess (by the
     holding rounds, or ``guessed``): holding those would tighten the σ of all that shares pixels
-    with them around a value nobody knows. Default ``free``.
+    with them around a value nobody knows. Default ``free``. ``grey``: those held at the mean of
+    their bands' fitted values (``guessed``): reported determined when their σ resolves them, like
+    a fitted value (a lobe one band-shared height, fitted the round before).
     """
     t0 = time.perf_counter()
     fac = pb.fac
@@ -256,24 +262,35 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         own = np.array([bool(textured[s]) and name != "kd" for s, name in lay.x_names], dtype=bool)
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
         if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any():
-            sig_o = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~anywhere)
+            # ... and from texels seen twice (directly and in a mirror), each one's albedo free.
+            sig_o = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~anywhere,
+                           extra=seen_twice(pb, p, materials, textured, anywhere, res))
             sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
-    loose = unresolved(pb, p, init, free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+    fitted_free = free if grey is None else Free(free.x | grey.x, free.s | grey.s, free.theta | grey.theta)
+    loose = unresolved(pb, p, init, fitted_free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+    if textured is not None and any(textured):
+        # A textured surface's θ is known from its texels seen twice at most, and its texels carry
+        # its error into every other view: judged relative to its value, as a shininess is, even
+        # where it is not a log parameter (Oren–Nayar box in a mirror: roughness 0.13 ± 0.22 for
+        # 0.4 passed the range rule, and its novel view fell 2 dB over the pixels called determined).
+        own = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
+        relative = sig.theta > RESOLVE_THETA * np.log(2.0) * np.abs(p.theta)
+        loose.theta |= fitted_free.theta & own & relative
     # Nor its shininess without its height: a lobe whose ks is held or undetermined in every band
     # may not be there (a glass block's highlight out of view, only a faint tail seen: ns 106 ± 36
     # for a true 250 beside ks 0.013, true 0.15), so its θ is reported undetermined too.
     for s, model in enumerate(fac.models):
         shaped = [lay.x_offset[s] + j for j in model.shaped if not (textured is not None and textured[s] and model.linear[j] == "kd")]
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
-        if shaped and all(np.all(~free.x[k] | loose.x[k]) for k in shaped):
+        if shaped and all(np.all(~fitted_free.x[k] | loose.x[k]) for k in shaped):
             loose.theta[th] |= free.theta[th]
     # A lobe's ks means nothing without its shininess: held or undetermined θ makes its ks so too.
     for k, (s, name) in enumerate(lay.x_names):
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
         if name != "kd" and (np.any(~free.theta[th]) or np.any(loose.theta[th])):
-            loose.x[k] |= free.x[k]
+            loose.x[k] |= fitted_free.x[k]
     status, warnings = diagnose(pb, p, A, res, textured, names)
     spent = time.perf_counter() - t0
     elapsed = fitted + spent
@@ -281,8 +298,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
-    return FitResult(method, p, free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,
-                     undetermined_names(fac, free, materials, loose), rounds, pb.evaluations, iterations, message,
+    return FitResult(method, p, fitted_free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,
+                     undetermined_names(fac, fitted_free, materials, loose), rounds, pb.evaluations, iterations, message,
                      {**stats, "status": status, "warnings": warnings, "phases_s": {k: round(v, 6) for k, v in phases.items()}},
                      found)
 

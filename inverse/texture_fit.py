@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from hardware.images import clip_level
 from inverse.factorization import Factorization
 from inverse.fitting import FitResult, fit
 from inverse.rendering import linear_basis, node_radiance, path_products
@@ -119,6 +120,40 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
 
     total = per_pixel(light, np.ones(len(trees.pixel), dtype=bool))
     return np.divide(per_pixel(diffuse, first), total, out=np.zeros((npix, 3)), where=total > 0)
+
+
+def deattenuated(relative, trees, textured, tex, image, recover, options) -> np.ndarray:
+    """``relative`` where a textured surface is seen in a mirror or through glass, shrunk toward
+    its mean by the texels' reliability: regression calibration for errors in variables.
+
+    A reflection or transmission is regressed on texels recovered from noisy pixels; their noise
+    pulls its r or t toward 0 by the noise's share of the texels' variance (and the reflecting
+    surface's own kd up): floor in a mirror, 160x120, 1 % noise: mirror r[2] 0.83 for 0.85 in every
+    realisation, 3–4σ off; with the true texture 0.85. The texels' expected value given their
+    noisy estimate, ``μ + (1 − λ)(a − μ)`` with λ = noise variance / total variance per band over
+    those nodes, removes that bias. The noise variance is measured, not modelled: the texture is
+    recovered again (``recover(image, options)``) from the photograph plus noise of its own
+    estimated σ (:func:`inverse.photograph.image_noise`, seeded), and the change at the nodes is
+    that noise's image. Noise-free photographs are left as they are. Directly seen nodes are not
+    touched: they were made from the very pixels they explain.
+    """
+    from inverse.photograph import image_noise
+
+    image = np.asarray(image, dtype=np.float64)
+    tex_nodes = np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1)
+    nodes = np.flatnonzero(tex_nodes & np.all(np.isfinite(relative), axis=1))
+    sigma = image_noise(image)
+    if len(nodes) < 2 or not np.any(sigma > 1e-4 * max(float(image.max()), 1e-300)):
+        return relative
+    level = options.saturation if options.saturation is not None else clip_level(image)
+    noisy = image + np.random.default_rng(0).normal(0.0, 1.0, image.shape) * sigma
+    moved = relative_albedo(trees, textured, recover(noisy, dataclasses.replace(options, saturation=level)))[nodes]
+    a = relative[nodes]
+    spread = a.var(axis=0)
+    lam = np.clip(np.divide(np.nanvar(moved - a, axis=0), spread, out=np.zeros(3), where=spread > 0), 0.0, 0.5)
+    out = relative.copy()
+    out[nodes] = a.mean(axis=0) + (1.0 - lam) * (a - a.mean(axis=0))
+    return out
 
 
 def relative_albedo(trees, textured, result) -> np.ndarray:
@@ -226,6 +261,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         tex = recover_texture(scene, trees, materials, intensities, image, options, exclude=left_out,
                               maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps)
         relative = relative_albedo(trees, textured, tex)
+        relative = deattenuated(relative, trees, textured, tex, image, lambda noisy, opts: recover_texture(
+            scene, trees, materials, intensities, noisy, opts, exclude=left_out, maps=tex.maps), options)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
         # σ only for the last round (the one kept, unless its texture went wrong: see below). After

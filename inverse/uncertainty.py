@@ -163,7 +163,67 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
     return H, labels
 
 
-def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=None) -> Params:
+def row_jacobian(pb: Problem, p: Params, free: Free, rows) -> np.ndarray:
+    """(3, len(rows), n): each band's image derivative on the used pixels ``rows`` (indices into
+    ``fac.rows``) by the free parameters, in :func:`normal_matrix`'s order (each band's linear
+    parameters, then θ). For the few pixels :func:`profiled` needs, not the whole image."""
+    fac = pb.fac
+    rows = np.asarray(rows, dtype=np.int64)
+    A, grad = fac.matrices_and_grad(p.theta)
+    q = np.flatnonzero(free.theta)
+    blocks = [pb.dy(p, c, free)[0] for c in range(BANDS)]
+    n_lin = sum(b.shape[1] for b in blocks)
+    J = np.zeros((BANDS, len(rows), n_lin + len(q)))
+    off = 0
+    for c, D in enumerate(blocks):
+        if D.shape[1]:
+            J[c, :, off:off + D.shape[1]] = A[c][rows] @ D
+        off += D.shape[1]
+    if len(q):
+        img, used = grad.images(fac.y(p.x, p.s), q, compact=True)  # (q, 3, used)
+        at = np.full(fac.n_rows, -1)
+        at[used] = np.arange(len(used))
+        hit = at[rows] >= 0
+        J[:, hit, n_lin:] = np.transpose(img[:, :, at[rows[hit]]], (1, 2, 0))
+    return J
+
+
+def profiled(J, e, group, weights, res, tile, n_tiles) -> tuple[np.ndarray, np.ndarray]:
+    """Normal-matrix and tile-score terms of pixels whose albedo is a free nuisance per texel.
+
+    Parameters
+    ----------
+    J : (3, m, n) ndarray
+        The pixels' image derivatives (:func:`row_jacobian`).
+    e : (3, m) ndarray
+        Each pixel's derivative by its texel's albedo (the diffuse term it carries).
+    group : (m,) int ndarray
+        Each pixel's texel, 0..G−1.
+    weights : (3,) ndarray
+    res : (3, m) ndarray
+        The pixels' residuals.
+    tile : (m,) int ndarray
+        Each pixel's tile (:func:`tile_index`), of ``n_tiles``.
+
+    Each texel's albedo, free per band, is profiled out: the pixels' derivatives are projected
+    off its direction e (the Schur complement of the texel's own block), so a texel seen once says
+    nothing, and one seen twice (directly and in a mirror) only through how the two pixels
+    differ. Returns ``(H, scores)`` to add to :func:`normal_matrix`'s.
+    """
+    n = J.shape[2]
+    n_groups = int(group.max()) + 1 if len(group) else 0
+    H, scores = np.zeros((n, n)), np.zeros((n, n_tiles))
+    for c in range(BANDS):
+        num = np.zeros((n_groups, n))
+        np.add.at(num, group, e[c][:, None] * J[c])
+        den = np.bincount(group, weights=e[c] * e[c], minlength=n_groups)
+        Jt = J[c] - e[c][:, None] * (num / np.maximum(den, 1e-300)[:, None])[group]
+        H += weights[c] * (Jt.T @ Jt)
+        np.add.at(scores.T, tile, Jt * (weights[c] * res[c])[:, None])
+    return H, scores
+
+
+def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=None, extra=None) -> Params:
     """One-sigma uncertainties (natural units) of the free parameters; inf where unconstrained.
 
     The noise of band c is estimated from its residual, but never below :data:`NOISE_FLOOR` of
@@ -171,20 +231,25 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     ``robust`` each σ is the larger of that and the cluster-robust sandwich over image tiles
     (:mod:`inverse.uncertainty`), which holds when the model is imperfect. ``keep`` (R,) bool:
     only these pixels inform (:func:`inverse.determined.texture_absorbed` leaves out what a free texture explains).
-    Never NaN.
+    ``extra``: ``extra(free, weights, tiles) -> (H, scores)`` or None, terms of further pixels
+    added to the normal matrix and the tile scores (:func:`profiled`). Never NaN.
     """
     n_free = free.count()
     dof = max(BANDS * pb.fac.n_rows - n_free, 1)
     var = np.sum(res * res, axis=1) / max(dof / BANDS, 1.0)
     var = np.maximum(var, (NOISE_FLOOR * pb.peak) ** 2)
     sig = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
+    tiles = tile_index(pb.fac.rows, pb.fac.width, pb.fac.height)
     if robust:
-        tiles = tile_index(pb.fac.rows, pb.fac.width, pb.fac.height)
         H, labels, scores = normal_matrix(pb, p, free, 1.0 / var, res=res, tiles=tiles, keep=keep)
     else:
         (H, labels), scores = normal_matrix(pb, p, free, 1.0 / var, keep=keep), None
     if not labels:
         return sig
+    more = extra(free, 1.0 / var, tiles) if extra is not None else None
+    if more is not None:
+        H = H + more[0]
+        scores = None if scores is None else scores + more[1]
     model, sandwich = covariance(H, scores)
     if scores is not None:
         group, n_big = coarser(pb.fac.rows, pb.fac.width, pb.fac.height, COARSE_FACTOR)
