@@ -251,7 +251,8 @@ def texel_groups(tr, textured) -> np.ndarray:
             if len(direct) < 2 or len(other) == 0:
                 continue
             index = cKDTree(pts[direct])
-            spacing = float(np.median(index.query(pts[direct], k=2)[0][:, 1]))
+            sample = direct[:: max(1, len(direct) // 4096)]  # the median spacing, from a few thousand
+            spacing = float(np.median(index.query(pts[sample], k=2)[0][:, 1]))
             dist, near = index.query(pts[other])
             same = dist < 0.5 * spacing
             out[direct] = direct
@@ -261,10 +262,12 @@ def texel_groups(tr, textured) -> np.ndarray:
     return derived(tr, "texel groups", (flags, tr.point), groups)
 
 
-def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res):
+def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed=None):
     """``extra`` for :func:`inverse.uncertainty.sigmas`: what pixels of textured surfaces seen
     twice (directly and in a mirror or through glass) say with each texel's albedo free; None
-    when no texel is seen twice.
+    when no texel is seen twice. ``lobed`` (default ``textured``): the surfaces whose texels are
+    grouped, those whose own lobe is judged (a lambert ground seen in a mirror has none: its
+    300 000 nodes at 640x480 are not grouped).
 
     A texel seen once is explained by its own albedo whatever the lobe; seen twice, at two angles,
     its two pixels must share one albedo, and the lobe's (or the reflection's) part shows in how
@@ -278,7 +281,7 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res):
 
     fac = pb.fac
     tr = fac.trees
-    group = texel_groups(tr, textured)
+    group = texel_groups(tr, textured if lobed is None else np.asarray(lobed, dtype=bool) & np.asarray(textured, dtype=bool))
     row_of = np.full(fac.width * fac.height, -1, dtype=np.int64)
     row_of[fac.rows] = np.arange(fac.n_rows)
     row = row_of[tr.pixel]

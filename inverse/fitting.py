@@ -263,8 +263,11 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
         if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any():
             # ... and from texels seen twice (directly and in a mirror), each one's albedo free.
+            lobed = np.zeros(len(textured), dtype=bool)  # textured surfaces with a lobe to judge
+            lobed[[s for (s, _), o in zip(lay.x_names, own[:, None] & sf.x) if o.any()]] = True
+            lobed[[s for (s, _), o in zip(lay.theta_names, own_theta & sf.theta) if o]] = True
             sig_o = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~anywhere,
-                           extra=seen_twice(pb, p, materials, textured, anywhere, res))
+                           extra=seen_twice(pb, p, materials, textured, anywhere, res, lobed))
             sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.

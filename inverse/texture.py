@@ -118,6 +118,9 @@ class TextureResult:
     amplification: dict[int, np.ndarray]
     flags: dict[int, np.ndarray]
     stats: dict = field(default_factory=dict)
+    #: ``kd`` again, solved with the same system from the photograph plus ``perturb``
+    #: (:func:`recover_texture`); empty without it.
+    perturbed: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------- inputs
@@ -483,7 +486,7 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([label, label + len(sizes), label + 2 * len(sizes)]), np.tile(sizes, 3)
 
 
-def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np.ndarray, dict]:
+def solve(system: _System, maps, options: TextureOptions, task=None, also=None) -> tuple[np.ndarray, dict]:
     """Solve the bounded, regularised system by connected components; returns (z per column, stats).
 
     Minimises ``|E z − rhs|² + Σ w_j (z_j − kd_j)² + Σ μ_ab (z_a − z_b)²`` within the bounds by
@@ -492,7 +495,10 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
     + L p``. Jacobi scaling (unit diagonal), a warm start from each texel's ratio of observed to
     predicted radiance, per-component step sizes and stopping; then up to four active-set rounds
     (violators fixed at their bound, the rest re-solved warm) and a final projection. ``task``
-    (:class:`hardware.task.Task`, optional) is checked every CG iteration.
+    (:class:`hardware.task.Task`, optional) is checked every CG iteration. ``also`` (per row,
+    optional): a second right-hand side solved with the same setup, warm from the first's
+    solution and to a 10x looser gradient (a perturbed photograph:
+    :func:`recover_texture`'s ``perturb``); its solution is ``stats["also"]``.
     """
     import scipy.sparse as sp
 
@@ -539,28 +545,32 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
     # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
     r0 = b - apply(prior / scale)
     stop = np.add.reduceat(r0 * r0, np.concatenate([[0], np.cumsum(sizes)[:-1]])) * options.tol**2
+
+    def bounded(b, y, stop, steps):
+        """CG, then up to four active-set rounds (violators fixed at their bound, the rest re-solved warm)."""
+        free, iters, rounds = None, 0, 0
+        for rounds in range(5):
+            if task is not None:
+                task.step(rounds, 5, f"texture: conjugate gradient, active-set round {rounds + 1}")
+            y, it = _cg(apply, b.astype(F), y.astype(F), None if free is None else free.astype(F), sizes, stop,
+                        options.max_iter, None if task is None else task.check, steps)
+            y = y.astype(np.float64)
+            iters += it
+            z = y * scale
+            viol = ((z < lo) | (z > hi)) & (True if free is None else free > 0)
+            if not viol.any():
+                break
+            y = np.where(viol, np.clip(z, lo, hi) / scale, y)
+            free = np.where(viol, 0.0, 1.0) if free is None else np.where(viol, 0.0, free)
+        return np.clip(y * scale, lo, hi), iters, rounds
+
     # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
     den = EsT @ np.asarray(E.sum(axis=1)).ravel()
     ratio = np.divide(Etrhs, den, out=prior.copy(), where=den > 0)
-    y = np.clip(ratio, lo, hi) / scale
-    free = None
-    iters = rounds = 0
     steps = []  # (perf_counter, squared normal-equation residual) per CG iteration, every round
-    for rounds in range(5):
-        if task is not None:
-            task.step(rounds, 5, f"texture: conjugate gradient, active-set round {rounds + 1}")
-        y, it = _cg(apply, b.astype(F), y.astype(F), None if free is None else free.astype(F), sizes, stop,
-                    options.max_iter, None if task is None else task.check, steps)
-        y = y.astype(np.float64)
-        iters += it
-        z = y * scale
-        viol = ((z < lo) | (z > hi)) & (True if free is None else free > 0)
-        if not viol.any():
-            break
-        y = np.where(viol, np.clip(z, lo, hi) / scale, y)
-        free = np.where(viol, 0.0, 1.0) if free is None else np.where(viol, 0.0, free)
+    solved, iters, rounds = bounded(b, np.clip(ratio, lo, hi) / scale, stop, steps)
     out = np.empty(ncol)
-    out[order] = np.clip(y * scale, lo, hi)
+    out[order] = solved
     g0 = max(float(r0 @ r0), 1e-300)
     stats = {"components": int(len(sizes)), "largest_component": int(sizes.max()), "iterations": iters,
              "active_set_rounds": rounds, "solve_s": time.perf_counter() - t0,
@@ -568,11 +578,15 @@ def solve(system: _System, maps, options: TextureOptions, task=None) -> tuple[np
              # the solve began, normal-equation residual relative to the homogeneous kd's (tol's scale).
              "trace": [[round(t - t0, 6), float(np.sqrt(g / g0))] for t, g in steps],
              "trace_quantity": "relative residual"}
+    if also is not None:
+        b_also = EsT @ np.asarray(also, dtype=np.float64) + scale * prior_w * prior
+        stats["also"] = np.empty(ncol)
+        stats["also"][order] = bounded(b_also, solved / scale, stop * 100.0, [])[0]
     return out, stats
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None,
-                    exclude=None, guess=None, task=None, maps=None) -> TextureResult:
+                    exclude=None, guess=None, task=None, maps=None, perturb=None) -> TextureResult:
     """Recover the diffuse texture of every textured surface the trees reach.
 
     Parameters
@@ -599,6 +613,10 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     maps : dict, optional
         The texel maps of an earlier call with the same scene, trees and options
         (``TextureResult.maps``), instead of building them again.
+    perturb : (H, W, 3) array_like, optional
+        Added to the photograph for a second solve of the same system (noise, to see what the
+        texels make of it: :func:`inverse.texture_fit.deattenuated`); its texels are
+        ``TextureResult.perturbed``.
 
     Returns
     -------
@@ -616,7 +634,11 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     t_maps = time.perf_counter()
     system = build_system(trees, materials, intensities, image, maps, options, exclude)
     t_sys = time.perf_counter()
-    z, stats = solve(system, maps, options, task)
+    also = None
+    if perturb is not None:
+        also = system.rhs + np.asarray(perturb, dtype=np.float64).reshape(-1, 3)[system.row_pixel, system.row_band]
+    z, stats = solve(system, maps, options, task, also=also)
+    z_perturbed = stats.pop("also", None)
 
     resid = system.E @ z - system.rhs if len(z) else np.zeros(0)
     count = np.bincount(system.row_band, minlength=3)
@@ -625,6 +647,11 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     total = system.n_texels
     full = np.full(3 * total, np.nan)
     full[system.col_global] = z
+    full_perturbed = None
+    if z_perturbed is not None:
+        full_perturbed = np.full(3 * total, np.nan)
+        full_perturbed[system.col_global] = z_perturbed
+        full_perturbed = full_perturbed.reshape(3, total)
     lo, hi = options.bounds
     clipped = np.zeros(3 * total, dtype=bool)
     clipped[system.col_global] = (z <= lo) | (z >= hi)
@@ -650,13 +677,19 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
                          np.flatnonzero(saturated3[:, sl].any(axis=0)))
         kn3, w3 = known3[:, sl][:, act], weight3[:, sl]
         known = kn3.all(axis=0)
-        values = full[:, sl][:, act]
-        if not np.isfinite(values).all():
-            values = np.nan_to_num(values, nan=0.0)
         mean = np.asarray(materials[s]["kd"], float)
-        kd = np.empty((n, 3))
-        kd[:] = mean
-        kd[act] = np.where(known, values, mean[:, None]).T
+
+        def texels(solved):
+            """(n, 3) the surface's albedo from one solve: the homogeneous kd where unknown."""
+            values = np.nan_to_num(solved[:, sl][:, act], nan=0.0)
+            kd = np.empty((n, 3))
+            kd[:] = mean
+            kd[act] = np.where(known, values, mean[:, None]).T
+            return kd
+
+        kd = texels(full)
+        if full_perturbed is not None:
+            result.perturbed[s] = texels(full_perturbed).reshape(m.height, m.width, 3)
         w3a = w3[:, act]
         amp_act = np.divide(coverage3[:, sl][:, act], w3a, out=np.zeros(w3a.shape), where=kn3 & (w3a > 0))
         amp_act[kn3 & (w3a <= 0)] = np.inf

@@ -28,7 +28,6 @@ import time
 
 import numpy as np
 
-from hardware.images import clip_level
 from inverse.factorization import Factorization
 from inverse.fitting import FitResult, fit
 from inverse.rendering import linear_basis, node_radiance, path_products
@@ -122,7 +121,23 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     return np.divide(per_pixel(diffuse, first), total, out=np.zeros((npix, 3)), where=total > 0)
 
 
-def deattenuated(relative, trees, textured, tex, image, recover, options) -> np.ndarray:
+def noise_like(image, trees, textured, sigma=None) -> np.ndarray | None:
+    """Gaussian noise of the photograph's own σ per band (``sigma``, the fit's estimate; default
+    :func:`inverse.photograph.image_noise`), seeded, for :func:`deattenuated`; None where nothing
+    textured is seen in a mirror or through glass, or the photograph is noise-free (σ under 1e-4
+    of its peak)."""
+    from inverse.photograph import image_noise
+
+    image = np.asarray(image, dtype=np.float64)
+    if not np.any(np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1)):
+        return None
+    sigma = image_noise(image) if sigma is None else np.asarray(sigma, dtype=np.float64)
+    if not np.any(sigma > 1e-4 * max(float(image.max()), 1e-300)):
+        return None
+    return np.random.default_rng(0).normal(0.0, 1.0, image.shape) * sigma
+
+
+def deattenuated(relative, trees, textured, tex) -> np.ndarray:
     """``relative`` where a textured surface is seen in a mirror or through glass, shrunk toward
     its mean by the texels' reliability: regression calibration for errors in variables.
 
@@ -131,23 +146,19 @@ def deattenuated(relative, trees, textured, tex, image, recover, options) -> np.
     surface's own kd up): floor in a mirror, 160x120, 1 % noise: mirror r[2] 0.83 for 0.85 in every
     realisation, 3–4σ off; with the true texture 0.85. The texels' expected value given their
     noisy estimate, ``μ + (1 − λ)(a − μ)`` with λ = noise variance / total variance per band over
-    those nodes, removes that bias. The noise variance is measured, not modelled: the texture is
-    recovered again (``recover(image, options)``) from the photograph plus noise of its own
-    estimated σ (:func:`inverse.photograph.image_noise`, seeded), and the change at the nodes is
-    that noise's image. Noise-free photographs are left as they are. Directly seen nodes are not
+    those nodes, removes that bias. The noise variance is measured, not modelled: ``tex`` was also
+    solved from the photograph plus noise of its own σ (:func:`noise_like`,
+    ``TextureResult.perturbed``), and the change at the nodes is that noise's image. Without it
+    (a noise-free photograph) ``relative`` is returned as it is. Directly seen nodes are not
     touched: they were made from the very pixels they explain.
     """
-    from inverse.photograph import image_noise
-
-    image = np.asarray(image, dtype=np.float64)
-    tex_nodes = np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1)
-    nodes = np.flatnonzero(tex_nodes & np.all(np.isfinite(relative), axis=1))
-    sigma = image_noise(image)
-    if len(nodes) < 2 or not np.any(sigma > 1e-4 * max(float(image.max()), 1e-300)):
+    if not tex.perturbed:
         return relative
-    level = options.saturation if options.saturation is not None else clip_level(image)
-    noisy = image + np.random.default_rng(0).normal(0.0, 1.0, image.shape) * sigma
-    moved = relative_albedo(trees, textured, recover(noisy, dataclasses.replace(options, saturation=level)))[nodes]
+    seen = np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1) & np.all(np.isfinite(relative), axis=1)
+    nodes = np.flatnonzero(seen)
+    if len(nodes) < 2:
+        return relative
+    moved = relative_albedo(trees, textured, dataclasses.replace(tex, kd=tex.perturbed), only=seen)[nodes]
     a = relative[nodes]
     spread = a.var(axis=0)
     lam = np.clip(np.divide(np.nanvar(moved - a, axis=0), spread, out=np.zeros(3), where=spread > 0), 0.0, 0.5)
@@ -156,14 +167,15 @@ def deattenuated(relative, trees, textured, tex, image, recover, options) -> np.
     return out
 
 
-def relative_albedo(trees, textured, result) -> np.ndarray:
+def relative_albedo(trees, textured, result, only=None) -> np.ndarray:
     """(N, 3) each textured node's recovered albedo over its surface's mean; NaN elsewhere.
 
-    Nodes whose texels are unknown get 1 (the mean); so do bands whose mean is 0.
+    Nodes whose texels are unknown get 1 (the mean); so do bands whose mean is 0. ``only`` (N,)
+    bool, optional: those nodes alone (the rest NaN).
     """
     out = np.full((len(trees.pixel), 3), np.nan)
     for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
-        sel = np.nonzero(trees.surface == s)[0]
+        sel = np.nonzero((trees.surface == s) & (True if only is None else np.asarray(only, dtype=bool)))[0]
         if len(sel) == 0:
             continue
         out[sel] = 1.0
@@ -258,11 +270,13 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         materials, guessed = grey_lobes(result.materials, textured, held) if k == int(rounds) - 1 else (result.materials, None)
         share = direct_share(trees, materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
+        # The round whose values are reported (an earlier one only seeds it) also sees what the
+        # photograph's noise makes of the texels (deattenuated).
         tex = recover_texture(scene, trees, materials, intensities, image, options, exclude=left_out,
-                              maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps)
-        relative = relative_albedo(trees, textured, tex)
-        relative = deattenuated(relative, trees, textured, tex, image, lambda noisy, opts: recover_texture(
-            scene, trees, materials, intensities, noisy, opts, exclude=left_out, maps=tex.maps), options)
+                              maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps,
+                              perturb=noise_like(image, trees, textured, start.stats.get("noise"))
+                              if k == int(rounds) - 1 else None)
+        relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
         # σ only for the last round (the one kept, unless its texture went wrong: see below). After
