@@ -30,8 +30,7 @@ import numpy as np
 
 from hardware.task import Task, ensure
 from inverse.determined import (RESOLVE_THETA, hold, seen_twice, structural_free, texture_absorbed, texture_confounded,
-                                theta_resolution,
-                                undetermined_names, unresolved)
+                                theta_resolution, undetermined_names, unresolved)
 from inverse.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
 from inverse.factorization import Factorization, one_blas_thread
 from inverse.fit_result import FitResult, fit_json
@@ -278,9 +277,9 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # its error into every other view: judged relative to its value, as a shininess is, even
         # where it is not a log parameter (Oren–Nayar box in a mirror: roughness 0.13 ± 0.22 for
         # 0.4 passed the range rule, and its novel view fell 2 dB over the pixels called determined).
-        own = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
+        textured_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
         relative = sig.theta > RESOLVE_THETA * np.log(2.0) * np.abs(p.theta)
-        loose.theta |= fitted_free.theta & own & relative
+        loose.theta |= fitted_free.theta & textured_theta & relative
     # Nor its shininess without its height: a lobe whose ks is held or undetermined in every band
     # may not be there (a glass block's highlight out of view, only a faint tail seen: ns 106 ± 36
     # for a true 250 beside ks 0.013, true 0.15), so its θ is reported undetermined too.
