@@ -52,7 +52,7 @@ METHODS = ("ftbo", "nftbo")
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
-        structure: Free | None = None, uncertainty: bool = True, guessed=None) -> FitResult:
+        structure: Free | None = None, uncertainty: bool = True, guessed=None, still_held: Free | None = None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -100,6 +100,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         Which parameters have signal, from an earlier fit of the same scene (``FitResult.structure``;
         a refit without outliers or against a texture): skips the structure test, nine full
         evaluations of the system.
+    still_held : Free, optional
+        What an earlier fit of the same scene held for want of signal (its ``free``: False where
+        held), held here from the start at the value ``materials`` gives; like the holding rounds'
+        own, every σ counts them free.
     uncertainty : bool
         False: return at once with σ = inf and what the holding rounds held as undetermined;
         ``stats["complete"]()`` then computes the robust σ, the undetermined values and the
@@ -143,6 +147,8 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     # by the holding rounds for want of signal) leaves the others' σ as wide as its uncertainty
     # makes them: holding it would tighten them around a value nobody knows.
     sigma_free = free.copy()
+    if still_held is not None:
+        free = Free(free.x & still_held.x, free.s & still_held.s, free.theta & still_held.theta)
     grey = None
     if guessed is not None:
         hold(fac, free, guessed)

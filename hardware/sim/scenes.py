@@ -18,7 +18,9 @@ independent renderer (:func:`hardware.sim.reference.render_reference`):
 a textured floor), ``oren_mirror`` (a textured Oren–Nayar box before a mirror), ``sheet_flat``
 (a thin transparent sheet held flat over a textured floor), ``high_ns`` (a plain tile of
 shininess 3000 whose highlight is in view, on a textured floor), ``two_textured`` (a glossy
-textured box on a glossy textured floor).
+textured box on a glossy textured floor), ``tile_mirror`` (a glossy textured tile seen directly
+and in a mirror) and ``glossy_floor_mirror`` (a glossy textured floor seen directly and in a
+mirror): the last two, a textured lobe whose texels are seen twice.
 
 The camera looks down at about 40° from 0.5 m (like the lab's); textures are smooth procedural
 functions of the surface point in [0.1, 0.9] with features of 1–3 cm.
@@ -33,7 +35,8 @@ from hardware.sim.lab import SimLab, _material, _rot_x, _rot_z, box_mesh, plane_
 from reconstruction.scene import Material, Mesh, Scene, Surface
 
 NAMES = ("shiny_box", "floor_mirror", "curved", "glass_block")
-MORE = ("ward_tile", "near_lamp", "oren_mirror", "sheet_flat", "high_ns", "two_textured")
+MORE = ("ward_tile", "near_lamp", "oren_mirror", "sheet_flat", "high_ns", "two_textured", "tile_mirror",
+        "glossy_floor_mirror")
 
 
 def _pattern(points, scale: float, colours, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -196,9 +199,30 @@ def _two_textured(ground, lamp, texture_seed):
     return surfaces, lights, textures
 
 
+def _tile_mirror(ground, lamp, texture_seed):
+    tile = box_mesh((0.14, 0.10, 0.006), (0.0, 0.02, 0.0031), _rot_z(8.0))
+    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
+    tex = _realisation(0.025, ([0.75, 0.6, 0.35], [0.25, 0.3, 0.55]), texture_seed)
+    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.4]), False, ground),
+                Surface("tile", "meshes/tile.ply", _material("phong", kd=_mean(tile, tex), ks=0.15, ns=25.0), True, tile),
+                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85), False, mirror)]
+    lights = [PointLight([0.2, -0.25, 0.35], 0.1 * lamp), PointLight([-0.25, 0.0, 0.3], 0.08 * lamp)]
+    return surfaces, lights, {1: tex}
+
+
+def _glossy_floor_mirror(ground, lamp, texture_seed):
+    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
+    tex = _realisation(0.03, ([0.8, 0.7, 0.5], [0.3, 0.35, 0.5]), texture_seed)
+    surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex), ks=0.12, ns=20.0), True, ground),
+                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.9), False, mirror)]
+    lights = [PointLight([0.15, -0.3, 0.3], 0.1 * lamp), PointLight([-0.3, 0.05, 0.35], 0.08 * lamp)]
+    return surfaces, lights, {0: tex}
+
+
 _DESIGNS = {"shiny_box": _shiny_box, "floor_mirror": _floor_mirror, "curved": _curved, "glass_block": _glass_block,
             "ward_tile": _ward_tile, "near_lamp": _near_lamp, "oren_mirror": _oren_mirror, "sheet_flat": _sheet_flat,
-            "high_ns": _high_ns, "two_textured": _two_textured}
+            "high_ns": _high_ns, "two_textured": _two_textured, "tile_mirror": _tile_mirror,
+            "glossy_floor_mirror": _glossy_floor_mirror}
 
 
 def build(name: str, width: int = 160, height: int = 120, texture_seed: int | None = None) -> SimLab:
