@@ -148,11 +148,11 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     # makes them: holding it would tighten them around a value nobody knows.
     sigma_free = free.copy()
     if still_held is not None:
-        free = Free(free.x & still_held.x, free.s & still_held.s, free.theta & still_held.theta)
+        free = free & still_held
     grey = None
     if guessed is not None:
         hold(fac, free, guessed)
-        grey = Free(sigma_free.x & ~free.x, sigma_free.s & ~free.s, sigma_free.theta & ~free.theta)
+        grey = sigma_free & ~free
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}
@@ -257,7 +257,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # (kd of a textured surface is its texture's mean: its σ stays the one from every pixel).
         tex_kd = np.array([bool(textured[s]) and name == "kd" for s, name in lay.x_names], dtype=bool)
         # The texture (its mean kd included) counts as known from the pixels that see it directly.
-        sig_t = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~absorbed)
+        sf_t = Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta)  # a texture's mean kd keeps its every-pixel σ
+        sig_t = sigmas(pb, p, sf_t, res, keep=~absorbed)
         sig = Params(np.where(tex_kd[:, None], sig.x, np.fmax(sig.x, sig_t.x)), np.fmax(sig.s, sig_t.s),
                      np.fmax(sig.theta, sig_t.theta))
         # A textured surface's own lobe (ks, θ): the view that pins its texture (the direct one)
@@ -271,12 +272,12 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
             lobed = np.zeros(len(textured), dtype=bool)  # textured surfaces with a lobe to judge
             lobed[[s for (s, _), o in zip(lay.x_names, own[:, None] & sf.x) if o.any()]] = True
             lobed[[s for (s, _), o in zip(lay.theta_names, own_theta & sf.theta) if o]] = True
-            sig_o = sigmas(pb, p, Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta), res, keep=~anywhere,
+            sig_o = sigmas(pb, p, sf_t, res, keep=~anywhere,
                            extra=seen_twice(pb, p, materials, textured, anywhere, res, lobed))
             sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
-    fitted_free = free if grey is None else Free(free.x | grey.x, free.s | grey.s, free.theta | grey.theta)
+    fitted_free = free if grey is None else free | grey
     loose = unresolved(pb, p, init, fitted_free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
     if textured is not None and any(textured):
         # A textured surface's θ is known from its texels seen twice at most, and its texels carry

@@ -57,6 +57,15 @@ class Free:
     def copy(self) -> "Free":
         return Free(self.x.copy(), self.s.copy(), self.theta.copy())
 
+    def __and__(self, other: "Free") -> "Free":
+        return Free(self.x & other.x, self.s & other.s, self.theta & other.theta)
+
+    def __or__(self, other: "Free") -> "Free":
+        return Free(self.x | other.x, self.s | other.s, self.theta | other.theta)
+
+    def __invert__(self) -> "Free":
+        return Free(~self.x, ~self.s, ~self.theta)
+
 
 def params_of(fac: Factorization, materials) -> Params:
     """Flat parameters from a list of materials (surface order)."""

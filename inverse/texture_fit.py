@@ -121,6 +121,11 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     return np.divide(per_pixel(diffuse, first), total, out=np.zeros((npix, 3)), where=total > 0)
 
 
+def seen_elsewhere(trees, textured) -> np.ndarray:
+    """(N,) bool: nodes of textured surfaces seen in a mirror or through glass (not directly)."""
+    return np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1)
+
+
 def noise_like(image, trees, textured, sigma=None) -> np.ndarray | None:
     """Gaussian noise of the photograph's own σ per band (``sigma``, the fit's estimate; default
     :func:`inverse.photograph.image_noise`), seeded, for :func:`deattenuated`; None where nothing
@@ -129,7 +134,7 @@ def noise_like(image, trees, textured, sigma=None) -> np.ndarray | None:
     from inverse.photograph import image_noise
 
     image = np.asarray(image, dtype=np.float64)
-    if not np.any(np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1)):
+    if not seen_elsewhere(trees, textured).any():
         return None
     sigma = image_noise(image) if sigma is None else np.asarray(sigma, dtype=np.float64)
     if not np.any(sigma > 1e-4 * max(float(image.max()), 1e-300)):
@@ -154,7 +159,7 @@ def deattenuated(relative, trees, textured, tex) -> np.ndarray:
     """
     if not tex.perturbed:
         return relative
-    seen = np.asarray(textured, dtype=bool)[trees.surface] & (np.asarray(trees.level) > 1) & np.all(np.isfinite(relative), axis=1)
+    seen = seen_elsewhere(trees, textured) & np.all(np.isfinite(relative), axis=1)
     nodes = np.flatnonzero(seen)
     if len(nodes) < 2:
         return relative

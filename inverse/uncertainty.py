@@ -239,7 +239,8 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     var = np.sum(res * res, axis=1) / max(dof / BANDS, 1.0)
     var = np.maximum(var, (NOISE_FLOOR * pb.peak) ** 2)
     sig = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
-    tiles = tile_index(pb.fac.rows, pb.fac.width, pb.fac.height)
+    # The tiles only where they serve: the holding rounds' many model-based calls need none.
+    tiles = tile_index(pb.fac.rows, pb.fac.width, pb.fac.height) if robust or extra is not None else None
     if robust:
         H, labels, scores = normal_matrix(pb, p, free, 1.0 / var, res=res, tiles=tiles, keep=keep)
     else:

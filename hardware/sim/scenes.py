@@ -155,13 +155,18 @@ def _near_lamp(ground, lamp, texture_seed):
     return surfaces, lights, textures
 
 
+def _upright_mirror(r: float) -> Surface:
+    """The upright mirror behind the scene of oren_mirror, tile_mirror and glossy_floor_mirror."""
+    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
+    return Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=r), False, mirror)
+
+
 def _oren_mirror(ground, lamp, texture_seed):
     box = box_mesh((0.10, 0.07, 0.06), (0.0, 0.0, 0.0301), _rot_z(25.0))
-    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
     tex = _realisation(0.025, ([0.7, 0.5, 0.3], [0.2, 0.35, 0.6]), texture_seed)
     surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.4]), False, ground),
                 Surface("box", "meshes/box.ply", _material("oren-nayar", kd=_mean(box, tex), sigma=0.4), True, box),
-                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.8), False, mirror)]
+                _upright_mirror(0.8)]
     lights = [PointLight([0.25, -0.2, 0.35], 0.1 * lamp), PointLight([-0.25, -0.15, 0.3], 0.07 * lamp)]
     textures = {1: tex}
     return surfaces, lights, textures
@@ -201,20 +206,18 @@ def _two_textured(ground, lamp, texture_seed):
 
 def _tile_mirror(ground, lamp, texture_seed):
     tile = box_mesh((0.14, 0.10, 0.006), (0.0, 0.02, 0.0031), _rot_z(8.0))
-    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
     tex = _realisation(0.025, ([0.75, 0.6, 0.35], [0.25, 0.3, 0.55]), texture_seed)
     surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.4]), False, ground),
                 Surface("tile", "meshes/tile.ply", _material("phong", kd=_mean(tile, tex), ks=0.15, ns=25.0), True, tile),
-                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.85), False, mirror)]
+                _upright_mirror(0.85)]
     lights = [PointLight([0.2, -0.25, 0.35], 0.1 * lamp), PointLight([-0.25, 0.0, 0.3], 0.08 * lamp)]
     return surfaces, lights, {1: tex}
 
 
 def _glossy_floor_mirror(ground, lamp, texture_seed):
-    mirror = box_mesh((0.25, 0.006, 0.15), (0.0, 0.12, 0.075), _rot_z(-5.0))
     tex = _realisation(0.03, ([0.8, 0.7, 0.5], [0.3, 0.35, 0.5]), texture_seed)
     surfaces = [Surface("floor", "meshes/floor.ply", _material("phong", kd=_mean(ground, tex), ks=0.12, ns=20.0), True, ground),
-                Surface("mirror", "meshes/mirror.ply", _material("phong", kd=0.02, ks=0.3, ns=300.0, r=0.9), False, mirror)]
+                _upright_mirror(0.9)]
     lights = [PointLight([0.15, -0.3, 0.3], 0.1 * lamp), PointLight([-0.3, 0.05, 0.35], 0.08 * lamp)]
     return surfaces, lights, {0: tex}
 
