@@ -151,8 +151,9 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         free = free & still_held
     grey = None
     if guessed is not None:
+        fitted = free.copy()
         hold(fac, free, guessed)
-        grey = sigma_free & ~free
+        grey = fitted & ~free  # the guessed alone: a still_held value is a guess, never reported fitted
     trace, iterations, message = [], 0, ""
     rounds = 0
     kw = {} if maxiter is None else {"maxiter": maxiter}

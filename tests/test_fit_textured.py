@@ -194,6 +194,28 @@ def test_a_value_held_by_an_earlier_round_keeps_its_uncertainty():
     assert res.sigma.s[2 * mirror, 1] > 0.003, res.sigma.s[2 * mirror]
 
 
+def test_a_value_still_held_is_never_reported_fitted():
+    """A value an earlier round held (``still_held``) is a guess even when the same round greys a
+    textured lobe (``guessed``, reported like a fitted value once its σ resolves it): the mirror's
+    r held at its start value was reported determined beside the floor's grey ks."""
+    from hardware.sim.scenes import build, render
+    from inverse.trees import build_trees
+
+    ts = build("floor_mirror", W, H)
+    init = user_materials(ts.scene)
+    user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
+    fac = Factorization(build_trees(user, ts.camera, ts.lights, depth=3), [get_model(m.brdf) for m in init],
+                        ts.lights.intensities)
+    held, textured, img = [m.given for m in init], [s.textured for s in user], render(ts)
+    start = fit(fac, img, init, "ftbo", textured=textured, names=user.names, held=held)
+    mirror = user.names.index("mirror")
+    still = start.free.copy()
+    still.s[2 * mirror] = False  # the mirror's r held, as an earlier round would
+    res = fit(fac, img, start.materials, "ftbo", textured=textured, names=user.names, held=held, scan=False,
+              structure=start.structure, still_held=still, guessed=[{"ks"}, set()])
+    assert "r" in res.undetermined[mirror] and not res.free.s[2 * mirror].any()
+
+
 def test_a_textured_surface_lobe_is_grey():
     """A textured surface is a dielectric: its highlight has the lamp's colour, so its last texture
     round holds ks at the mean over the bands and refits the shininess (shiny box, 160x120, 1 %
