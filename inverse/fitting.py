@@ -52,7 +52,8 @@ METHODS = ("ftbo", "nftbo")
 def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_rounds: int | None = None,
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
-        structure: Free | None = None, uncertainty: bool = True, guessed=None, still_held: Free | None = None) -> FitResult:
+        structure: Free | None = None, uncertainty: bool = True, guessed=None, still_held: Free | None = None,
+        colour=None) -> FitResult:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -104,6 +105,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         What an earlier fit of the same scene held for want of signal (its ``free``: False where
         held), held here from the start at the value ``materials`` gives; like the holding rounds'
         own, every σ counts them free.
+    colour : dict, optional
+        Surface index → :class:`inverse.dichromatic.ColourLobe`: textured lobes estimated from the
+        texture's colours, held (in ``guessed``) at that estimate; their ks and θ get its σ, and
+        are reported determined when it resolves them. Listed in ``stats["colour_lobes"]``.
     uncertainty : bool
         False: return at once with σ = inf and what the holding rounds held as undetermined;
         ``stats["complete"]()`` then computes the robust σ, the undetermined values and the
@@ -226,26 +231,27 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                 spent = time.perf_counter() - t_polish
                 pb.phases["refinement"] += spent
             return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
-                             nit, msg, fitted + spent, stats, sigma_free, grey)
+                             nit, msg, fitted + spent, stats, sigma_free, grey, colour)
 
         return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
                           "complete": complete}, found)
     return _complete(pb, p, init, free, found, res, A, materials, textured, names, method, trace, rounds, iterations,
-                     message, fitted, stats, sigma_free, grey)
+                     message, fitted, stats, sigma_free, grey, colour)
 
 
 def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
               method, trace, rounds, iterations, message, fitted, stats, sigma_free: Free | None = None,
-              grey: Free | None = None) -> FitResult:
+              grey: Free | None = None, colour=None) -> FitResult:
     """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted.
 
     ``sigma_free``: what every σ counts free, ``free`` and the parameters held at a guess (by the
     holding rounds, or ``guessed``): holding those would tighten the σ of all that shares pixels
     with them around a value nobody knows. Default ``free``. ``grey``: those held at the mean of
     their bands' fitted values (``guessed``): reported determined when their σ resolves them, like
-    a fitted value (a lobe one band-shared height, fitted the round before).
+    a fitted value (a lobe one band-shared height, fitted the round before). ``colour``: lobes
+    estimated from the texture's colours (:mod:`inverse.dichromatic`), whose σ their ks and θ take.
     """
     t0 = time.perf_counter()
     fac = pb.fac
@@ -277,6 +283,15 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
                            extra=seen_twice(pb, p, materials, textured, anywhere, res, lobed))
             sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
             sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
+    for s, lobe in (colour or {}).items():
+        # A lobe the texture's colours determine: every pixel of the surface informs it, with each
+        # pixel's albedo free along the texture's colour set (its own σ, robust).
+        for k, (si, name) in enumerate(lay.x_names):
+            if si == s and name == "ks":
+                sig.x[k] = lobe.sigma_ks
+        for q, (si, name) in enumerate(lay.theta_names):
+            if si == s and name == lobe.shape:
+                sig.theta[q] = lobe.sigma_theta
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
     fitted_free = free if grey is None else free | grey
     loose = unresolved(pb, p, init, fitted_free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
@@ -299,7 +314,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     # A lobe's ks means nothing without its shininess: held or undetermined θ makes its ks so too.
     for k, (s, name) in enumerate(lay.x_names):
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
-        if name != "kd" and (np.any(~free.theta[th]) or np.any(loose.theta[th])):
+        if name != "kd" and (np.any(~fitted_free.theta[th]) or np.any(loose.theta[th])):
             loose.x[k] |= fitted_free.x[k]
     status, warnings = diagnose(pb, p, A, res, textured, names)
     spent = time.perf_counter() - t0
@@ -308,6 +323,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
+    if colour:
+        stats = {**stats, "colour_lobes": {(names[s] if names else f"surface {s}"): lobe.to_json() for s, lobe in colour.items()}}
     return FitResult(method, p, fitted_free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,
                      undetermined_names(fac, fitted_free, materials, loose), rounds, pb.evaluations, iterations, message,
                      {**stats, "status": status, "warnings": warnings, "phases_s": {k: round(v, 6) for k, v in phases.items()}},

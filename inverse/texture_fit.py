@@ -18,6 +18,9 @@ those against it. Each round:
    ``Factorization(albedo=...)``): ``kd`` stays the surface's mean albedo, and texels no kept
    pixel sees count as the mean.
 
+The last round holds textured lobes grey (:func:`grey_lobes`), and a lobe the texture's colours
+determine at that estimate (:func:`colour_held`, :mod:`inverse.dichromatic`).
+
 Measured on the demo (docs/fit.md): the mirror's r, the sheet's t and the tile's ks and r come
 to within 0.03 of the truth; the box's shininess, whose stripes cross its highlight, does not.
 """
@@ -81,6 +84,26 @@ def grey_lobes(materials, textured, held=None) -> tuple[list, list]:
         if guessed[i]:
             out[i] = dataclasses.replace(m, params=dict(m.params) | {n: np.full(3, float(np.mean(m[n]))) for n in guessed[i]})
     return out, guessed
+
+
+def colour_held(trees, materials, guessed, intensities, image, textured, noise, mask, held, rms):
+    """``materials`` and ``guessed`` with each textured lobe the texture's colours resolve
+    (:func:`inverse.dichromatic.colour_lobes`) set to that estimate and held as a guess, and those
+    lobes (surface index → ColourLobe; None if none). Without a noise estimate, nothing."""
+    from inverse.dichromatic import colour_lobes
+
+    if noise is None:
+        return materials, guessed, None
+    lobes = {s: lobe for s, lobe in colour_lobes(trees, materials, intensities, image, textured, noise, mask=mask,
+                                                   held=held, rms=rms).items() if lobe.resolved()}
+    if not lobes:
+        return materials, guessed, None
+    materials, guessed = list(materials), [set(g) for g in guessed]
+    for s, lobe in lobes.items():
+        materials[s] = dataclasses.replace(materials[s], params=dict(materials[s].params)
+                                           | {"ks": np.full(3, lobe.ks), lobe.shape: float(lobe.theta)})
+        guessed[s] |= {"ks", lobe.shape}
+    return materials, guessed, lobes
 
 
 def direct_share(trees, materials, intensities, textured, relative=None) -> np.ndarray:
@@ -272,7 +295,13 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         # under them: earlier rounds fit them per band, which sets the grey value; the last refits
         # their shininess under it (can of texture_seed 4: relit −9.1 → −6.5 dB against the true
         # materials when the texture, too, was made with the grey lobe).
-        materials, guessed = grey_lobes(result.materials, textured, held) if k == int(rounds) - 1 else (result.materials, None)
+        last = k == int(rounds) - 1
+        materials, guessed = grey_lobes(result.materials, textured, held) if last else (result.materials, None)
+        colour = None
+        if last:
+            # A lobe the texture's colours determine is held at that estimate (inverse.dichromatic).
+            materials, guessed, colour = colour_held(trees, materials, guessed, intensities, image, textured,
+                                                     start.stats.get("noise"), mask, held, result.rms)
         share = direct_share(trees, materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
         # The round whose values are reported (an earlier one only seeds it) also sees what the
@@ -280,7 +309,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         tex = recover_texture(scene, trees, materials, intensities, image, options, exclude=left_out,
                               maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps,
                               perturb=noise_like(image, trees, textured, start.stats.get("noise"))
-                              if k == int(rounds) - 1 else None)
+                              if last else None)
         relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
@@ -294,7 +323,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
                      maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
                      held=held, guessed=guessed, reject=False, structure=start.structure,
                      still_held=None if best_round == 0 else result.free,
-                     uncertainty=k == int(rounds) - 1)
+                     uncertainty=last, colour=colour)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0

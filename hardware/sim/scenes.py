@@ -19,8 +19,12 @@ a textured floor), ``oren_mirror`` (a textured Oren–Nayar box before a mirror)
 (a thin transparent sheet held flat over a textured floor), ``high_ns`` (a plain tile of
 shininess 3000 whose highlight is in view, on a textured floor), ``two_textured`` (a glossy
 textured box on a glossy textured floor), ``tile_mirror`` (a glossy textured tile seen directly
-and in a mirror) and ``glossy_floor_mirror`` (a glossy textured floor seen directly and in a
-mirror): the last two, a textured lobe whose texels are seen twice.
+and in a mirror), ``glossy_floor_mirror`` (a glossy textured floor seen directly and in a
+mirror) — those two, a textured lobe whose texels are seen twice — and ``print_can`` (curved's
+can printed in full colour, each band its own pattern: no colour set for
+:mod:`inverse.dichromatic`, its lobe seen once).
+
+Every other texture is two inks (:func:`_pattern`): its colours on a line in RGB.
 
 The camera looks down at about 40° from 0.5 m (like the lab's); textures are smooth procedural
 functions of the surface point in [0.1, 0.9] with features of 1–3 cm.
@@ -36,7 +40,7 @@ from reconstruction.scene import Material, Mesh, Scene, Surface
 
 NAMES = ("shiny_box", "floor_mirror", "curved", "glass_block")
 MORE = ("ward_tile", "near_lamp", "oren_mirror", "sheet_flat", "high_ns", "two_textured", "tile_mirror",
-        "glossy_floor_mirror")
+        "glossy_floor_mirror", "print_can")
 
 
 def _pattern(points, scale: float, colours, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -47,6 +51,13 @@ def _pattern(points, scale: float, colours, shift=(0.0, 0.0, 0.0)) -> np.ndarray
     w = 0.5 + 0.5 * np.tanh(3.0 * (w - 0.5) + np.sin(2 * np.pi * z / (0.9 * scale)))
     a, b = (np.asarray(c, dtype=np.float64) for c in colours)
     return np.clip(a + (b - a) * w[:, None], 0.1, 0.9)
+
+
+def _full_colour(points, scale: float, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """A full-colour print: each band its own wave pattern (no line or plane holds its colours)."""
+    p = points - np.asarray(shift, dtype=np.float64)
+    dirs = np.array([[1.0, 0.4, 0.2], [-0.3, 1.0, 0.5], [0.6, -0.7, 1.0]])
+    return np.clip(0.5 + 0.3 * np.sin(2 * np.pi * p @ dirs.T / (scale * np.array([1.0, 1.3, 0.8]))), 0.1, 0.9)
 
 
 def cylinder_mesh(radius: float, length: float, center, axis_deg: float = 0.0, segments: int = 48) -> Mesh:
@@ -204,6 +215,19 @@ def _two_textured(ground, lamp, texture_seed):
     return surfaces, lights, textures
 
 
+def _print_can(ground, lamp, texture_seed):
+    cyl = cylinder_mesh(0.04, 0.18, (0.0, 0.03, 0.0401), axis_deg=20.0)
+    shift = (0.0, 0.0, 0.0) if texture_seed is None else np.random.default_rng(texture_seed).uniform(0.0, 0.075, 3)
+
+    def tex(p):
+        return _full_colour(p, 0.025, shift)
+
+    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.42]), False, ground),
+                Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
+    lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
+    return surfaces, lights, {1: tex}
+
+
 def _tile_mirror(ground, lamp, texture_seed):
     tile = box_mesh((0.14, 0.10, 0.006), (0.0, 0.02, 0.0031), _rot_z(8.0))
     tex = _realisation(0.025, ([0.75, 0.6, 0.35], [0.25, 0.3, 0.55]), texture_seed)
@@ -225,7 +249,7 @@ def _glossy_floor_mirror(ground, lamp, texture_seed):
 _DESIGNS = {"shiny_box": _shiny_box, "floor_mirror": _floor_mirror, "curved": _curved, "glass_block": _glass_block,
             "ward_tile": _ward_tile, "near_lamp": _near_lamp, "oren_mirror": _oren_mirror, "sheet_flat": _sheet_flat,
             "high_ns": _high_ns, "two_textured": _two_textured, "tile_mirror": _tile_mirror,
-            "glossy_floor_mirror": _glossy_floor_mirror}
+            "glossy_floor_mirror": _glossy_floor_mirror, "print_can": _print_can}
 
 
 def build(name: str, width: int = 160, height: int = 120, texture_seed: int | None = None) -> SimLab:
