@@ -131,12 +131,21 @@ class _Pixels:
         # What the rest of the model puts in these pixels (other surfaces, the lamps).
         self.r = np.asarray(image, dtype=np.float64).reshape(-1, 3)[px] - per_pixel(light, rest)
         self.e = self.pp * basis[nodes, :, 0]
+        # The model evaluated on these nodes alone (as rendering.linear_basis does on all of them):
+        # the scan asks for dozens of θ, and the whole trees' basis is 20 MB at 640x480.
+        k = trees.n_lights
+        self.model = get_model(materials[s].brdf)
+        self.geometry = (np.repeat(trees.normal[nodes], k, axis=0), trees.light_dir[nodes].reshape(-1, 3),
+                         np.repeat(trees.view[nodes], k, axis=0),
+                         trees.fresnel[nodes, None] * trees.visible[nodes] / trees.light_dist2[nodes])
+        self.intensities = np.asarray(intensities, dtype=np.float64).reshape(k, 3)
 
     def lobe(self, theta: float) -> np.ndarray:
         """(m, 3) the lobe's image per unit ks at shape ``theta``."""
-        mats = list(self.materials)
-        mats[self.s] = dataclasses.replace(mats[self.s], params=dict(mats[self.s].params) | {self.shape: float(theta)})
-        return self.pp * linear_basis(self.trees, mats, self.intensities)[self.nodes, :, self.j]
+        normal, light, view, weight = self.geometry
+        g = self.model.g(np.full((len(normal), 1), float(theta)), normal, light, view)
+        g = g.reshape(len(self.nodes), self.trees.n_lights, -1)[:, :, self.j]
+        return self.pp * np.einsum("nk,kc,nk->nc", weight, self.intensities, g, optimize=True)
 
 
 def _colour_set(albedo: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
@@ -168,16 +177,29 @@ class _Objective:
         g = self.P(self.px.lobe(theta)[self.keep] * self.sw)
         A = np.stack([c.ravel() for c in self.cols + [g]], axis=1)
         y = self.rt.ravel()
-        sol = np.linalg.lstsq(A, y, rcond=None)[0]
+        sol = _least_squares(A, y)
         if sol[-1] < 0:  # no lobe: ks at its bound 0
-            sol = np.append(np.linalg.lstsq(A[:, :-1], y, rcond=None)[0], 0.0)
+            sol = np.append(_least_squares(A[:, :-1], y), 0.0)
         f = y - A @ sol
         return float(f @ f), sol[:-1], float(sol[-1]), f.reshape(-1, 3), g
 
 
-def _estimate(obj: _Objective, lo: float, hi: float) -> tuple[float, float]:
-    """(θ, objective) minimising the profiled objective: a scan in log2 θ, then Brent."""
+def _least_squares(A: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """min ‖A x − y‖ for a tall A of a few columns: its normal equations, scaled (lstsq if singular)."""
+    d = np.sqrt(np.maximum(np.einsum("ij,ij->j", A, A), 1e-300))
+    As = A / d
+    try:
+        return np.linalg.solve(As.T @ As, As.T @ y) / d
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(A, y, rcond=None)[0]
+
+
+def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) -> tuple[float, float]:
+    """(θ, objective) minimising the profiled objective: a scan in log2 θ (only within one step
+    of ``near``, the last pass's θ, when given), then Brent."""
     grid = np.arange(np.log2(lo), np.log2(hi) + 1e-9, SCAN_STEP)
+    if near is not None:
+        grid = np.clip(np.log2(near) + SCAN_STEP * np.arange(-2, 3), np.log2(lo), np.log2(hi))
     values = [obj.solve(2.0**u)[0] for u in grid]
     i = int(np.argmin(values))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
@@ -270,13 +292,12 @@ def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=
         lo, hi = FIT_RANGE.get(shape, SCALAR_RANGE.get(shape))
         lo, hi = max(lo, 1e-3), (min(hi, 2.0**12) if shape == "ns" else hi)
         start = (float(np.mean(materials[s]["ks"])), float(materials[s][shape]))
-        line, plane = (_fit_set(parts, lit, dims, *start, scale, lo, hi) for dims in (1, 2))
         # A line when it explains the pixels to the noise (or the fit's residual), else a plane when
         # it does; else the texture has more colours than that.
-        if line[3] <= SET_TOLERANCE * ref:
-            obj, theta, keep, _ = line
-        elif plane[3] <= SET_TOLERANCE * ref:
-            obj, theta, keep, _ = plane
+        for dims in (1, 2):
+            obj, theta, keep, misfit = _fit_set(parts, lit, dims, *start, scale, lo, hi)
+            if misfit <= SET_TOLERANCE * ref:
+                break
         else:
             continue
         ks = obj.solve(theta)[2]
@@ -300,7 +321,7 @@ def _fit_set(parts: _Pixels, lit, dims: int, ks: float, theta: float, scale, lo:
         quiet = keep & (share <= np.median(share[keep]))
         _, D = _colour_set(albedo[quiet], dims)
         obj = _Objective(parts, D, scale, keep)
-        theta, _ = _estimate(obj, lo, hi)
+        theta, _ = _estimate(obj, lo, hi, near=theta if it > 1 else None)  # after two global scans
         val, _, ks, f, _ = obj.solve(theta)
         per_dof = val / max(keep.sum() * (3 - dims) - len(obj.cols) - 1, 1)
         off = np.sum(f * f, axis=1) / max(per_dof, 1.0)
