@@ -35,8 +35,8 @@ from scipy.optimize import minimize_scalar
 
 from inverse.models import get_model
 from inverse.problem import NOISE_FLOOR
-from inverse.rendering import linear_basis, node_radiance, path_products
-from inverse.uncertainty import COARSE_FACTOR, coarser, covariance, tile_index
+from inverse.rendering import basis_on, linear_basis, node_geometry, node_radiance, path_products
+from inverse.uncertainty import robust_sd, tile_index
 
 #: A colour set is accepted when its misfit per degree of freedom is at most this many times what
 #: the photograph's noise (or the fit's residual, if larger) gives.
@@ -106,8 +106,7 @@ class _Pixels:
     """The model's parts at one surface's directly seen pixels, for any θ of that surface."""
 
     def __init__(self, trees, materials, intensities, image, s, nodes, px, j, reflects: bool):
-        self.trees, self.materials, self.intensities, self.s, self.nodes, self.j = trees, list(materials), intensities, s, nodes, j
-        self.shape = get_model(materials[s].brdf).nonlinear[0]
+        self.j = j  # the lobe's linear slot
         npix = trees.width * trees.height
 
         def per_pixel(light, sel=slice(None)):
@@ -133,19 +132,13 @@ class _Pixels:
         self.e = self.pp * basis[nodes, :, 0]
         # The model evaluated on these nodes alone (as rendering.linear_basis does on all of them):
         # the scan asks for dozens of θ, and the whole trees' basis is 20 MB at 640x480.
-        k = trees.n_lights
         self.model = get_model(materials[s].brdf)
-        self.geometry = (np.repeat(trees.normal[nodes], k, axis=0), trees.light_dir[nodes].reshape(-1, 3),
-                         np.repeat(trees.view[nodes], k, axis=0),
-                         trees.fresnel[nodes, None] * trees.visible[nodes] / trees.light_dist2[nodes])
-        self.intensities = np.asarray(intensities, dtype=np.float64).reshape(k, 3)
+        self.geometry = node_geometry(trees, nodes)
+        self.intensities = np.asarray(intensities, dtype=np.float64).reshape(trees.n_lights, 3)
 
     def lobe(self, theta: float) -> np.ndarray:
         """(m, 3) the lobe's image per unit ks at shape ``theta``."""
-        normal, light, view, weight = self.geometry
-        g = self.model.g(np.full((len(normal), 1), float(theta)), normal, light, view)
-        g = g.reshape(len(self.nodes), self.trees.n_lights, -1)[:, :, self.j]
-        return self.pp * np.einsum("nk,kc,nk->nc", weight, self.intensities, g, optimize=True)
+        return self.pp * basis_on(self.model, [theta], self.geometry, self.intensities)[:, :, self.j]
 
 
 def _colour_set(albedo: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
@@ -167,6 +160,8 @@ class _Objective:
         self.cols = [self.P(px.e[keep] * self.sw * np.eye(3)[c]) for c in range(3)]  # μ per band
         if px.h is not None:  # and the surface's own r per band
             self.cols += [self.P(px.h[keep] * self.sw * np.eye(3)[c]) for c in range(3)]
+        # Degrees of freedom: each pixel's bands off the set, less the nuisances and ks.
+        self.dof = max(int(keep.sum()) * (3 - D.shape[1]) - len(self.cols) - 1, 1)
 
     def P(self, v: np.ndarray) -> np.ndarray:
         """Project (m, 3) whitened vectors off each pixel's albedo directions."""
@@ -209,30 +204,23 @@ def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) 
     return (2.0 ** float(best.x), float(best.fun)) if best.fun <= values[i] else (2.0 ** grid[i], values[i])
 
 
-def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height: int) -> tuple[float, float, float]:
-    """(σ ks, σ θ, misfit per dof) at the estimate: Gauss–Newton in (μ, ks, log2 θ), robust."""
-    val, mu, ks, f, g = obj.solve(theta)
+def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
+    """(ks, σ ks, σ θ, misfit per dof) at the estimate: Gauss–Newton in (μ, r, ks, log2 θ), robust."""
+    val, _, ks, f, g = obj.solve(theta)
     h = 0.01
     g_up, g_dn = obj.solve(theta * 2**h)[4], obj.solve(theta * 2**-h)[4]
     dg = (g_up - g_dn) / (2 * h)  # d lobe / d log2 θ, projected
     J = np.stack([c.reshape(-1, 3) for c in obj.cols] + [g, ks * dg], axis=2)  # (m, 3, n)
-    m, k, n = f.shape[0], obj.Q.shape[2], J.shape[2]
-    dof = max(m * (3 - k) - n, 1)
-    misfit = val / dof
+    n = J.shape[2]
+    misfit = val / max(obj.dof - 1, 1)  # θ fitted as well
     Jf = J.reshape(-1, n)
     H = Jf.T @ Jf / max(misfit, 1.0)  # whitened; the misfit, if above the noise, scales the model's σ
     per_pixel = np.einsum("mij,mi->jm", J, f) / max(misfit, 1.0)
     tile, n_tiles = tile_index(rows, width, height)
     scores = np.zeros((n, n_tiles))
     np.add.at(scores.T, tile, per_pixel.T)
-    model, robust = covariance(H, scores)
-    group, n_big = coarser(rows, width, height, COARSE_FACTOR)
-    big = np.zeros((n, n_big))
-    np.add.at(big.T, group, scores.T)
-    robust = np.fmax(robust, covariance(H, big)[1])
-    sd = np.fmax(model, robust)
-    sd = np.where(np.isfinite(sd), sd, np.inf)
-    return float(sd[-2]), float(sd[-1] * theta * np.log(2.0)), float(misfit)
+    sd = robust_sd(H, scores, rows, width, height)
+    return ks, float(sd[-2]), float(sd[-1] * theta * np.log(2.0)), float(misfit)
 
 
 def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=None, held=None,
@@ -300,8 +288,7 @@ def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=
                 break
         else:
             continue
-        ks = obj.solve(theta)[2]
-        sk, st, misfit = _sigmas(obj, theta, px[keep], trees.width, trees.height)
+        ks, sk, st, misfit = _sigmas(obj, theta, px[keep], trees.width, trees.height)
         out[int(s)] = ColourLobe(int(s), shape, ks, theta, sk, st, obj.Q.shape[2], int(keep.sum()),
                                  int(lit.sum() - keep.sum()), misfit)
     return out
@@ -323,13 +310,11 @@ def _fit_set(parts: _Pixels, lit, dims: int, ks: float, theta: float, scale, lo:
         obj = _Objective(parts, D, scale, keep)
         theta, _ = _estimate(obj, lo, hi, near=theta if it > 1 else None)  # after two global scans
         val, _, ks, f, _ = obj.solve(theta)
-        per_dof = val / max(keep.sum() * (3 - dims) - len(obj.cols) - 1, 1)
-        off = np.sum(f * f, axis=1) / max(per_dof, 1.0)
+        off = np.sum(f * f, axis=1) / max(val / obj.dof, 1.0)
         outlier = np.zeros_like(keep)
         outlier[np.flatnonzero(keep)] = off > OUTLIER_SIGMAS**2 * (3 - dims)
         keep = keep & ~outlier
         if it and abs(np.log2(theta / before)) < 1e-3:
             break
     obj = _Objective(parts, D, scale, keep)
-    val = obj.solve(theta)[0]
-    return obj, theta, keep, val / max(keep.sum() * (3 - dims) - len(obj.cols) - 1, 1)
+    return obj, theta, keep, obj.solve(theta)[0] / obj.dof

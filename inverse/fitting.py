@@ -286,12 +286,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     for s, lobe in (colour or {}).items():
         # A lobe the texture's colours determine: every pixel of the surface informs it, with each
         # pixel's albedo free along the texture's colour set (its own σ, robust).
-        for k, (si, name) in enumerate(lay.x_names):
-            if si == s and name == "ks":
-                sig.x[k] = lobe.sigma_ks
-        for q, (si, name) in enumerate(lay.theta_names):
-            if si == s and name == lobe.shape:
-                sig.theta[q] = lobe.sigma_theta
+        sig.x[lay.x_offset[s] + fac.models[s].linear.index("ks")] = lobe.sigma_ks
+        sig.theta[lay.theta_offset[s] + fac.models[s].nonlinear.index(lobe.shape)] = lobe.sigma_theta
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
     fitted_free = free if grey is None else free | grey
     loose = unresolved(pb, p, init, fitted_free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)

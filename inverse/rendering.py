@@ -85,17 +85,35 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
     return basis, dbasis
 
 
-def _surface_geometry(trees, idx) -> tuple:
-    """Normals, light directions and views per (node, light) of one surface's nodes ``idx``, and
-    their known weights ``fresnel · visible / dist²`` (n, K): kept on the trees (a fit's texture
-    rounds evaluate the same surfaces again at other θ)."""
-    def geometry():
-        k = trees.n_lights
-        return (np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
-                np.repeat(trees.view[idx], k, axis=0), trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
+def node_geometry(trees, idx) -> tuple:
+    """Normals, light directions and views per (node, light) of the nodes ``idx`` (n·K, 3), and
+    their known weights ``fresnel · visible / dist²`` (n, K): what a model needs at those nodes
+    (:func:`basis_on`)."""
+    k = trees.n_lights
+    return (np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
+            np.repeat(trees.view[idx], k, axis=0), trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
 
+
+def basis_on(model, theta, geometry, intensities) -> np.ndarray:
+    """(n, 3, L) coefficients of ``model``'s linear parameters at nonlinear parameters ``theta``
+    (P,) on nodes of :func:`node_geometry` (a few nodes at many θ: :mod:`inverse.dichromatic`)."""
+    normal, light, view, weight = geometry
+    g = model.g(np.broadcast_to(np.asarray(theta, dtype=np.float64), (len(normal), model.n_nonlinear)), normal, light, view)
+    return _weighted(weight, intensities, g)
+
+
+def _weighted(weight, intensities, g) -> np.ndarray:
+    """``Σ_k weight · intensity_k[c] · g`` per node: (n, 3, L) from g per (node, light) (n·K, L)."""
+    n, k = weight.shape
+    # optimize: contracted pairwise (3x faster than the three-operand loop at 640x480).
+    return np.einsum("nk,kc,nkl->ncl", weight, intensities, g.reshape(n, k, -1), optimize=True)
+
+
+def _surface_geometry(trees, idx) -> tuple:
+    """:func:`node_geometry` of one surface's nodes ``idx``, kept on the trees (a fit's texture
+    rounds evaluate the same surfaces again at other θ)."""
     # idx: one of _groups' arrays, kept with the trees.
-    return derived(trees, f"surface geometry {id(idx)}", (trees.normal, idx), geometry)
+    return derived(trees, f"surface geometry {id(idx)}", (trees.normal, idx), lambda: node_geometry(trees, idx))
 
 
 def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> None:
@@ -111,8 +129,7 @@ def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> Non
                                            optimize=True)
     else:
         g = model.g(theta, normal, light, view)
-    # optimize: contracted pairwise (3x faster than the three-operand loop at 640x480).
-    basis[idx, :, :L] = np.einsum("nk,kc,nkl->ncl", weight, intensities, g.reshape(len(idx), k, L), optimize=True)
+    basis[idx, :, :L] = _weighted(weight, intensities, g)
 
 
 #: The last :func:`linear_basis` as one (trees, key, basis) tuple (read and replaced whole, so

@@ -100,6 +100,20 @@ def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndar
     return model, robust
 
 
+def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height: int) -> np.ndarray:
+    """(n,) the larger, per parameter, of the model-based σ and the sandwich over the fine tiles
+    (``scores`` (n, T) summed per :func:`tile_index` of the used pixels ``rows``; None: the model's
+    alone) and over tiles :data:`COARSE_FACTOR` times larger; inf where unconstrained, never NaN."""
+    model, sandwich = covariance(H, scores)
+    if scores is not None:
+        group, n_big = coarser(rows, width, height, COARSE_FACTOR)
+        big = np.zeros((scores.shape[0], n_big))
+        np.add.at(big.T, group, scores.T)
+        sandwich = np.fmax(sandwich, covariance(H, big)[1])
+    sd = np.fmax(model, sandwich)
+    return np.where(np.isnan(sd), np.inf, sd)
+
+
 def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None, res=None, tiles=None, keep=None):
     """JᵀWJ of the free parameters (natural units) with band weights; and the label of each row.
 
@@ -251,14 +265,7 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     if more is not None:
         H = H + more[0]
         scores = None if scores is None else scores + more[1]
-    model, sandwich = covariance(H, scores)
-    if scores is not None:
-        group, n_big = coarser(pb.fac.rows, pb.fac.width, pb.fac.height, COARSE_FACTOR)
-        big = np.zeros((scores.shape[0], n_big))
-        np.add.at(big.T, group, scores.T)
-        sandwich = np.fmax(sandwich, covariance(H, big)[1])
-    sd = np.fmax(model, sandwich)
-    sd = np.where(np.isnan(sd), np.inf, sd)
+    sd = robust_sd(H, scores, pb.fac.rows, pb.fac.width, pb.fac.height)
     for (kind, i, c), v in zip(labels, sd):
         if kind == "x":
             sig.x[i, c] = v

@@ -216,15 +216,15 @@ def _two_textured(ground, lamp, texture_seed):
 
 
 def _print_can(ground, lamp, texture_seed):
-    cyl = cylinder_mesh(0.04, 0.18, (0.0, 0.03, 0.0401), axis_deg=20.0)
+    """curved's can and lamps, the can printed in full colour (:func:`_full_colour`)."""
+    surfaces, lights, _ = _curved(ground, lamp, None)
     shift = (0.0, 0.0, 0.0) if texture_seed is None else np.random.default_rng(texture_seed).uniform(0.0, 0.075, 3)
 
     def tex(p):
         return _full_colour(p, 0.025, shift)
 
-    surfaces = [Surface("ground", "meshes/ground.ply", _material("lambert", kd=[0.4, 0.4, 0.42]), False, ground),
-                Surface("can", "meshes/can.ply", _material("phong", kd=_mean(cyl, tex), ks=0.2, ns=20.0), True, cyl)]
-    lights = [PointLight([0.10, 0.30, 0.40], 0.12 * lamp), PointLight([-0.25, -0.20, 0.35], 0.08 * lamp)]
+    can = surfaces[1]
+    surfaces[1] = Surface(can.name, can.mesh_path, _material("phong", kd=_mean(can.mesh, tex), ks=0.2, ns=20.0), True, can.mesh)
     return surfaces, lights, {1: tex}
 
 
