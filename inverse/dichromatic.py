@@ -53,6 +53,8 @@ MIN_PIXELS = 50
 PASSES = 5
 #: Scan step in log2 of the shape parameter.
 SCAN_STEP = 0.5
+#: Most pixels the scan evaluates (it brackets the minimum; the refinement uses every pixel).
+SCAN_PIXELS = 2000
 
 
 @dataclass
@@ -136,9 +138,18 @@ class _Pixels:
         self.geometry = node_geometry(trees, nodes)
         self.intensities = np.asarray(intensities, dtype=np.float64).reshape(trees.n_lights, 3)
 
-    def lobe(self, theta: float) -> np.ndarray:
-        """(m, 3) the lobe's image per unit ks at shape ``theta``."""
-        return self.pp * basis_on(self.model, [theta], self.geometry, self.intensities)[:, :, self.j]
+    def lobe(self, theta: float, rows=None) -> np.ndarray:
+        """(m, 3) the lobe's image per unit ks at shape ``theta`` (at ``rows`` of them: a
+        :meth:`geometry_at` tuple)."""
+        rows, geometry = (slice(None), self.geometry) if rows is None else rows
+        return self.pp[rows] * basis_on(self.model, [theta], geometry, self.intensities)[:, :, self.j]
+
+    def geometry_at(self, keep: np.ndarray) -> tuple:
+        """(rows, their node geometry) of the pixels ``keep`` (bool (m,)), for :meth:`lobe`."""
+        normal, light, view, weight = self.geometry
+        k = weight.shape[1]
+        at = (np.flatnonzero(keep)[:, None] * k + np.arange(k)).ravel()
+        return keep, (normal[at], light[at], view[at], weight[keep])
 
 
 def _colour_set(albedo: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
@@ -152,16 +163,36 @@ class _Objective:
     """The profiled objective of one colour set: per pixel ``w`` out, (μ, ks) solved, θ given."""
 
     def __init__(self, px: _Pixels, D: np.ndarray, scale: np.ndarray, keep: np.ndarray):
-        self.px, self.keep = px, keep
+        self.px, self.keep, self.rows = px, keep, px.geometry_at(keep)
+        self._args, self._coarse = (D, scale), None
         self.sw = 1.0 / scale  # whitening per band
         M = (px.e[keep] * self.sw)[:, :, None] * D[None]  # (m, 3, k): each pixel's albedo directions
         self.Q = np.linalg.qr(M)[0]
-        self.rt = self.P(px.r[keep] * self.sw)
         self.cols = [self.P(px.e[keep] * self.sw * np.eye(3)[c]) for c in range(3)]  # μ per band
         if px.h is not None:  # and the surface's own r per band
             self.cols += [self.P(px.h[keep] * self.sw * np.eye(3)[c]) for c in range(3)]
         # Degrees of freedom: each pixel's bands off the set, less the nuisances and ks.
         self.dof = max(int(keep.sum()) * (3 - D.shape[1]) - len(self.cols) - 1, 1)
+        # The nuisance columns do not depend on θ: an orthonormal basis of their span (SVD, rank
+        # deficiency dropped) is formed once, and each θ needs only its lobe's column projected
+        # off it. Stable where the normal equations are not (the columns are near collinear).
+        self.y = self.P(px.r[keep] * self.sw).ravel()
+        U, S, Vt = np.linalg.svd(np.stack([c.ravel() for c in self.cols], axis=1), full_matrices=False)
+        rank = S > S[0] * 1e-10 if S.size and S[0] > 0 else np.zeros(S.shape, dtype=bool)
+        self.U, self.pinv = U[:, rank], Vt[rank].T / S[rank]  # columns' pseudo-inverse = pinv @ U.T
+        self.y_off = self.y - self.U @ (self.U.T @ self.y)
+
+    def coarse(self) -> "_Objective":
+        """The objective on at most :data:`SCAN_PIXELS` of its pixels (evenly taken): the scan
+        only brackets the minimum, which the full objective then refines."""
+        idx = np.flatnonzero(self.keep)
+        if len(idx) <= SCAN_PIXELS:
+            return self
+        if self._coarse is None:
+            sub = np.zeros_like(self.keep)
+            sub[idx[:: -(-len(idx) // SCAN_PIXELS)]] = True
+            self._coarse = _Objective(self.px, *self._args, sub)
+        return self._coarse
 
     def P(self, v: np.ndarray) -> np.ndarray:
         """Project (m, 3) whitened vectors off each pixel's albedo directions."""
@@ -169,24 +200,13 @@ class _Objective:
 
     def solve(self, theta: float):
         """(objective, nuisances (μ, r), ks, residual (m, 3), lobe column (m, 3)) at ``theta``; ks ≥ 0."""
-        g = self.P(self.px.lobe(theta)[self.keep] * self.sw)
-        A = np.stack([c.ravel() for c in self.cols + [g]], axis=1)
-        y = self.rt.ravel()
-        sol = _least_squares(A, y)
-        if sol[-1] < 0:  # no lobe: ks at its bound 0
-            sol = np.append(_least_squares(A[:, :-1], y), 0.0)
-        f = y - A @ sol
-        return float(f @ f), sol[:-1], float(sol[-1]), f.reshape(-1, 3), g
-
-
-def _least_squares(A: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """min ‖A x − y‖ for a tall A of a few columns: its normal equations, scaled (lstsq if singular)."""
-    d = np.sqrt(np.maximum(np.einsum("ij,ij->j", A, A), 1e-300))
-    As = A / d
-    try:
-        return np.linalg.solve(As.T @ As, As.T @ y) / d
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(A, y, rcond=None)[0]
+        g = self.P(self.px.lobe(theta, self.rows) * self.sw).ravel()
+        g_off = g - self.U @ (self.U.T @ g)
+        gg = float(g_off @ g_off)
+        ks = max(float(g_off @ self.y_off) / gg, 0.0) if gg > 0 else 0.0  # no lobe: ks at its bound 0
+        f = self.y_off - ks * g_off
+        nuisances = self.pinv @ (self.U.T @ (self.y - ks * g))
+        return float(f @ f), nuisances, ks, f.reshape(-1, 3), g.reshape(-1, 3)
 
 
 def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) -> tuple[float, float]:
@@ -195,13 +215,14 @@ def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) 
     grid = np.arange(np.log2(lo), np.log2(hi) + 1e-9, SCAN_STEP)
     if near is not None:
         grid = np.clip(np.log2(near) + SCAN_STEP * np.arange(-2, 3), np.log2(lo), np.log2(hi))
-    values = [obj.solve(2.0**u)[0] for u in grid]
-    i = int(np.argmin(values))
+    coarse = obj.coarse()
+    i = int(np.argmin([coarse.solve(2.0**u)[0] for u in grid]))
+    at = obj.solve(2.0 ** grid[i])[0]
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
     if b - a <= 0:
-        return 2.0 ** grid[i], values[i]
+        return 2.0 ** grid[i], at
     best = minimize_scalar(lambda u: obj.solve(2.0**u)[0], bounds=(a, b), method="bounded", options={"xatol": 1e-3})
-    return (2.0 ** float(best.x), float(best.fun)) if best.fun <= values[i] else (2.0 ** grid[i], values[i])
+    return (2.0 ** float(best.x), float(best.fun)) if best.fun <= at else (2.0 ** grid[i], at)
 
 
 def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
