@@ -297,11 +297,12 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         # materials when the texture, too, was made with the grey lobe).
         last = k == int(rounds) - 1
         materials, guessed = grey_lobes(result.materials, textured, held) if last else (result.materials, None)
-        colour = None
+        colour, colour_s = None, None
         if last:
             # A lobe the texture's colours determine is held at that estimate (inverse.dichromatic).
             materials, guessed, colour = colour_held(trees, materials, guessed, intensities, image, textured,
                                                      start.stats.get("noise"), mask, held, result.rms)
+            colour_s = time.perf_counter() - t0
         share = direct_share(trees, materials, intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
         # The round whose values are reported (an earlier one only seeds it) also sees what the
@@ -331,6 +332,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         iterations += result.iterations
         record = {"round": k + 1, "pixels_left_out": int(left_out.sum()), "rms": [float(v) for v in result.rms],
                   "texture_s": round(t1 - t0, 3), "fit_s": round(t2 - t1, 3)}
+        if colour_s is not None:  # of texture_s: the lobes from the texture's colours
+            record["colour_s"] = round(colour_s, 3)
         err = float(np.sum(np.asarray(result.rms) ** 2))
         record["kept"] = bool(err < RISE**2 * best_err)
         if record["kept"]:

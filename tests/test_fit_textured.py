@@ -14,7 +14,8 @@ from reconstruction.scene import Scene, Surface
 W, H = 80, 60
 
 
-def _fit_scene(ts, image):
+def _fit_scene(ts, image, rounds=None):
+    """(fit, factorization, user scene); ``rounds``, a list, gets fit.json's texture round records."""
     from inverse.texture_fit import fit_with_texture
     from inverse.trees import build_trees
 
@@ -25,7 +26,9 @@ def _fit_scene(ts, image):
     held = [m.given for m in init]
     fac = Factorization(trees, models, ts.lights.intensities)
     start = fit(fac, image, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)
-    res, _ = fit_with_texture(trees, user, models, ts.lights.intensities, image, start, rounds=2, held=held)
+    res, records = fit_with_texture(trees, user, models, ts.lights.intensities, image, start, rounds=2, held=held)
+    if rounds is not None:
+        rounds += records
     return res, fac, user
 
 
@@ -52,10 +55,13 @@ def test_singly_seen_textured_lobe_is_claimed_only_from_its_colours(name, noise)
     img = render(ts)
     if noise:
         img = img + np.random.default_rng(1).normal(0.0, noise * img.max(), img.shape)
-    res, fac, user = _fit_scene(ts, img)
+    records = []
+    res, fac, user = _fit_scene(ts, img, records)
     rows = _check(res, fac, [s.material for s in ts.scene], user)
     shiny = [i for i, s in enumerate(user) if s.textured][0]
     lobes = res.stats.get("colour_lobes", {})
+    # The colour lobes' time is recorded, inside the last round's texture step.
+    assert "colour_s" not in records[0] and 0.0 < records[-1]["colour_s"] <= records[-1]["texture_s"]
     if name == "print_can":
         assert {"ks", "ns"} <= set(res.undetermined[shiny]) and not lobes
         assert len(rows) >= 3  # the ground's kd at least
