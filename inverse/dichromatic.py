@@ -53,7 +53,7 @@ MIN_PIXELS = 50
 PASSES = 5
 #: Scan step in log2 of the shape parameter.
 SCAN_STEP = 0.5
-#: Most pixels the scan evaluates (it brackets the minimum; the refinement uses every pixel).
+#: Most pixels the scan evaluates (it finds where to start; the search and refinement use every pixel).
 SCAN_PIXELS = 2000
 
 
@@ -184,7 +184,7 @@ class _Objective:
 
     def coarse(self) -> "_Objective":
         """The objective on at most :data:`SCAN_PIXELS` of its pixels (evenly taken): the scan
-        only brackets the minimum, which the full objective then refines."""
+        only finds where to start the full objective's search."""
         idx = np.flatnonzero(self.keep)
         if len(idx) <= SCAN_PIXELS:
             return self
@@ -217,7 +217,18 @@ def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) 
         grid = np.clip(np.log2(near) + SCAN_STEP * np.arange(-2, 3), np.log2(lo), np.log2(hi))
     coarse = obj.coarse()
     i = int(np.argmin([coarse.solve(2.0**u)[0] for u in grid]))
-    at = obj.solve(2.0 ** grid[i])[0]
+    # The subsample's minimum can sit a step or two off the full objective's (the lobe's
+    # information is in the few highlight pixels): walk down the full objective on the grid.
+    full = {}
+    while True:
+        for j in (i - 1, i, i + 1):
+            if 0 <= j < len(grid) and j not in full:
+                full[j] = obj.solve(2.0 ** grid[j])[0]
+        j = min((j for j in (i - 1, i, i + 1) if j in full), key=full.get)
+        if j == i:
+            break
+        i = j
+    at = full[i]
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
     if b - a <= 0:
         return 2.0 ** grid[i], at
