@@ -172,6 +172,8 @@ def lab_workspace(tmp_path_factory):
                                    "phases_s": {"trees": 0.1, "structure": 0.05, "scan": 0.4, "refinement": 0.8},
                                    "rejected": {"count": 2, "pixels": [[1, 1], [2, 1]], "threshold_sigmas": 8.0},
                                    "trace": [[0.1, [0.1, 0.1, 0.1]], [0.8, [0.02, 0.03, 0.03]], [1.5, [0.01, 0.02, 0.03]]],
+                                   "colour_lobes": {"tile": {"ks": 0.341, "sigma_ks": 0.005, "ns": 62.8, "sigma_ns": 1.9,
+                                                             "colour_set": "line", "pixels": 1231, "rejected": 3, "misfit": 1.02}},
                                    "surfaces": surfaces})
     assert main(["texture", str(root)]) == 0
     return root, lab
@@ -216,6 +218,8 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     assert re.search(r"\b50 ± 2\s+truth 60, error -10\s", text)
     assert re.search(r"\[0\.25, 0\.25, 0\.25\]\s+at its bound: ks\[0\] upper", text)
     assert "Where the fit's time went" in text and re.search(r"\bmethod\s+F-TBO\s", text)
+    # The tile's lobe came from its texture's colours: the report says so, with its numbers.
+    assert re.search(r"tile\s+0\.341 ± 0\.005\s+ns 62\.8 ± 1\.9\s+line\s+1231 \(3 outliers\)\s+1\.02\s", text)
     assert "whose re-render includes this texture" in text  # the texture's residual: the fit's maps
     assert re.search(r"outlier pixels left out of the fit\s+2 \(residual above 8 σ", text)
     # Novel and relit views against truth/ (true materials and a recovered texture): PSNR shown and sane.

@@ -74,11 +74,30 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
               "value ± σ (one standard deviation, per band R, G, B where there are three); undetermined: the image "
               "does not fix it: either held at its initial or user-given value (no σ), or fitted with a σ that spans "
               "its plausible range (value and σ shown, docs/fit.md)" + (f"; truth: {truth_file}." if truth else "."))
+    _colour_lobes(sec, fit)
     if model and model.get("image") is not None:
         _model_images(sec, src, fit, model)
     elif model and model.get("error"):
         sec.note(f"re-render of the model failed: {model['error']}", "bad")
     return sec
+
+
+def _colour_lobes(sec: Section, fit: dict) -> None:
+    """Which textured lobes the texture's colours determined (fit.json ``colour_lobes``)."""
+    lobes = {str(k): v for k, v in as_dict(fit.get("colour_lobes")).items() if isinstance(v, dict)}
+    if not lobes:
+        return
+    rows = []
+    for name, lobe in lobes.items():
+        shape = "alpha" if "alpha" in lobe else "ns"
+        rows.append([name, pm(lobe.get("ks"), lobe.get("sigma_ks")), f"{shape} {pm(lobe.get(shape), lobe.get('sigma_' + shape))}",
+                     lobe.get("colour_set", "–"), f"{num(lobe.get('pixels'))} ({num(lobe.get('rejected'))} outliers)",
+                     num(lobe.get("misfit"), 3)])
+    sec.table(["surface", "ks", "shape", "texture's colours", "pixels", "misfit"], rows,
+              "Textured surfaces seen once whose lobe the texture's colours determined (docs/fit.md, \"A textured lobe "
+              "from its colours\"): the texture's albedo lies on a line or plane in RGB, the highlight has the lamps' "
+              "colour, so the light off that set is the lobe's. The materials table above holds these values; misfit is per "
+              "degree of freedom over the image noise (about 1 when the set and the lobe explain the pixels).")
 
 
 def method_name(fit: dict):
