@@ -17,7 +17,8 @@ Per textured surface with a grey lobe of one shape parameter (Phong ns, Ward α)
    it leaves no more than the photograph's misfit off it, else a plane; else none (a full-colour
    texture gives no handle, and the lobe stays undetermined);
 3. the profiled objective: per pixel the albedo ``μ + D w`` (w free, μ shared), projected off
-   ``e∘D``; linear in (μ, ks) for each θ, a scan then Brent over log θ;
+   ``e∘D``; linear in (μ, own r, ks) for each θ, ks within its plausible range; a scan over
+   log θ (on a pixel subsample, then walked down the full objective), then Brent;
 4. the σ of ks and θ from the Gauss–Newton normal matrix of that objective, the larger of the
    model's and the cluster-robust sandwich over image tiles (as :mod:`inverse.uncertainty`).
 
@@ -219,7 +220,8 @@ class _Objective:
 
 def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) -> tuple[float, float]:
     """(θ, objective) minimising the profiled objective: a scan in log2 θ (only within one step
-    of ``near``, the last pass's θ, when given), then Brent."""
+    of ``near``, the last pass's θ, when given) on :meth:`_Objective.coarse`, the full objective
+    walked down the grid from its minimum, then Brent between that point's neighbours."""
     grid = np.arange(np.log2(lo), np.log2(hi) + 1e-9, SCAN_STEP)
     if near is not None:
         grid = np.clip(np.log2(near) + SCAN_STEP * np.arange(-2, 3), np.log2(lo), np.log2(hi))
