@@ -226,9 +226,19 @@ def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) 
     if near is not None:
         grid = np.clip(np.log2(near) + SCAN_STEP * np.arange(-2, 3), np.log2(lo), np.log2(hi))
     coarse = obj.coarse()
-    i = int(np.argmin([coarse.solve(2.0**u)[0] for u in grid]))
     # The subsample's minimum can sit a step or two off the full objective's (the lobe's
-    # information is in the few highlight pixels): walk down the full objective on the grid.
+    # information is in the few highlight pixels): walk down the full objective from it.
+    i, at = _walk(obj, grid, int(np.argmin([coarse.solve(2.0**u)[0] for u in grid])))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    if b - a <= 0:
+        return 2.0 ** grid[i], at
+    best = minimize_scalar(lambda u: obj.solve(2.0**u)[0], bounds=(a, b), method="bounded", options={"xatol": 1e-3})
+    return (2.0 ** float(best.x), float(best.fun)) if best.fun <= at else (2.0 ** grid[i], at)
+
+
+def _walk(obj: _Objective, grid: np.ndarray, i: int) -> tuple[int, float]:
+    """(index, objective) of the full objective's local minimum on the log2 ``grid``, walked
+    down from index ``i``."""
     full = {}
     while True:
         for j in (i - 1, i, i + 1):
@@ -236,14 +246,8 @@ def _estimate(obj: _Objective, lo: float, hi: float, near: float | None = None) 
                 full[j] = obj.solve(2.0 ** grid[j])[0]
         j = min((j for j in (i - 1, i, i + 1) if j in full), key=full.get)
         if j == i:
-            break
+            return i, full[i]
         i = j
-    at = full[i]
-    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    if b - a <= 0:
-        return 2.0 ** grid[i], at
-    best = minimize_scalar(lambda u: obj.solve(2.0**u)[0], bounds=(a, b), method="bounded", options={"xatol": 1e-3})
-    return (2.0 ** float(best.x), float(best.fun)) if best.fun <= at else (2.0 ** grid[i], at)
 
 
 def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
