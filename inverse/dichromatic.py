@@ -36,7 +36,7 @@ from scipy.optimize import minimize_scalar
 
 from inverse.models import get_model
 from inverse.problem import NOISE_FLOOR
-from inverse.ranges import FIT_RANGE, UNIT, phong_lobe_albedo
+from inverse.ranges import FIT_RANGE, ks_upper
 from inverse.rendering import basis_on, linear_basis, node_geometry, node_radiance, path_products
 from inverse.uncertainty import robust_sd, tile_index
 
@@ -137,11 +137,6 @@ class _Pixels:
         # The model evaluated on these nodes alone (as rendering.linear_basis does on all of them):
         # the scan asks for dozens of θ, and the whole trees' basis is 20 MB at 640x480.
         self.model = get_model(materials[s].brdf)
-        # ks's plausible upper bound at θ (inverse/ranges.py): where the lobe's column lies almost
-        # in the set (a white highlight on inks whose plane holds white) least squares would take
-        # any ks, 4.6e9 on the demo's box.
-        phong = self.model.name == "phong"
-        self.ks_upper = (lambda theta: 1.0 / float(phong_lobe_albedo(theta))) if phong else (lambda theta: UNIT)
         self.geometry = node_geometry(trees, nodes)
         self.intensities = np.asarray(intensities, dtype=np.float64).reshape(trees.n_lights, 3)
 
@@ -211,8 +206,10 @@ class _Objective:
         g = self.P(self.px.lobe(theta, self.rows) * self.sw).ravel()
         g_off = g - self.U @ (self.U.T @ g)
         gg = float(g_off @ g_off)
-        # No lobe: ks at its bound 0; one beyond the plausible range: at that bound.
-        ks = min(max(float(g_off @ self.y_off) / gg, 0.0), self.px.ks_upper(theta)) if gg > 0 else 0.0
+        # No lobe: ks at its bound 0; one beyond the plausible range (ranges.py) at that bound:
+        # where the lobe's column lies almost in the set (a white highlight on inks whose plane
+        # holds white) least squares would take any ks, 4.6e9 on the demo's box.
+        ks = min(max(float(g_off @ self.y_off) / gg, 0.0), ks_upper(self.px.model, theta)) if gg > 0 else 0.0
         f = self.y_off - ks * g_off
         nuisances = self.pinv @ (self.U.T @ (self.y - ks * g))
         return float(f @ f), nuisances, ks, f.reshape(-1, 3), g.reshape(-1, 3)

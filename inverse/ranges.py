@@ -51,6 +51,12 @@ def phong_lobe_albedo(ns) -> np.ndarray:
     return 8.0 * (prim(1.0) - prim(lo))
 
 
+def ks_upper(model, shape: float) -> float:
+    """Upper bound of ``model``'s ks at its shape parameter ``shape``: a Phong lobe's albedo at
+    most 1 (``1 / L(ns)``), else :data:`UNIT`."""
+    return 1.0 / float(phong_lobe_albedo(shape)) if model.name == "phong" else UNIT
+
+
 def linear_upper(fac, theta) -> np.ndarray:
     """(X,) upper bound of each flat linear parameter at nonlinear parameters ``theta``."""
     lay = fac.layout
@@ -61,8 +67,7 @@ def linear_upper(fac, theta) -> np.ndarray:
         if name == "kd":
             out[k] = gain[s]
         if name == "ks" and model.name == "phong":
-            ns = theta[lay.theta_offset[s] + list(model.nonlinear).index("ns")]
-            out[k] = 1.0 / phong_lobe_albedo(ns)
+            out[k] = ks_upper(model, theta[lay.theta_offset[s] + list(model.nonlinear).index("ns")])
     return out
 
 
