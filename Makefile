@@ -20,7 +20,7 @@ setup: syslibs $(STAMP)
 syslibs:
 	@./.ci/syslibs.sh $(SYSLIBS)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[dev]'

@@ -1,4 +1,4 @@
-"""`reflab`: one subcommand per stage over a shared workspace (INTERFACES.md, "Command line").
+"""`reflab`: one subcommand per stage over a shared workspace (docs/formats.md, "Command line").
 
 Each subcommand is a module of ``app/commands`` with ``HELP`` (one line), ``add_arguments(parser)``
 and ``run(args) -> int``. Those modules import nothing heavy at module level, so ``reflab --help``
@@ -11,13 +11,13 @@ import importlib
 import pkgutil
 import sys
 
-import app.commands
+import reflab.app.commands
 
 
 def _command_modules():
-    for info in sorted(pkgutil.iter_modules(app.commands.__path__), key=lambda i: i.name):
+    for info in sorted(pkgutil.iter_modules(reflab.app.commands.__path__), key=lambda i: i.name):
         if not info.name.startswith("_"):
-            yield info.name.replace("_", "-"), importlib.import_module(f"app.commands.{info.name}")
+            yield info.name.replace("_", "-"), importlib.import_module(f"reflab.app.commands.{info.name}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,14 +34,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands whose WORKSPACE is checked here, before devices open or a report is built
-#: (hardware.workspace.check_folder): "create" may make it (its parent writable), "write" needs it
+#: (reflab.core.workspace.check_folder): "create" may make it (its parent writable), "write" needs it
 #: writable. The stage functions (calibrate, reconstruct, fit, texture, render) check their own.
 _WORKSPACE = {"capture": "create", "demo": "create", "report": "write"}
 
 
 def check_inputs(args) -> None:
     """The workspace of a command without a stage function, checked before any work."""
-    from hardware.workspace import check_folder
+    from reflab.core.workspace import check_folder
 
     mode = _WORKSPACE.get(args.command)
     if mode and getattr(args, "workspace", None) is not None:
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import errno
 
-    from hardware.workspace import OptionError, WorkspaceError
+    from reflab.core.workspace import OptionError, WorkspaceError
 
     try:
         check_inputs(args)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 
-from hardware.workspace import Workspace
+from reflab.core.workspace import Workspace
 
 #: Later steps of the guided acquisition (app/steps.py), in order.
 STEPS = ("fit", "texture", "results")
@@ -30,7 +30,7 @@ def _fmt(value) -> str:
 
 def _compare_materials(ws: Workspace) -> None:
     """Print fitted against true values for each surface (truth.json vs fit.json)."""
-    from hardware.workspace import read_json
+    from reflab.core.workspace import read_json
 
     truth = {s["name"]: s["material"] for s in read_json(ws.truth_materials)["surfaces"]}
     fit = read_json(ws.fit)
@@ -46,11 +46,11 @@ def _compare_materials(ws: Workspace) -> None:
 def run_from_truth(args) -> int:
     import numpy as np
 
-    from app import steps
-    from app.demo_score import true_albedo
-    from hardware.images import write_image, write_preview
-    from hardware.sim.lab import build_lab, write_lab
-    from hardware.sim.reference import render_reference
+    from reflab.app import steps
+    from reflab.app.demo_score import true_albedo
+    from reflab.core.images import write_image, write_preview
+    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.hardware.sim.reference import render_reference
 
     start = time.perf_counter()
     ws = Workspace(args.workspace)

@@ -1,8 +1,8 @@
 """`reflab demo WORKSPACE`: the simulated lab end to end, from its captures, through the step list.
 
-1. writes the truth (app/demo_score.py: WORKSPACE/truth/, INTERFACES.md "The simulated lab's
+1. writes the truth (app/demo_score.py: WORKSPACE/truth/, docs/formats.md "The simulated lab's
    truth"), which no stage reads;
-2. opens the simulated board and camera (``app.devices.Rig("sim", "sim")``) and runs app/steps.py's
+2. opens the simulated board and camera (``reflab.app.devices.Devices("sim", "sim")``) and runs app/steps.py's
    ``STEPS`` in order, the functions the GUI runs: devices -> calibrate camera (target shots) ->
    calibrate lights (rod shots) -> sweep (then the simulated user marks the mirror's and the
    sheet's corners and names the surfaces, as a person does in the GUI) -> reconstruct -> input
@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from app.devices import SIM_SIZE
+from reflab.app.devices import SIM_SIZE
 
 #: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
 SIZE, CENTRE = SIM_SIZE, (0.0, 0.0)
@@ -31,7 +31,7 @@ def step_options(quick: bool = False) -> dict[str, dict]:
     """Options per step on the simulated lab: its props' target, rod and grey card (the region
     5 mm inside the card's edges), the turntable axis; sweep shots and texture rounds (--quick:
     24 and 1)."""
-    from hardware.sim.props import LabProps
+    from reflab.hardware.sim.props import LabProps
 
     props, inset = LabProps(), 0.005
     x0, x1, y0, y1 = props.card
@@ -45,7 +45,7 @@ def step_options(quick: bool = False) -> dict[str, dict]:
 
 def views(workspace) -> dict[str, dict]:
     """The results step's options for the novel and the relit view: truth/'s camera or lamps."""
-    from hardware.workspace import Workspace
+    from reflab.core.workspace import Workspace
 
     ws = Workspace(workspace)
     truth = Workspace(ws.truth)
@@ -59,14 +59,14 @@ def _log(line: str) -> None:
 
 def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list) -> int:
     """Every step and the two views on the simulated rig; a row (stage, seconds, error) per stage."""
-    from app import demo_score as score, steps
-    from app.devices import Rig, SimOptions
-    from hardware.sim.user import mark_sweep
+    from reflab.app import demo_score as score, steps
+    from reflab.app.devices import Devices, SimOptions
+    from reflab.hardware.sim.user import mark_sweep
 
     options = step_options(quick)
     runs = [(s.name.replace("_", " "), s, options.get(s.name, {})) for s in steps.STEPS]
     runs += [(f"render {view}", steps.step("results"), opts) for view, opts in views(root).items()]
-    with Rig("sim", "sim", sim=SimOptions(size=size, centre=list(CENTRE)), log=_log) as rig:
+    with Devices("sim", "sim", sim=SimOptions(size=size, centre=list(CENTRE)), log=_log) as rig:
         for stage, step, opts in runs:
             _log(f"[demo] step {step.name}: {step.title}")
             t0 = time.perf_counter()
@@ -86,13 +86,13 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list) -> int:
 
 
 def run_lab(args) -> int:
-    from app import demo_score as score
-    from app.report.build import build_report
-    from app.report.data import summary_text
-    from hardware.cameras import CameraError
-    from hardware.capture import CaptureCancelled, CaptureError
-    from hardware.grbl import GrblError
-    from hardware.workspace import OptionError, Workspace, read_json, write_json
+    from reflab.app import demo_score as score
+    from reflab.app.report.build import build_report
+    from reflab.app.report.data import summary_text
+    from reflab.hardware.cameras import CameraError
+    from reflab.hardware.capture import CaptureCancelled, CaptureError
+    from reflab.hardware.grbl import GrblError
+    from reflab.core.workspace import OptionError, Workspace, read_json, write_json
 
     root, size = Path(args.workspace), args.size or SIZE
     camera = Workspace(root).camera

@@ -1,6 +1,6 @@
 """The simulated lab's truth (WORKSPACE/truth/) and each demo stage's error against it.
 
-The truth (INTERFACES.md, "The simulated lab's truth"): camera.json, lights.json, scene.json with
+The truth (docs/formats.md, "The simulated lab's truth"): camera.json, lights.json, scene.json with
 its meshes (true materials), novel_camera.json + novel.exr (a view the input did not see) and
 relit_lights.json + relit.exr (the input view under other lamps), both rendered with the true
 textures by the independent reference renderer (hardware/sim/reference.py), and albedo.exr (the
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hardware.workspace import Workspace
+from reflab.core.workspace import Workspace
 
 #: Turntable angle (degrees) of the novel view's camera about the vertical axis through the origin.
 NOVEL_TURN = -25.0
@@ -23,8 +23,8 @@ RELIT = [((0.30, -0.25, 0.50), (0.20, 0.19, 0.17)), ((-0.25, 0.35, 0.55), (0.30,
 
 
 def _turned(camera, degrees: float):
-    from calibration.camera import Camera
-    from calibration.rotations import axis_rotation
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.rotations import axis_rotation
 
     Rz = axis_rotation((0.0, 0.0, 1.0), degrees)
     C = Rz @ camera.center
@@ -34,10 +34,10 @@ def _turned(camera, degrees: float):
 
 def write_truth(root, size, *, depth: int = 3, grain: float = 0.2) -> dict:
     """Write ``root/truth/`` for the simulated lab as `reflab capture --camera sim` renders it; return it in memory."""
-    from calibration.lights import Lights, PointLight
-    from hardware.images import write_image, write_preview
-    from hardware.sim.lab import build_lab, write_lab
-    from hardware.sim.reference import render_reference
+    from reflab.calibration.lights import Lights, PointLight
+    from reflab.core.images import write_image, write_preview
+    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.hardware.sim.reference import render_reference
 
     truth = Workspace(Workspace(root).truth)
     lab = build_lab(*size, grain=grain)
@@ -60,7 +60,7 @@ def true_albedo(lab) -> np.ndarray:
     """truth/albedo.exr: the true kd (H, W, 3) of the surface seen directly at each pixel of the lab's
     camera, NaN where none is seen (``reflab render --aov albedo``'s form): the lab's albedo at the
     level-1 nodes of the true scene's trees (pixel centres), independent of any recovered model."""
-    from inverse.trees import build_trees
+    from reflab.inverse.forward.trees import build_trees
 
     cam = lab.camera
     trees = build_trees(lab.scene, cam, lab.lights, depth=1)
@@ -89,7 +89,7 @@ def lights_error(lights, true) -> list[dict]:
 
 def geometry_error(scene, true_scene) -> dict:
     """Per true surface: RMS and max distance (mm) between it and the surface of the same name."""
-    from reconstruction.surfaces import distance_to_mesh
+    from reflab.reconstruction.surfaces import distance_to_mesh
 
     names = {s.name: s for s in scene}
     out = {}
@@ -124,8 +124,8 @@ def view_psnr(root, truth: dict, which: str) -> dict:
     ``psnr_determined_db`` over the known pixels whose value rests on no undetermined parameter
     (the render's ``undetermined_pixels``).
     """
-    from inverse.stages import render_workspace
-    from hardware.images import read_image
+    from reflab.inverse.stages import render_workspace
+    from reflab.core.images import read_image
 
     ws = Workspace(root)
     pose = Workspace(ws.truth).view(which)[0]
@@ -143,10 +143,10 @@ def view_psnr(root, truth: dict, which: str) -> dict:
 
 def score_stage(stage: str, root, truth: dict) -> str:
     """One line: the stage's error against the truth ('' for stages with nothing to compare)."""
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from hardware.workspace import read_json
-    from reconstruction.scene import Scene
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights
+    from reflab.core.workspace import read_json
+    from reflab.reconstruction.scene import Scene
 
     ws, lab = Workspace(root), truth["lab"]
     if stage == "calibrate camera":

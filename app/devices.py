@@ -1,6 +1,6 @@
 """Open the rig (GRBL board + camera) for a capture, on hardware or on the simulated lab.
 
-``hardware.capture.run_capture`` takes opened devices; this is where ``--port sim`` and
+``reflab.hardware.capture.run_capture`` takes opened devices; this is where ``--port sim`` and
 ``--camera sim`` become the simulated twin (``hardware/sim``), which product code never imports.
 The CLI (``reflab capture``), the GUI and the demo open their devices here.
 """
@@ -15,7 +15,7 @@ SIM_SIZE = (480, 360)
 
 def load_config(path):
     """The hardware configuration at ``path``, or the defaults when it is None."""
-    from hardware.grbl import GrblConfig
+    from reflab.hardware.grbl import GrblConfig
 
     return GrblConfig.load(path) if path else GrblConfig()
 
@@ -24,7 +24,7 @@ def open_port(port: str, log=print):
     """(port name, simulated board or None) for ``--port``; 'sim' starts a simulated board."""
     if port != "sim":
         return port, None
-    from hardware.sim.device import SimulatedGrbl
+    from reflab.hardware.sim.device import SimulatedGrbl
 
     sim = SimulatedGrbl(time_scale=20.0).start()
     log(f"simulated GRBL board on {sim.port}")
@@ -43,7 +43,7 @@ class SimOptions:
     grain: float = 0.2
 
 
-class Rig:
+class Devices:
     """A connected controller and camera (and the simulated board, when ``port`` is "sim").
 
     Use as a context manager, or call :meth:`close`.
@@ -51,7 +51,7 @@ class Rig:
 
     def __init__(self, port: str, camera: str, *, config=None, unlock: bool = False, sim: SimOptions | None = None,
                  trigger=None, camera_timeout: float = 60.0, log=print):
-        from hardware.grbl import GrblAlarm, GrblController
+        from reflab.hardware.grbl import GrblAlarm, GrblController
 
         self.config = config if config is not None else load_config(None)
         self.camera = None
@@ -71,16 +71,16 @@ class Rig:
             raise
 
     def _open_camera(self, spec: str, sim: SimOptions, trigger, timeout_s: float):
-        from hardware.cameras import open_camera
+        from reflab.hardware.cameras import open_camera
 
         if spec != "sim":
             if spec.startswith("folder:"):
                 return open_camera(spec, trigger=trigger.split() if isinstance(trigger, str) else trigger,
                                    timeout_s=timeout_s)
             return open_camera(spec)
-        from hardware.sim.camera import SimulatedCamera, lab_renderer
-        from hardware.sim.lab import build_lab
-        from hardware.sim.props import LabProps
+        from reflab.hardware.sim.camera import SimulatedCamera, lab_renderer
+        from reflab.hardware.sim.lab import build_lab
+        from reflab.hardware.sim.props import LabProps
 
         if not 0.0 <= sim.grain < 1.0:
             raise ValueError(f"--grain must be in [0, 1), got {sim.grain}")
@@ -96,10 +96,10 @@ class Rig:
         else:
             state = lambda: (ctl.angle, ctl.lamps)  # noqa: E731
         # The simulated user shows the props a shot's role needs: the circle target (calibration),
-        # the rod and grey card (lights); the bare scene otherwise (hardware.sim.props.LabProps).
+        # the rod and grey card (lights); the bare scene otherwise (reflab.hardware.sim.props.LabProps).
         camera = SimulatedCamera(lab_renderer(lab, depth=sim.depth, centre=sim.centre, props=LabProps()), state,
                                  ambient=sim.room_light, lab={"grain": sim.grain, "fixed": ["ground"], "centre": list(sim.centre)})
-        camera.sim_lab = lab  # for the simulated user's marks after a sweep (hardware.sim.user)
+        camera.sim_lab = lab  # for the simulated user's marks after a sweep (reflab.hardware.sim.user)
         return camera
 
     def close(self) -> None:

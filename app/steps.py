@@ -1,16 +1,16 @@
 """The guided acquisition as one ordered list of steps, shared by the GUI and ``reflab demo``.
 
-Each :class:`Step` has the contract's name (INTERFACES.md, GUI: ``devices``, ``calibrate_camera``,
+Each :class:`Step` has the contract's name (docs/formats.md, GUI: ``devices``, ``calibrate_camera``,
 ``calibrate_lights``, ``sweep``, ``reconstruct``, ``input``, ``fit``, ``texture``, ``results``), a
 title, ``done(workspace)`` read from the workspace's files, and
 ``run(workspace, task=None, *, rig=None, log=print, **options) -> StepResult``, which captures what
-the step needs (when it is given an opened :class:`app.devices.Rig`) and then calls the stage
-function (``calibration.stages``, ``reconstruction.stages``, ``inverse.stages``,
-``hardware.capture.run_capture``).
+the step needs (when it is given an opened :class:`reflab.app.devices.Devices`) and then calls the stage
+function (``reflab.calibration.stages``, ``reflab.reconstruction.stages``, ``reflab.inverse.stages``,
+``reflab.hardware.capture.run_capture``).
 
 ``options`` are the stage's options (the fields of its ``*Options`` dataclass, e.g. ``grid`` and
 ``spacing`` for ``calibrate_camera``) plus, for a step that captures, those of
-:class:`hardware.capture.CaptureOptions` (``angles``, ``count``, ``start``, ``ambient``,
+:class:`reflab.hardware.capture.CaptureOptions` (``angles``, ``count``, ``start``, ``ambient``,
 ``format``, ``exposure``, ``settle``) and ``recapture`` (take the shots again even when a
 complete session of the same plan is there). An unknown option is a ``ValueError`` naming it.
 
@@ -25,9 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from hardware.workspace import Workspace
+from reflab.core.workspace import Workspace
 
-#: Options of a capturing step that go to hardware.capture.CaptureOptions.
+#: Options of a capturing step that go to reflab.hardware.capture.CaptureOptions.
 CAPTURE_FIELDS = ("angles", "count", "start", "ambient", "format", "exposure", "settle")
 
 
@@ -71,13 +71,13 @@ def _split(options: dict, stage_cls, capture: bool, step: str) -> tuple[dict, di
 
 
 def capture(workspace, kind: str, rig, task=None, *, log=print, recapture: bool = False, **options):
-    """Take the shots of ``kind`` with ``rig`` (an opened :class:`app.devices.Rig`): a complete
+    """Take the shots of ``kind`` with ``rig`` (an opened :class:`reflab.app.devices.Devices`): a complete
     session of the same plan is kept (unless ``recapture``), an unfinished one resumes, another
-    plan starts again. Returns :class:`hardware.capture.CaptureResult`, or None when kept."""
+    plan starts again. Returns :class:`reflab.hardware.capture.CaptureResult`, or None when kept."""
     from dataclasses import asdict
 
-    from hardware.capture import CaptureOptions, CaptureResult, plan, run_capture
-    from hardware.workspace import read_json
+    from reflab.hardware.capture import CaptureOptions, CaptureResult, plan, run_capture
+    from reflab.core.workspace import read_json
 
     ws = Workspace(workspace)
     opts = CaptureOptions(ws.root, kind, rig.controller, rig.camera, log=log, **options)
@@ -104,7 +104,7 @@ def _exists(attr: str, *parts: str):
 
 def _complete(kind: str):
     def done(workspace) -> bool:
-        from hardware.workspace import WorkspaceError, read_json
+        from reflab.core.workspace import WorkspaceError, read_json
 
         path = Workspace(workspace).manifest(kind)
         try:
@@ -117,7 +117,7 @@ def _complete(kind: str):
 
 # ---------------------------------------------------------------------- the steps
 def _devices(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
-    from hardware.workspace import write_json
+    from reflab.core.workspace import write_json
 
     _split(options, None, False, "devices")
     if rig is None:
@@ -141,7 +141,7 @@ def _capture_only(kind: str, name: str):
 
 
 def _calibrate_camera(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
-    from calibration.stages import CameraOptions, calibrate_camera
+    from reflab.calibration.stages import CameraOptions, calibrate_camera
 
     stage, cap, recapture = _split(options, CameraOptions, True, "calibrate_camera")
     shots = capture(workspace, "calibration", rig, task, log=log, recapture=recapture, **cap) if rig else None
@@ -154,7 +154,7 @@ def _calibrate_camera(workspace, task=None, *, rig=None, log=print, **options) -
 def _calibrate_lights(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
     """Rod shots (when given a rig), then the lamps: without images or a marks file the stage
     detects the rod in the lights session's single-lamp shots (its manifest names the lamp)."""
-    from calibration.stages import LightsOptions, calibrate_lights
+    from reflab.calibration.stages import LightsOptions, calibrate_lights
 
     stage, cap, recapture = _split(options, LightsOptions, True, "calibrate_lights")
     shots = capture(workspace, "lights", rig, task, log=log, recapture=recapture, **cap) if rig else None
@@ -165,7 +165,7 @@ def _calibrate_lights(workspace, task=None, *, rig=None, log=print, **options) -
 
 
 def _reconstruct(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
-    from reconstruction.stages import ReconstructOptions, reconstruct
+    from reflab.reconstruction.stages import ReconstructOptions, reconstruct
 
     stage, _, _ = _split(options, ReconstructOptions, False, "reconstruct")
     r = reconstruct(ReconstructOptions(Path(workspace), **stage), task, log=log)
@@ -175,7 +175,7 @@ def _reconstruct(workspace, task=None, *, rig=None, log=print, **options) -> Ste
 
 
 def _fit(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
-    from inverse.stages import FitOptions, fit
+    from reflab.inverse.stages import FitOptions, fit
 
     stage, _, _ = _split(options, FitOptions, False, "fit")
     r = fit(FitOptions(Path(workspace), **stage), task,
@@ -189,7 +189,7 @@ def _fit(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
 
 
 def _texture(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
-    from inverse.stages import TextureOptions, texture
+    from reflab.inverse.stages import TextureOptions, texture
 
     stage, _, _ = _split(options, TextureOptions, False, "texture")
     r = texture(TextureOptions(Path(workspace), **stage), task, log=log)
@@ -199,8 +199,8 @@ def _texture(workspace, task=None, *, rig=None, log=print, **options) -> StepRes
 def _results(workspace, task=None, *, rig=None, log=print, **options) -> StepResult:
     import numpy as np
 
-    from hardware.images import read_image
-    from inverse.stages import RenderOptions, render
+    from reflab.core.images import read_image
+    from reflab.inverse.stages import RenderOptions, render
 
     stage, _, _ = _split(options, RenderOptions, False, "results")
     ws = Workspace(workspace)
@@ -225,7 +225,7 @@ STEPS = [
     Step("results", "Results", lambda ws: Workspace(ws).render().exists(), _results),
 ]
 
-#: Step names in order (INTERFACES.md, GUI).
+#: Step names in order (docs/formats.md, GUI).
 NAMES = [s.name for s in STEPS]
 
 

@@ -1,4 +1,4 @@
-"""The calibrated camera: camera.json (OpenCV conventions, INTERFACES.md) and its rays.
+"""The calibrated camera: camera.json (OpenCV conventions, docs/formats.md) and its rays.
 
 World to camera: ``X_cam = R @ X_world + t``; camera x right, y down, z forward; pixel (0, 0) is
 the centre of the top-left pixel; metres. Images are raw (distorted); rays go through pixel
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.rotations import look_rotation
-from hardware.workspace import WorkspaceError, as_array, as_float, read_json, write_json
+from reflab.calibration.rotations import look_rotation
+from reflab.core.workspace import WorkspaceError, as_array, as_float, read_json, write_json
 
 
 @dataclass

@@ -4,7 +4,7 @@ A circle seen in perspective is an ellipse whose centre is *not* the image of th
 (Heikkilä 2000; OpenCV issue 7312): the offset grows with the circle's size and the target's
 tilt. :func:`detect_grid` returns measured ellipse centres (intensity-weighted area centroids,
 exact for an ellipse, sub-pixel through the anti-aliased edge); :func:`ellipse_centres` predicts
-where those centres are for a given pose, so the calibration (:mod:`calibration.tsai`) fits the
+where those centres are for a given pose, so the calibration (:mod:`reflab.calibration.tsai`) fits the
 measured centres with the predicted *ellipse* centres instead of the projected circle centres:
 Heikkilä's correction, inside the refinement rather than as a separate pre-correction.
 """
@@ -24,7 +24,7 @@ class GridDetection:
     found : bool
         True when all ``cols * rows`` circles were found and ordered.
     centres : (N, 2) ndarray or None
-        Sub-pixel ellipse centres, row by row (see :func:`calibration.target.target_points`).
+        Sub-pixel ellipse centres, row by row (see :func:`reflab.calibration.target.target_points`).
     areas : (N,) ndarray or None
         Ellipse areas in px² (used to estimate the printed circles' radius).
     n_blobs : int
@@ -42,7 +42,7 @@ class GridDetection:
 
 def parse_grid(text: str, option: str = "grid") -> tuple[int, int]:
     """``"COLSxROWS"`` -> (cols, rows), each ≥ 2; an OptionError naming ``option`` otherwise."""
-    from hardware.workspace import OptionError
+    from reflab.core.workspace import OptionError
 
     parts = str(text).lower().split("x")
     try:

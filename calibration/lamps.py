@@ -1,4 +1,4 @@
-"""Point-lamp positions from rod shadows (METHOD.md §5), marks.json, and lamp power.
+"""Point-lamp positions from rod shadows (docs/method.md §5), marks.json, and lamp power.
 
 A rod of known height ``h`` stands on the ground plane z = 0; in each image (one lamp on) the
 rod's foot and its shadow's tip are marked. Both back-project onto the ground; the rod's top is
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from hardware.workspace import WorkspaceError, as_array, as_float, field as req, object_items, read_json, write_json
+from reflab.calibration.camera import Camera
+from reflab.core.workspace import WorkspaceError, as_array, as_float, field as req, object_items, read_json, write_json
 
 
 @dataclass
@@ -35,7 +35,7 @@ class Mark:
 
 
 def read_marks(path, rod_height: float | None = None) -> tuple[float, list[Mark]]:
-    """Read marks.json (INTERFACES.md): ``(rod_height, marks)``, validated field by field.
+    """Read marks.json (docs/formats.md): ``(rod_height, marks)``, validated field by field.
 
     A file without ``rod_height`` (marks made before the rod was measured) takes ``rod_height``
     when it is given (``--rod-height``); the field is required otherwise.

@@ -1,7 +1,7 @@
-"""Point lights: lights.json (INTERFACES.md).
+"""Point lights: lights.json (docs/formats.md).
 
 ``intensity`` is radiant intensity per band as in Mitsuba 3's ``point`` emitter: the irradiance
-term at distance d is ``intensity / d**2`` (METHOD.md eq. 2.1).
+term at distance d is ``intensity / d**2`` (docs/method.md eq. 2.1).
 """
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError, as_array, object_items, read_json, write_json
+from reflab.core.workspace import WorkspaceError, as_array, object_items, read_json, write_json
 
 
 @dataclass

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.lamps import Mark, detect_rod_marks, lamp_intensity
-from hardware.workspace import Workspace, WorkspaceError, read_json
+from reflab.calibration.camera import Camera
+from reflab.calibration.lamps import Mark, detect_rod_marks, lamp_intensity
+from reflab.core.workspace import Workspace, WorkspaceError, read_json
 
 
 @dataclass
@@ -63,7 +63,7 @@ def rod_shots(root) -> list[RodShot]:
 
 
 def detect_marks(root, shots: list[RodShot], read_image) -> list[Mark]:
-    """Rod foot and shadow tip detected in every shot (:func:`calibration.lamps.detect_rod_marks`),
+    """Rod foot and shadow tip detected in every shot (:func:`reflab.calibration.lamps.detect_rod_marks`),
     the shadow against the shot's lamps-off frame when there is one.
 
     Raises

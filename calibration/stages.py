@@ -3,9 +3,9 @@
 :func:`calibrate_camera` writes camera.json from views of the circle target (Tsai);
 :func:`calibrate_lights` writes lights.json (and marks.json when it detects marks) from rod
 shadows. The CLI (``reflab calibrate``), the GUI and the demo call these; each checks its
-:class:`hardware.task.Task` between images and writes its file only once everything succeeded.
-Bad options raise :class:`hardware.workspace.OptionError` naming the options field, bad files
-:class:`hardware.workspace.WorkspaceError`.
+:class:`reflab.core.task.Task` between images and writes its file only once everything succeeded.
+Bad options raise :class:`reflab.core.workspace.OptionError` naming the options field, bad files
+:class:`reflab.core.workspace.WorkspaceError`.
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.task import Task, ensure
-from hardware.workspace import OptionError
+from reflab.core.task import Task, ensure
+from reflab.core.workspace import OptionError
 
 
 @dataclass
@@ -41,8 +41,8 @@ class CameraResult:
     """What :func:`calibrate_camera` wrote and how well the camera fits."""
 
     path: Path
-    camera: object  # calibration.camera.Camera
-    calibration: object  # calibration.tsai.CalibrationResult
+    camera: object  # reflab.calibration.camera.Camera
+    calibration: object  # reflab.calibration.tsai.CalibrationResult
     images: list  # every image considered
     used: list  # indices into images of the views with a detected grid (calibration.views index this)
     skipped: list = field(default_factory=list)  # (path, reason) of unreadable images or without a grid
@@ -111,7 +111,7 @@ class LightsResult:
     """What :func:`calibrate_lights` wrote."""
 
     path: Path
-    lights: object  # calibration.lights.Lights
+    lights: object  # reflab.calibration.lights.Lights
     lamps: list  # LampReport per lamp
     marks_path: Path | None = None  # marks.json when this run wrote it
     detected: list = field(default_factory=list)  # (image name, light, base, tip) of marks detected now
@@ -120,11 +120,11 @@ class LightsResult:
 
 def calibrate_camera(options: CameraOptions, task: Task | None = None) -> CameraResult:
     """Calibrate the camera from views of the circle target and write camera.json."""
-    from calibration.circles import detect_grid, parse_grid
-    from calibration.target import target_points
-    from calibration.tsai import CalibrationError, calibrate
-    from hardware.images import image_files, read_image
-    from hardware.workspace import Workspace, WorkspaceError, check_folder
+    from reflab.calibration.circles import detect_grid, parse_grid
+    from reflab.calibration.target import target_points
+    from reflab.calibration.tsai import CalibrationError, calibrate
+    from reflab.core.images import image_files, read_image
+    from reflab.core.workspace import Workspace, WorkspaceError, check_folder
 
     task = ensure(task)
     o = options
@@ -194,12 +194,12 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
 
 def calibrate_lights(options: LightsOptions, task: Task | None = None) -> LightsResult:
     """Locate every lamp from rod shadows (and its intensity) and write lights.json."""
-    from calibration.camera import Camera
-    from calibration.lamps import lamp_intensity, locate_lamps, read_marks, write_marks
-    from calibration.lights import Lights, PointLight
-    from calibration.rod import RodShot, card_intensities, detect_marks, rod_shots
-    from hardware.images import read_image
-    from hardware.workspace import Workspace, WorkspaceError, check_folder, read_json
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lamps import lamp_intensity, locate_lamps, read_marks, write_marks
+    from reflab.calibration.lights import Lights, PointLight
+    from reflab.calibration.rod import RodShot, card_intensities, detect_marks, rod_shots
+    from reflab.core.images import read_image
+    from reflab.core.workspace import Workspace, WorkspaceError, check_folder, read_json
 
     task = ensure(task)
     o = options

@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.circles import ellipse_boundaries, ellipse_centres, polygon_centroids
-from calibration.rotations import nearest_rotation, rodrigues, rotation_vector
+from reflab.calibration.camera import Camera
+from reflab.calibration.circles import ellipse_boundaries, ellipse_centres, polygon_centroids
+from reflab.calibration.rotations import nearest_rotation, rodrigues, rotation_vector
 
 
 class CalibrationError(ValueError):

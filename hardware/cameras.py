@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.images import srgb_to_linear
-from hardware.workspace import IMAGE_SUFFIXES
+from reflab.core.images import srgb_to_linear
+from reflab.core.workspace import IMAGE_SUFFIXES
 
-#: Files a tethered camera may write that :func:`hardware.images.read_image` reads as linear.
+#: Files a tethered camera may write that :func:`reflab.core.images.read_image` reads as linear.
 FOLDER_SUFFIXES = IMAGE_SUFFIXES
 
 
@@ -102,7 +102,7 @@ class FolderCamera:
         How long the size must stay unchanged.
 
     While it waits, ``cancelled()`` (set by the capture to its task's flag) is asked every 50 ms:
-    a cancel stops the wait with :class:`hardware.task.Cancelled`.
+    a cancel stops the wait with :class:`reflab.core.task.Cancelled`.
     """
 
     def __init__(self, folder, *, trigger=None, timeout_s: float = 60.0, settle_s: float = 0.5):
@@ -117,8 +117,8 @@ class FolderCamera:
                 if p.suffix.lower() in FOLDER_SUFFIXES and not p.name.startswith(".")}
 
     def capture(self, exposure: float | None = None) -> np.ndarray:
-        from hardware.images import read_image
-        from hardware.workspace import WorkspaceError
+        from reflab.core.images import read_image
+        from reflab.core.workspace import WorkspaceError
 
         before = set(self._images())
         if self.trigger:
@@ -143,7 +143,7 @@ class FolderCamera:
                     self.last_file = path
                     return image
             if self.cancelled():
-                from hardware.task import Cancelled
+                from reflab.core.task import Cancelled
 
                 raise Cancelled("cancelled while waiting for the camera's shot")
             time.sleep(0.05)

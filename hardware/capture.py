@@ -1,8 +1,8 @@
 """Capture sessions: calibration shots, rod-shadow shots, a turntable sweep, the input image.
 
 A session is a *plan* (one :class:`Shot` per image: file, turntable angle, lamp states) run
-against a controller (:class:`hardware.grbl.GrblController`) and a camera
-(:mod:`hardware.cameras`). After every shot the image is written atomically and then
+against a controller (:class:`reflab.hardware.grbl.GrblController`) and a camera
+(:mod:`reflab.hardware.cameras`). After every shot the image is written atomically and then
 ``captures/<folder>/manifest.json`` (also atomically), so a fault or Ctrl-C never leaves a
 half-written file and never loses a finished shot; ``resume=True`` takes exactly the shots the
 manifest does not list. docs/hardware.md describes the manifest.
@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.task import Cancelled, Task
-from hardware.workspace import CAPTURE_FOLDERS, Workspace, WorkspaceError, read_json, write_json
+from reflab.core.task import Cancelled, Task
+from reflab.core.workspace import CAPTURE_FOLDERS, Workspace, WorkspaceError, read_json, write_json
 
-#: Session kind -> folder under WORKSPACE/captures (INTERFACES.md).
+#: Session kind -> folder under WORKSPACE/captures (docs/formats.md).
 FOLDERS = CAPTURE_FOLDERS
 
 
@@ -90,7 +90,7 @@ def plan_input(n_lamps: int, angle: float = 0.0, ambient: bool = False, ext: str
 
 class Control(Task):
     """Pause, resume and cancel of a running session: the one task object of every stage
-    (:class:`hardware.task.Task`), with ``wait``, its old name for :meth:`Task.check`. A pause
+    (:class:`reflab.core.task.Task`), with ``wait``, its old name for :meth:`Task.check`. A pause
     takes effect between shots, and during a turntable move as a feed hold."""
 
     def wait(self) -> None:
@@ -135,7 +135,7 @@ class CaptureSession:
         Start again over a previous session of this kind (its images are removed first).
     progress : callable, optional
         ``progress(done, total, record)`` after every shot.
-    control : hardware.task.Task, optional
+    control : reflab.core.task.Task, optional
         Pause, resume, cancel; told ``step(done, total, file)`` after every shot.
     log : callable, optional
     size : (width, height), optional
@@ -219,10 +219,10 @@ class CaptureSession:
             On a device or camera fault, with the fault's message; the manifest says ``stopped``.
         CaptureCancelled
             On ``control.cancel()`` or Ctrl-C; the manifest says ``cancelled``. It is a
-            :class:`hardware.task.Cancelled`.
+            :class:`reflab.core.task.Cancelled`.
         """
-        from hardware.cameras import CameraError
-        from hardware.grbl import GrblError
+        from reflab.hardware.cameras import CameraError
+        from reflab.hardware.grbl import GrblError
 
         kept = self._load_previous()
         existing = self.workspace.input_image
@@ -270,8 +270,8 @@ class CaptureSession:
                 "with --resume to take the others.")
 
     def _take(self, shot: Shot) -> dict:
-        from hardware.grbl import MoveCancelled
-        from hardware.images import write_image
+        from reflab.hardware.grbl import MoveCancelled
+        from reflab.core.images import write_image
 
         ctl = self.controller
         if ctl.position is None or abs(ctl.angle - shot.angle) > ctl.config.angle_tolerance_deg:
@@ -292,11 +292,11 @@ class CaptureSession:
         t0 = time.monotonic()
         image = self.camera.capture(self.exposure)
         if not np.all(np.isfinite(image)):
-            from hardware.cameras import CameraError
+            from reflab.hardware.cameras import CameraError
 
             raise CameraError(f"the camera returned {int((~np.isfinite(image)).sum())} NaN/inf values for {shot.file}")
         if self.size is not None and (image.shape[1], image.shape[0]) != self.size:
-            from hardware.cameras import CameraError
+            from reflab.hardware.cameras import CameraError
 
             raise CameraError(f"the camera gives {image.shape[1]}x{image.shape[0]} images, camera.json is calibrated "
                               f"for {self.size[0]}x{self.size[1]}: set the camera to that size or calibrate again")
@@ -309,12 +309,12 @@ class CaptureSession:
         """For the input kind: WORKSPACE/input.<ext>, the lamps-on frame minus the ambient frame."""
         if self.kind != "input":
             return
-        from hardware.images import read_image, write_image
+        from reflab.core.images import read_image, write_image
 
         shots = {s.role: s for s in self.plan}
         lit = read_image(self.folder / shots["input"].file)
         if "ambient" in shots:
-            # Noise around black goes negative: data for the fit (INTERFACES.md, Images), not clipped.
+            # Noise around black goes negative: data for the fit (docs/formats.md, Images), not clipped.
             lit = lit - read_image(self.folder / shots["ambient"].file)
         ext = Path(shots["input"].file).suffix
         target = self.workspace.root / f"input{ext}"  # Workspace.input_image finds it
@@ -328,7 +328,7 @@ class CaptureSession:
 class CaptureOptions:
     """Options of :func:`run_capture`.
 
-    ``controller`` (a connected :class:`hardware.grbl.GrblController`) and ``camera`` (an object
+    ``controller`` (a connected :class:`reflab.hardware.grbl.GrblController`) and ``camera`` (an object
     with ``capture(exposure)`` and ``describe()``) are the opened devices: the caller opens them
     (``app/devices.py`` for hardware or the simulated lab) and closes them. ``angles`` are the
     turntable angles of calibration/lights shots; ``count`` and ``start`` the sweep's (``start``
@@ -385,7 +385,7 @@ def plan(kind: str, n_lamps: int, options: CaptureOptions) -> list[Shot]:
 def run_capture(options: CaptureOptions, task: Task | None = None) -> CaptureResult:
     """Take every shot of ``options.kind`` not yet taken (see :class:`CaptureSession`).
 
-    Raises :class:`CaptureCancelled` (a :class:`hardware.task.Cancelled`) when ``task`` is
+    Raises :class:`CaptureCancelled` (a :class:`reflab.core.task.Cancelled`) when ``task`` is
     cancelled, :class:`CaptureError` on a device fault; either way the finished shots are kept
     and ``resume=True`` takes the others.
     """

@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import serial
 
-from hardware.workspace import WorkspaceError, read_json
+from reflab.core.workspace import WorkspaceError, read_json
 
 try:  # pyserial lets termios and ioctl errors of a vanished tty through unwrapped
     import termios

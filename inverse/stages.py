@@ -1,12 +1,12 @@
 """The inverse stages as library functions: options in, a typed result out, a Task for progress.
 
-- :func:`fit` writes fit.json (non-Lambertian parameters of every surface; :mod:`inverse.fitting`);
-- :func:`texture` writes textures/ (per-texel diffuse albedo; :mod:`inverse.texture`);
+- :func:`fit` writes fit.json (non-Lambertian parameters of every surface; :mod:`reflab.inverse.fit.rounds`);
+- :func:`texture` writes textures/ (per-texel diffuse albedo; :mod:`reflab.inverse.texture.solve`);
 - :func:`render` renders the workspace's model (fit.json + textures/ when present, else
   scene.json) to an image; :func:`render_workspace` is the same without writing.
 
 The CLI (``reflab fit | texture | render``), the GUI and the demo call these. Each checks its
-:class:`hardware.task.Task` inside its long loops (tree levels, fit iterations, texture CG) and
+:class:`reflab.core.task.Task` inside its long loops (tree levels, fit iterations, texture CG) and
 writes its files only after its last check: a cancelled stage leaves nothing half-written.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.task import Task, ensure
+from reflab.core.task import Task, ensure
 
 
 # ---------------------------------------------------------------------- fit
@@ -36,7 +36,7 @@ class FitOptions:
 
 @dataclass
 class FitResult:
-    """What :func:`fit` wrote: fit.json's ``report``, the numeric fit (``inverse.fitting.FitResult``)."""
+    """What :func:`fit` wrote: fit.json's ``report``, the numeric fit (``reflab.inverse.fit.rounds.FitSolution``)."""
 
     path: Path
     report: dict
@@ -58,8 +58,8 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     ``on_round(record)`` is called after each texture round (docs/fit.md). The task is stepped
     per outer iteration; its deadline, when it has one, stops the fit like ``max_seconds``.
     """
-    from hardware.workspace import Workspace, check_folder
-    from inverse.fit_stage import fit_workspace
+    from reflab.core.workspace import Workspace, check_folder
+    from reflab.inverse.fit.workspace_fit import fit_workspace
 
     task = ensure(task)
     o = options
@@ -76,7 +76,7 @@ class TextureOptions:
     """Options of :func:`texture` (``reflab texture``'s flags; docs/texture.md).
 
     ``depth`` defaults to fit.json's, else 3. The solver's own knobs (tolerance, iteration cap,
-    coverage) keep :class:`inverse.texture.TextureOptions`' defaults.
+    coverage) keep :class:`reflab.inverse.texture.solve.SolverOptions`' defaults.
     """
 
     workspace: Path
@@ -92,22 +92,22 @@ class TextureOptions:
 @dataclass
 class TextureResult:
     """What :func:`texture` wrote (``written``: every file in textures/) and the solve
-    (``result``: :class:`inverse.texture.TextureResult`)."""
+    (``result``: :class:`reflab.inverse.texture.solve.TextureSolution`)."""
 
     folder: Path
     written: list
     result: object
     materials_source: str
     depth: int
-    solver: object  # the inverse.texture.TextureOptions used
+    solver: object  # the reflab.inverse.texture.solve.SolverOptions used
     trees: dict = field(default_factory=dict)  # the trees' stats (``cache``: "reused" or "built", ``build_s``)
 
 
 def _inputs(ws, camera=None, lights=None):
     """(Camera, Lights, Scene) of the workspace, or from other camera/lights files."""
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from reconstruction.scene import Scene
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights
+    from reflab.reconstruction.scene import Scene
 
     camera = Camera.load(camera or ws.require(ws.camera, "reflab calibrate camera"))
     lights = Lights.load(lights or ws.require(ws.lights, "reflab calibrate lights"))
@@ -120,11 +120,11 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
 
     ``log`` is told whether the trees were built or reused from the workspace's cache.
     """
-    from hardware.images import check_radiance, read_image
-    from hardware.workspace import Workspace, WorkspaceError, check_folder, read_json
-    from inverse import texture as tex
-    from inverse.rendering import undetermined_pixels
-    from inverse.trees import trees_for_workspace
+    from reflab.core.images import check_radiance, read_image
+    from reflab.core.workspace import Workspace, WorkspaceError, check_folder, read_json
+    from reflab.inverse.texture import solve as tex
+    from reflab.inverse.forward.rendering import undetermined_pixels
+    from reflab.inverse.forward.trees import trees_for_workspace
 
     task = ensure(task)
     o = options
@@ -140,7 +140,7 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     depth = o.depth
     if depth is None:
         depth = int(read_json(ws.fit).get("depth", 3)) if ws.fit.exists() else 3
-    solver = tex.TextureOptions(texel_scale=o.texel_scale, texel_size=o.texel_size, prior=o.prior,
+    solver = tex.SolverOptions(texel_scale=o.texel_scale, texel_size=o.texel_size, prior=o.prior,
                                 smoothness=o.smoothness, saturation=o.saturation, bounds=(0.0, o.max_albedo))
     solver.validate()
     trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=log, task=task)
@@ -218,13 +218,13 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         ``undetermined_pixels`` ((H, W) bool: the pixel's predicted light rests on parameters fit.json
         calls undetermined, on determined ones whose σ leaves it loose, or on texels the texture
         stage flagged guessed,
-        :func:`inverse.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``,
+        :func:`reflab.inverse.forward.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``,
         ``render_s``, ``trees``.
     """
-    from hardware.workspace import Workspace
-    from inverse.rendering import render as render_trees, render_albedo, undetermined_pixels
-    from inverse.texture import albedo_nodes, guessed_nodes, load_materials, load_texture_maps, load_uncertainty
-    from inverse.trees import trees_for_workspace
+    from reflab.core.workspace import Workspace
+    from reflab.inverse.forward.rendering import render as render_trees, render_albedo, undetermined_pixels
+    from reflab.inverse.texture.solve import albedo_nodes, guessed_nodes, load_materials, load_texture_maps, load_uncertainty
+    from reflab.inverse.forward.trees import trees_for_workspace
 
     task = ensure(task)
     ws = Workspace(workspace)
@@ -266,8 +266,8 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
 
 def render(options: RenderOptions, task: Task | None = None, *, log=None) -> RenderResult:
     """Render the workspace's model and write the image and an 8-bit PNG preview beside it."""
-    from hardware.images import write_image, write_preview
-    from hardware.workspace import Workspace, check_folder
+    from reflab.core.images import write_image, write_preview
+    from reflab.core.workspace import Workspace, check_folder
 
     task = ensure(task)
     o = options

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from hardware.workspace import Workspace, WorkspaceError, as_array, read_json
-from reconstruction.scene import Material, Scene
+from reflab.calibration.camera import Camera
+from reflab.core.workspace import Workspace, WorkspaceError, as_array, read_json
+from reflab.reconstruction.scene import Material, Scene
 
 
 def has_surfaces(path) -> bool:
@@ -49,9 +49,9 @@ def _known(item: dict, path, where: str) -> dict:
 
 
 def read_surfaces(path) -> tuple[dict, list[dict]]:
-    """``(marked, pointed)``: the marks file's marked entries as :func:`reconstruction.surfaces.load_marks`
+    """``(marked, pointed)``: the marks file's marked entries as :func:`reflab.reconstruction.surfaces.load_marks`
     specs, and its pointed entries as ``{"name", "at", "where", brdf, ior, textured, matte}``."""
-    from reconstruction import surfaces as surf
+    from reflab.reconstruction import surfaces as surf
 
     path = Path(path)
     obj = read_json(path)
@@ -83,7 +83,7 @@ def read_surfaces(path) -> tuple[dict, list[dict]]:
 
 def _first_hit(scene: Scene, camera: Camera, uv: np.ndarray) -> int:
     """Index of the surface the input view's ray through pixel ``uv`` meets first (-1: none)."""
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     rc = o3d.t.geometry.RaycastingScene()

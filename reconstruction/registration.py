@@ -4,7 +4,7 @@ SfM knows the scene up to a similarity (scale, rotation, translation). Two ways 
 
 * the calibration target lying on the ground plane (turning with the objects): its circle centres
   are found in the shots, triangulated with the recovered poses, and matched to their known
-  positions (:func:`calibration.target.target_points`) by Umeyama's closed-form similarity;
+  positions (:func:`reflab.calibration.target.target_points`) by Umeyama's closed-form similarity;
 * the input view and the turntable axis: the shot taken at the input view's angle must have
   camera.json's pose, which fixes everything but the scale; the camera centres circle the
   turntable axis, whose place on the ground (x, y) then gives the scale.
@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.rotations import perpendicular_basis
-from hardware.workspace import WorkspaceError
+from reflab.calibration.camera import Camera
+from reflab.calibration.rotations import perpendicular_basis
+from reflab.core.workspace import WorkspaceError
 
 
 @dataclass
@@ -106,11 +106,11 @@ def find_target(image: np.ndarray, cols: int, rows: int):
     Returns
     -------
     (cols*rows, 2) ndarray or None
-        Pixel centres in :func:`calibration.circles.detect_grid`'s order, or None.
+        Pixel centres in :func:`reflab.calibration.circles.detect_grid`'s order, or None.
     """
     import cv2
 
-    from calibration.circles import detect_grid
+    from reflab.calibration.circles import detect_grid
 
     d = detect_grid(image, cols, rows)
     if d.found:
@@ -171,7 +171,7 @@ def register_target(images: list, R: np.ndarray, t: np.ndarray, camera: Camera, 
         The report has ``method``, ``views`` (shots where the target was found), ``rms_mm``
         (triangulated centres against their known places) and ``max_mm``.
     """
-    from calibration.target import target_points
+    from reflab.calibration.target import target_points
 
     cols, rows = grid
     ok = np.all(np.isfinite(t), axis=1)

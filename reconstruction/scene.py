@@ -1,7 +1,7 @@
-"""The scene: scene.json, its surfaces, materials and PLY meshes (INTERFACES.md).
+"""The scene: scene.json, its surfaces, materials and PLY meshes (docs/formats.md).
 
 Only ``mesh``, ``material.brdf`` and ``material.ior`` are required; every photometric parameter
-that is absent starts from METHOD.md §3's initial values and is listed in
+that is absent starts from docs/method.md §3's initial values and is listed in
 :attr:`Material.defaulted`, so that a later stage knows which values the user supplied.
 """
 from __future__ import annotations
@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import Workspace, WorkspaceError, as_array, as_float, atomic_path, object_items, read_json, write_json
+from reflab.core.workspace import Workspace, WorkspaceError, as_array, as_float, atomic_path, object_items, read_json, write_json
 
 #: Parameters of each BRTDF model: name -> per-band (3 values) or scalar (1 value).
-#: The models themselves live in inverse/models.py; the file format owns the names.
+#: The models themselves live in inverse/forward/models.py; the file format owns the names.
 BRDF_PARAMS: dict[str, dict[str, int]] = {
     "phong": {"kd": 3, "ks": 3, "ns": 1},
     "lambert": {"kd": 3},
@@ -25,7 +25,7 @@ BRDF_PARAMS: dict[str, dict[str, int]] = {
 #: Secondary (ideal) reflection and transmission attenuations, every model.
 PATH_PARAMS = ("r", "t")
 
-#: METHOD.md §3 initial values (the dissertation's), and reasonable ones for the other models.
+#: docs/method.md §3 initial values (the dissertation's), and reasonable ones for the other models.
 INITIAL = {"kd": 0.1, "ks": 0.1, "ns": 2**6.5, "alpha": 0.2, "sigma": 0.3, "r": 0.1, "t": 0.1}
 #: Upper bound of each scalar nonlinear parameter (lower bound is > 0).
 SCALAR_RANGE = {"ns": (1e-3, 2.0**20), "alpha": (1e-4, 1.0), "sigma": (0.0, np.pi / 2)}
@@ -152,7 +152,7 @@ class Mesh:
         path = Path(path)
         if not path.exists():
             raise WorkspaceError(path, expected="a mesh file (PLY or OBJ)", got="missing")
-        from hardware.open3d_env import open3d
+        from reflab.core.open3d_env import open3d
         o3d = open3d()
 
         m = o3d.io.read_triangle_mesh(str(path))
@@ -165,7 +165,7 @@ class Mesh:
         return cls(v, np.asarray(m.triangles), normals)
 
     def save(self, path) -> Path:
-        from hardware.open3d_env import open3d
+        from reflab.core.open3d_env import open3d
         o3d = open3d()
 
         m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(self.triangles.astype(np.int32)))

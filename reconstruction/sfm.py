@@ -5,7 +5,7 @@ orbiting objects that stand still, provided what does not turn (the table, the r
 out. The intrinsics come from camera.json and stay fixed; images are matched in sweep order
 with the sweep closed into a loop (shot N-1 is matched with shot 0), and COLMAP's incremental
 mapper recovers one pose per shot in an arbitrary similarity frame (see
-:mod:`reconstruction.registration` for the workspace frame).
+:mod:`reflab.reconstruction.registration` for the workspace frame).
 
 COLMAP puts the centre of the top-left pixel at (0.5, 0.5); camera.json (OpenCV) puts it at
 (0, 0): the principal point is shifted by half a pixel on the way in and keypoints on the way out.
@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.rotations import axis_rotation
-from hardware.images import linear_to_srgb
-from hardware.task import Task, ensure
-from hardware.workspace import WorkspaceError
+from reflab.calibration.camera import Camera
+from reflab.calibration.rotations import axis_rotation
+from reflab.core.images import linear_to_srgb
+from reflab.core.task import Task, ensure
+from reflab.core.workspace import WorkspaceError
 
 #: A pixel whose display value varies less than this over the whole sweep does not turn.
 STATIC_THRESHOLD = 4.0 / 255.0
@@ -51,7 +51,7 @@ class SfMResult:
         Mean reprojection error of each point (pixels).
     tracks : list of ndarray
         For each point, the indices (into ``names``) of the images that see it.
-    observations : reconstruction.turntable.Observations or None
+    observations : reflab.reconstruction.turntable.Observations or None
         Every measurement of the points (point, image, undistorted normalised coordinates).
     report : dict
         ``registered``, ``images``, ``unregistered`` (names), ``reprojection_px`` (mean),
@@ -284,7 +284,7 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
         terminal); None leaves it on stderr.
     progress : callable, optional
         Called with one line per COLMAP step (features, matching, mapping).
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Progress and cancellation: stepped between COLMAP's phases, and COLMAP itself stops
         within a moment of a cancel (its cancellation token).
 
@@ -312,7 +312,7 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
 @contextlib.contextmanager
 def _colmap_token(task: Task):
     """A pycolmap CancellationToken cancelled (by a watcher thread) once ``task`` is; the task is
-    checked again when COLMAP returns, so a cancelled phase raises :class:`hardware.task.Cancelled`."""
+    checked again when COLMAP returns, so a cancelled phase raises :class:`reflab.core.task.Cancelled`."""
     import pycolmap
 
     token = pycolmap.CancellationToken()
@@ -512,7 +512,7 @@ def _result(models, names, files, camera, min_registered, times) -> SfMResult:
 
 def _observations(rec, image_index: dict, point_ids: list, camera: Camera):
     """Every registered image's measurements of the reconstruction's points, as arrays."""
-    from reconstruction.turntable import Observations
+    from reflab.reconstruction.turntable import Observations
 
     row = {pid: k for k, pid in enumerate(point_ids)}
     point, image, uv = [], [], []
@@ -532,7 +532,7 @@ def load_sweep(folder) -> tuple[list, np.ndarray | None]:
     their ``file`` and ``angle``; without it the folder's images are taken in name order and the
     angles are unknown (None).
     """
-    from hardware.workspace import MANIFEST, read_json
+    from reflab.core.workspace import MANIFEST, read_json
 
     folder = Path(folder)
     manifest = folder / MANIFEST
@@ -551,7 +551,7 @@ def load_sweep(folder) -> tuple[list, np.ndarray | None]:
             angles.append(float(angle))
         order = np.argsort(np.mod(angles, 360.0), kind="stable")
         return [paths[i] for i in order], np.asarray(angles)[order]
-    from hardware.images import image_files
+    from reflab.core.images import image_files
 
     paths = image_files(folder)
     if not paths:

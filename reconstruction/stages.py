@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from hardware.task import Task, ensure
-from hardware.workspace import OptionError, Workspace, WorkspaceError, check_folder
+from reflab.calibration.camera import Camera
+from reflab.core.task import Task, ensure
+from reflab.core.workspace import OptionError, Workspace, WorkspaceError, check_folder
 
 
 @dataclass
@@ -57,7 +57,7 @@ class ReconstructOptions:
 class ReconstructResult:
     """What :func:`reconstruct` did: ``sfm`` is sfm.json's report when structure from motion ran
     now (else None), ``scene`` the written scene (None when nothing needed doing), ``modelled``
-    the surfaces made or imported now (``reconstruction.surfaces.Modelled``)."""
+    the surfaces made or imported now (``reflab.reconstruction.surfaces.Modelled``)."""
 
     scene_path: Path
     scene: object = None
@@ -72,7 +72,7 @@ class ReconstructResult:
 
 def _reference_angle(ws) -> float:
     """Turntable angle of the input photograph (captures/input/manifest.json), else 0."""
-    from hardware.workspace import read_json
+    from reflab.core.workspace import read_json
 
     manifest = ws.manifest("input")
     if manifest.exists():
@@ -83,7 +83,7 @@ def _reference_angle(ws) -> float:
 
 
 def _grid(target) -> tuple[int, int]:
-    from calibration.circles import parse_grid
+    from reflab.calibration.circles import parse_grid
 
     return parse_grid(target, "target") if isinstance(target, str) else (int(target[0]), int(target[1]))
 
@@ -102,13 +102,13 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     dict
         ``report`` (as written to sfm.json), ``R``, ``t`` (world-frame poses), ``points``, ``names``.
     """
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
-    from hardware.images import read_image
-    from hardware.workspace import atomic_path, write_json
-    from reconstruction.registration import reference_check, register_axis, register_target, turntable_check
-    from reconstruction.sfm import load_sweep, run_sfm, turntable_poses
+    from reflab.core.images import read_image
+    from reflab.core.workspace import atomic_path, write_json
+    from reflab.reconstruction.registration import reference_check, register_axis, register_target, turntable_check
+    from reflab.reconstruction.sfm import load_sweep, run_sfm, turntable_poses
 
     task = ensure(task)
     o = options
@@ -158,7 +158,7 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     task.step(len(paths) + 1, len(paths) + 3, "turntable axis")
     rigid = None
     if o.rigid_turntable and sfm.observations is not None and len(sfm.points):
-        from reconstruction.turntable import refine_if_rigid
+        from reflab.reconstruction.turntable import refine_if_rigid
 
         rigid = refine_if_rigid(sfm.R, sfm.t, sfm.points, sfm.observations, reference, float(camera.K[0, 0]))
         if rigid["report"]["used"]:
@@ -191,12 +191,12 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
 
 
 def load_views(ws, camera: Camera):
-    """Registered shots (:class:`reconstruction.surfaces.Views`) and sparse points from sfm.json / sparse.ply."""
-    from hardware.open3d_env import open3d
+    """Registered shots (:class:`reflab.reconstruction.surfaces.Views`) and sparse points from sfm.json / sparse.ply."""
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
-    from hardware.workspace import as_array, read_json
-    from reconstruction.surfaces import Views
+    from reflab.core.workspace import as_array, read_json
+    from reflab.reconstruction.surfaces import Views
 
     ws = Workspace(ws.root if isinstance(ws, Workspace) else ws)
     path = ws.sfm
@@ -214,9 +214,9 @@ def load_views(ws, camera: Camera):
 
 
 def _shot_gradients(ws, views) -> dict:
-    """:func:`reconstruction.surfaces.edge_gradients` of the registered shots."""
-    from hardware.images import read_image
-    from reconstruction import surfaces as surf
+    """:func:`reflab.reconstruction.surfaces.edge_gradients` of the registered shots."""
+    from reflab.core.images import read_image
+    from reflab.reconstruction import surfaces as surf
 
     images = {}
     for name in views.poses:
@@ -229,9 +229,9 @@ def _shot_gradients(ws, views) -> dict:
 
 def _refine_marked(views, gradients: dict, m, task: Task | None = None):
     """A box from marked corners with its marked face moved to where the shots show its edges
-    (:func:`reconstruction.surfaces.refine_marked_face`); ``info["edges"]`` says which edges were
+    (:func:`reflab.reconstruction.surfaces.refine_marked_face`); ``info["edges"]`` says which edges were
     found and how far they moved (normal, outward; mm), or that the marks were kept."""
-    from reconstruction import surfaces as surf
+    from reflab.reconstruction import surfaces as surf
 
     if "face" not in m.info or m.ior is not None:  # a transparent box's edges show what lies behind, refracted
         return m
@@ -250,8 +250,8 @@ def _refine_marked(views, gradients: dict, m, task: Task | None = None):
 
 def _refine_edges(ws, views, modelled: list, task: Task | None = None, gradients: dict | None = None) -> list:
     """The boxes fitted to sparse points, each footprint edge moved to where the registered shots
-    show it (:func:`reconstruction.surfaces.refine_box_edges`); ``info["edge_shifts_mm"]`` says how far."""
-    from reconstruction import surfaces as surf
+    show it (:func:`reflab.reconstruction.surfaces.refine_box_edges`); ``info["edge_shifts_mm"]`` says how far."""
+    from reflab.reconstruction import surfaces as surf
 
     boxes = [m for m in modelled if m.name.startswith("box") and m.source.startswith("box on the ground")]
     if not boxes:
@@ -272,9 +272,9 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
     An existing scene.json is left alone (``result.skipped``) unless ``marks`` or ``meshes`` add
     to it, or ``force`` redoes it. ``log`` gets structure from motion's progress lines.
     """
-    from reconstruction import marks as user_marks
-    from reconstruction import surfaces as surf
-    from reconstruction.scene import Scene
+    from reflab.reconstruction import marks as user_marks
+    from reflab.reconstruction import surfaces as surf
+    from reflab.reconstruction.scene import Scene
 
     task = ensure(task)
     o = options

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.rotations import nearest_rotation
-from hardware.workspace import WorkspaceError, as_array, as_float, object_items, read_json
-from reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
+from reflab.calibration.camera import Camera
+from reflab.calibration.rotations import nearest_rotation
+from reflab.core.workspace import WorkspaceError, as_array, as_float, object_items, read_json
+from reflab.reconstruction.scene import BRDF_PARAMS, Material, Mesh, Scene, Surface
 
 #: Points within this distance of a box's side face count as that face's (metres).
 SIDE_BAND = 0.004
@@ -96,7 +96,7 @@ def fit_ground(points: np.ndarray, threshold: float = 0.002, up=(0.0, 0.0, 1.0),
         ``normal @ x + offset = 0`` on the plane.
     inliers : (N,) bool ndarray
     """
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     points = np.asarray(points, dtype=np.float64)
@@ -346,7 +346,7 @@ def fit_scene_points(points: np.ndarray, *, camera: Camera | None = None, ground
     fewer than ``min_ground`` points within ``ground_threshold`` of z = 0: given the ``camera``,
     it is then the plane z = 0 spanning the input view (:func:`view_ground_mesh`).
     """
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     points = np.asarray(points, dtype=np.float64)
@@ -631,7 +631,7 @@ def load_marks(path, obj: dict | None = None) -> list[dict]:
 
 
 def _triangulate_corner(views: Views, marks: dict) -> np.ndarray:
-    from reconstruction.registration import triangulate
+    from reflab.reconstruction.registration import triangulate
 
     names = list(marks)
     R = np.stack([views.poses[n][0] for n in names])
@@ -723,7 +723,7 @@ def import_mesh(name: str, path, ior: float | None = None, brdf: str = "phong") 
 # ---------------------------------------------------------------- output
 def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -> Scene:
     """Write ``meshes/<name>.ply`` and scene.json: existing surfaces kept, same names replaced."""
-    from hardware.workspace import Workspace
+    from reflab.core.workspace import Workspace
 
     ws = Workspace(root)
     root = ws.root
@@ -753,7 +753,7 @@ def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -
 
 def distance_to_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Unsigned distance (N,) of points to a mesh's surface (Open3D ray-casting scene)."""
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     scene = o3d.t.geometry.RaycastingScene()

@@ -10,7 +10,7 @@ with ``u`` the axis direction, ``a`` a point on it and ``φ_i`` the shot's angle
 little of what turns (a mirror standing in front of the objects), its six free parameters trade
 rotation against translation; its one angle is pinned by every other shot's view of the same
 axis. The commanded angles are not used, so the recovered angles stay an independent check of
-the turntable (:func:`reconstruction.registration.turntable_check`).
+the turntable (:func:`reflab.reconstruction.registration.turntable_check`).
 
 The reference pose is held, which fixes the similarity frame up to a scale about its camera
 centre; one residual holds the axis' distance from that centre at its starting value for it.
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.rotations import perpendicular_basis, rodrigues
+from reflab.calibration.rotations import perpendicular_basis, rodrigues
 
 
 @dataclass
@@ -76,7 +76,7 @@ def turntable_model(R: np.ndarray, t: np.ndarray, reference: int) -> tuple[np.nd
     """
     import cv2
 
-    from reconstruction.registration import _fit_circle_axis, rotation_axis
+    from reflab.reconstruction.registration import _fit_circle_axis, rotation_axis
 
     ok = np.all(np.isfinite(t), axis=1)
     u = rotation_axis(R, reference)

@@ -20,10 +20,10 @@ def lab_photo_workspace(root, width: int = 64, height: int = 48, *, textured: bo
     what a user knows before fitting; untextured, it also says no surface is textured (a textured
     surface's lobe seen once is undetermined, docs/fit.md).
     """
-    from hardware.images import write_image
-    from hardware.sim.lab import build_lab, write_lab
-    from inverse.rendering import render
-    from inverse.trees import build_trees
+    from reflab.core.images import write_image
+    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(width, height, textured=textured)
     write_lab(root, lab)
@@ -64,8 +64,8 @@ def target_views():
     simulated lab, with their true cameras: (images, cameras)."""
     import numpy as np
 
-    from calibration.camera import Camera
-    from hardware.sim import props
+    from reflab.calibration.camera import Camera
+    from reflab.hardware.sim import props
 
     K = np.array([[620.0, 0, 325.0], [0, 620.0, 236.0], [0, 0, 1]])
     poses = props.random_target_poses(6, 11, 8, 0.015, seed=4, distance=0.28)
@@ -76,8 +76,8 @@ def target_views():
 @pytest.fixture()
 def target_workspace(tmp_path, target_views):
     """A workspace holding only :func:`target_views` in captures/calibration/ (00.exr ... 05.exr)."""
-    from hardware.images import write_image
-    from hardware.workspace import Workspace
+    from reflab.core.images import write_image
+    from reflab.core.workspace import Workspace
 
     ws = Workspace(tmp_path / "ws")
     for i, image in enumerate(target_views[0]):

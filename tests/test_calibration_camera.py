@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
-from calibration.camera import Camera
-from calibration.circles import detect_grid, parse_grid
-from calibration.tsai import CalibrationError, calibrate
-from hardware.sim import props as st
-from hardware.images import write_image
-from hardware.workspace import OptionError
+from reflab.app.cli import main
+from reflab.calibration.camera import Camera
+from reflab.calibration.circles import detect_grid, parse_grid
+from reflab.calibration.tsai import CalibrationError, calibrate
+from reflab.hardware.sim import props as st
+from reflab.core.images import write_image
+from reflab.core.workspace import OptionError
 
 COLS, ROWS, SPACING, RADIUS = 11, 8, 0.015, 0.0045
 K_TRUE = np.array([[620.0, 0, 325.0], [0, 620.0, 236.0], [0, 0, 1]])
@@ -132,12 +132,12 @@ def test_circle_centres_near_the_targets_edge_on_the_lab_table():
     shaded by two near lamps: each circle's paper level comes from the paper right around it, so
     the row nearest the target's edge is not pulled toward the table (it was by 0.21 px with a
     window wider than the grid step). Truth: the true camera and the target's true placement."""
-    from calibration.circles import ellipse_boundaries, polygon_centroids
-    from calibration.tsai import opencv_pixels
-    from hardware.sim.camera import lab_renderer
-    from hardware.sim.lab import build_lab
+    from reflab.calibration.circles import ellipse_boundaries, polygon_centroids
+    from reflab.calibration.tsai import opencv_pixels
+    from reflab.hardware.sim.camera import lab_renderer
+    from reflab.hardware.sim.lab import build_lab
 
-    lab, props = build_lab(480, 360, grain=0.2), st.LabProps()  # the rig's table (app.devices.SimOptions)
+    lab, props = build_lab(480, 360, grain=0.2), st.LabProps()  # the rig's table (reflab.app.devices.SimOptions)
     img = lab_renderer(lab, props=props)(0.0, [True, True], "target flat")
     det = detect_grid(img, props.cols, props.rows)
     assert det.found
@@ -161,7 +161,7 @@ def test_cli_calibrates_rendered_views(rendered, capsys):
     cam = Camera.load(ws / "camera.json")
     assert abs(cam.K[0, 0] / 620 - 1) < 0.002 and np.hypot(cam.K[0, 2] - 325, cam.K[1, 2] - 236) < 1.0
     assert abs(cam.dist[0] / -0.25 - 1) < 0.05
-    # The pose is the reference view's, in the world frame of INTERFACES.md (+z toward the camera).
+    # The pose is the reference view's, in the world frame of docs/formats.md (+z toward the camera).
     np.testing.assert_allclose(cam.center, cams[ref].center, atol=1e-3)
     assert np.degrees(np.arccos((np.trace(cam.R @ cams[ref].R.T) - 1) / 2)) < 0.1
     assert cam.center[2] > 0
@@ -186,7 +186,7 @@ def test_cli_wrong_grid_size_and_ungridded_reference(rendered, capsys):
 
 def test_tsai_per_view_start_is_close_on_tilted_views():
     """The fallback start (when cv2.calibrateCamera cannot start): Tsai's per-view closed form."""
-    from calibration.tsai import _tsai_start
+    from reflab.calibration.tsai import _tsai_start
 
     obs, poses = synthetic_views(6, seed=1, noise_rms=0.1)
     x0, start = _tsai_start(obs, POINTS, 319.5, 239.5, 0.005, 0.005)

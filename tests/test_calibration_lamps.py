@@ -9,13 +9,13 @@ import re
 import numpy as np
 import pytest
 
-from app.cli import main
-from calibration.camera import Camera
-from calibration.lamps import Mark, detect_rod_marks, lamp_intensity, locate_lamp, read_marks, write_marks
-from calibration.lights import Lights
-from hardware.sim import props as st
-from hardware.images import write_image
-from hardware.workspace import WorkspaceError, write_json
+from reflab.app.cli import main
+from reflab.calibration.camera import Camera
+from reflab.calibration.lamps import Mark, detect_rod_marks, lamp_intensity, locate_lamp, read_marks, write_marks
+from reflab.calibration.lights import Lights
+from reflab.hardware.sim import props as st
+from reflab.core.images import write_image
+from reflab.core.workspace import WorkspaceError, write_json
 
 CAM = Camera.look_at(640, 480, 55, eye=[0.0, -0.4, 0.4], target=[0, 0, 0], dist=[-0.1, 0.02, 0, 0, 0])
 LAMP = np.array([0.6, 0.3, 0.6])  # oblique: long shadows, where the plain intersection suffers

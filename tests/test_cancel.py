@@ -1,5 +1,5 @@
 """Cancelling each long stage mid-way: it raises Cancelled at its next check, leaves no
-half-written output, and the same call run again finishes (hardware/task.py).
+half-written output, and the same call run again finishes (core/task.py).
 
 The cancel comes from the task's own progress callback at a chosen step, or from a check count
 inside a loop (texture CG), or from another thread (structure from motion, whose COLMAP calls
@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from hardware.task import Cancelled, Task
-from hardware.workspace import Workspace
+from reflab.core.task import Cancelled, Task
+from reflab.core.workspace import Workspace
 
 
 def _leftovers(root):
@@ -70,8 +70,8 @@ def _fixture(name: str):
 
 def _random_sweep(request, tmp_path):
     """A workspace whose sweep is noise: structure from motion extracts features, then fails."""
-    from calibration.camera import Camera
-    from hardware.images import write_image
+    from reflab.calibration.camera import Camera
+    from reflab.core.images import write_image
 
     ws = Workspace(tmp_path / "ws")
     Camera.look_at(320, 240, 50.0, (0, -0.4, 0.4), (0, 0, 0)).save(ws.camera)
@@ -82,10 +82,10 @@ def _random_sweep(request, tmp_path):
 
 
 def _capture_sweep(root, task):
-    from app import steps
-    from app.devices import Rig, SimOptions
+    from reflab.app import steps
+    from reflab.app.devices import Devices, SimOptions
 
-    with Rig("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
+    with Devices("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
         steps.step("sweep").run(root, task, rig=rig, count=5)
 
 
@@ -102,19 +102,19 @@ def _stage(module: str, function: str, options: str, **kw):
 
 #: Each long stage: how its workspace is made, the step after which the cancel comes, its run.
 LONG_STAGES = {
-    "trees (render)": (_fixture("lab_workspace"), "trees: level 2", _stage("inverse.stages", "render", "RenderOptions")),
+    "trees (render)": (_fixture("lab_workspace"), "trees: level 2", _stage("reflab.inverse.stages", "render", "RenderOptions")),
     "texture CG": (_fixture("lab_workspace"), "texture: conjugate gradient",
-                   _stage("inverse.stages", "texture", "TextureOptions")),
+                   _stage("reflab.inverse.stages", "texture", "TextureOptions")),
     "fit iterations": (_fixture("homogeneous_workspace"), "F-TBO iteration",
-                       _stage("inverse.stages", "fit", "FitOptions", texture_rounds=0)),
+                       _stage("reflab.inverse.stages", "fit", "FitOptions", texture_rounds=0)),
     "structure from motion (reconstruct)": (_random_sweep, "structure from motion: features",
-                                            _stage("reconstruction.stages", "reconstruct", "ReconstructOptions",
+                                            _stage("reflab.reconstruction.stages", "reconstruct", "ReconstructOptions",
                                                    turntable_centre=(0.0, 0.0))),
     "captures": (lambda request, tmp_path: tmp_path / "ws", "sweep: 0001", _capture_sweep),
     "target detection (calibrate camera)": (_fixture("target_workspace"), "detecting the target in 01",
-                                            _stage("calibration.stages", "calibrate_camera", "CameraOptions")),
+                                            _stage("reflab.calibration.stages", "calibrate_camera", "CameraOptions")),
     "least squares (calibrate camera)": (_fixture("target_workspace"), "calibrating",
-                                         _stage("calibration.stages", "calibrate_camera", "CameraOptions")),
+                                         _stage("reflab.calibration.stages", "calibrate_camera", "CameraOptions")),
 }
 
 
@@ -138,7 +138,7 @@ def test_each_long_stage_stops_within_a_second(stage, request, tmp_path):
 
 
 def test_trees_cancelled_between_levels_then_rebuilt(lab_workspace):
-    from inverse.stages import RenderOptions, render
+    from reflab.inverse.stages import RenderOptions, render
 
     root, _, _ = lab_workspace
     ws = Workspace(root)
@@ -152,7 +152,7 @@ def test_trees_cancelled_between_levels_then_rebuilt(lab_workspace):
 
 
 def test_texture_cg_cancelled_inside_its_iterations_then_rerun(lab_workspace):
-    from inverse.stages import TextureOptions, texture
+    from reflab.inverse.stages import TextureOptions, texture
 
     root, _, _ = lab_workspace
 
@@ -184,7 +184,7 @@ def test_texture_cg_cancelled_inside_its_iterations_then_rerun(lab_workspace):
 
 
 def test_fit_cancelled_between_iterations_then_rerun(homogeneous_workspace):
-    from inverse.stages import FitOptions, fit
+    from reflab.inverse.stages import FitOptions, fit
 
     root, _, _ = homogeneous_workspace  # scene.json says only what a user knows: F-TBO iterates
     seen = []
@@ -199,8 +199,8 @@ def test_fit_cancelled_between_iterations_then_rerun(homogeneous_workspace):
 
 def test_structure_from_motion_stops_inside_colmap(tmp_path):
     """A cancel from another thread while COLMAP extracts features: its token stops it."""
-    from calibration.camera import Camera
-    from reconstruction.sfm import run_sfm
+    from reflab.calibration.camera import Camera
+    from reflab.reconstruction.sfm import run_sfm
 
     cam = Camera.look_at(320, 240, 50.0, (0, -0.4, 0.4), (0, 0, 0))
     rng = np.random.default_rng(0)
@@ -220,9 +220,9 @@ def test_structure_from_motion_stops_inside_colmap(tmp_path):
 
 
 def test_reconstruct_cancelled_writes_nothing(tmp_path):
-    from calibration.camera import Camera
-    from hardware.images import write_image
-    from reconstruction.stages import ReconstructOptions, reconstruct
+    from reflab.calibration.camera import Camera
+    from reflab.core.images import write_image
+    from reflab.reconstruction.stages import ReconstructOptions, reconstruct
 
     root = tmp_path / "ws"
     ws = Workspace(root)
@@ -237,15 +237,15 @@ def test_reconstruct_cancelled_writes_nothing(tmp_path):
 
 
 def test_capture_cancelled_after_two_shots_then_resumed(tmp_path):
-    from app import steps
-    from app.devices import Rig, SimOptions
-    from hardware.capture import CaptureCancelled
-    from hardware.workspace import read_json
+    from reflab.app import steps
+    from reflab.app.devices import Devices, SimOptions
+    from reflab.hardware.capture import CaptureCancelled
+    from reflab.core.workspace import read_json
 
     root = tmp_path / "ws"
     ws = Workspace(root)
     seen = []
-    with Rig("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
+    with Devices("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
         task = _cancel_at("sweep: 0001", seen)
         with pytest.raises(CaptureCancelled) as info:
             steps.step("sweep").run(root, task, rig=rig, count=5)
@@ -261,7 +261,7 @@ def test_capture_cancelled_after_two_shots_then_resumed(tmp_path):
 
 
 def test_calibrate_camera_cancelled_while_detecting_then_rerun(target_workspace, target_views):
-    from calibration.stages import CameraOptions, calibrate_camera
+    from reflab.calibration.stages import CameraOptions, calibrate_camera
 
     ws, seen = Workspace(target_workspace), []
     with pytest.raises(Cancelled):

@@ -3,13 +3,13 @@ import re
 import numpy as np
 import pytest
 
-from app.cli import main
-from hardware.images import read_image
-from hardware.sim.lab import build_lab
-from hardware.workspace import read_json
-from inverse.rendering import render
-from inverse.trees import build_trees
-from reconstruction.scene import Scene
+from reflab.app.cli import main
+from reflab.core.images import read_image
+from reflab.hardware.sim.lab import build_lab
+from reflab.core.workspace import read_json
+from reflab.inverse.forward.rendering import render
+from reflab.inverse.forward.trees import build_trees
+from reflab.reconstruction.scene import Scene
 
 
 def _summary(out):

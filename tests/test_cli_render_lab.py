@@ -3,14 +3,14 @@ reference renderer (hardware/sim/reference.py) with the same materials, lights, 
 import numpy as np
 import pytest
 
-from app.cli import main
-from calibration.lights import Lights
-from hardware.images import read_image, write_image
-from hardware.sim.reference import render_reference
-from hardware.sim.lab import build_lab, write_lab
-from hardware.workspace import write_json
-from inverse.trees import build_trees
-from reconstruction.scene import Scene
+from reflab.app.cli import main
+from reflab.calibration.lights import Lights
+from reflab.core.images import read_image, write_image
+from reflab.hardware.sim.reference import render_reference
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.core.workspace import write_json
+from reflab.inverse.forward.trees import build_trees
+from reflab.reconstruction.scene import Scene
 
 
 def _rel_rms(a, b):
@@ -19,7 +19,7 @@ def _rel_rms(a, b):
 
 def _read_with_nan(path):
     """An EXR that may hold NaN (albedo AOV: unknown), which read_image rightly refuses."""
-    from hardware.images import read_exr
+    from reflab.core.images import read_exr
 
     return read_exr(path)[:, :, :3]
 

@@ -10,14 +10,14 @@ pixels with known albedo; the homogeneous kd gives 18.5, 15.1 and 16.5 dB.
 import numpy as np
 import pytest
 
-from app.cli import main
-from inverse.stages import render_workspace
-from calibration.camera import Camera
-from calibration.lights import Lights, PointLight
-from hardware.images import write_image
-from hardware.sim.reference import render_reference
-from hardware.sim.lab import build_lab, write_lab
-from inverse.rendering import render
+from reflab.app.cli import main
+from reflab.inverse.stages import render_workspace
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights, PointLight
+from reflab.core.images import write_image
+from reflab.hardware.sim.reference import render_reference
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.inverse.forward.rendering import render
 
 
 def _psnr(image, truth, mask):

@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app import demo_score as score, steps
-from app.cli import build_parser, main
-from app.demo_lab import CENTRE, SIZE, step_options, views
-from calibration.camera import Camera
-from calibration.lights import Lights
-from hardware.images import read_image
-from hardware.sim.lab import build_lab
-from reconstruction.scene import Scene
+from reflab.app import demo_score as score, steps
+from reflab.app.cli import build_parser, main
+from reflab.app.demo_lab import CENTRE, SIZE, step_options, views
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights
+from reflab.core.images import read_image
+from reflab.hardware.sim.lab import build_lab
+from reflab.reconstruction.scene import Scene
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -73,8 +73,8 @@ def test_every_simulated_default_is_the_size_that_reconstructs():
     below runs (at 320x240 the simulated sweep does not register: docs/reconstruction.md)."""
     import inspect
 
-    from app.devices import SimOptions
-    from app.gui.main_window import MainWindow
+    from reflab.app.devices import SimOptions
+    from reflab.app.gui.main_window import MainWindow
 
     parser = build_parser()
     assert parser.parse_args(["gui"]).size == SIZE == (480, 360)

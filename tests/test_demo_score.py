@@ -1,13 +1,13 @@
 """The demo's score (app/demo_score.py): which pixels count as of known albedo."""
 import numpy as np
 
-from app import demo_score as score
-from app.cli import main
-from hardware.images import read_image, write_image
-from hardware.sim.lab import build_lab, write_lab
-from hardware.sim.reference import render_reference
-from hardware.workspace import Workspace
-from inverse.stages import render_workspace
+from reflab.app import demo_score as score
+from reflab.app.cli import main
+from reflab.core.images import read_image, write_image
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.hardware.sim.reference import render_reference
+from reflab.core.workspace import Workspace
+from reflab.inverse.stages import render_workspace
 
 
 def test_known_pixels_need_every_node_of_their_tree_known(tmp_path):

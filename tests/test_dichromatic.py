@@ -1,4 +1,4 @@
-"""A textured lobe from the texture's colours (inverse.dichromatic), against the lobe that made the
+"""A textured lobe from the texture's colours (reflab.inverse.fit.dichromatic), against the lobe that made the
 photograph: the independent reference renderer's image of scenes whose every other material is
 given, started from a wrong lobe."""
 import dataclasses
@@ -6,10 +6,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hardware.sim.scenes import build, render
-from inverse.dichromatic import colour_lobes
-from inverse.trees import build_trees
-from reconstruction.scene import Scene
+from reflab.hardware.sim.scenes import build, render
+from reflab.inverse.fit.dichromatic import colour_lobes
+from reflab.inverse.forward.trees import build_trees
+from reflab.reconstruction.scene import Scene
 
 W, H = 80, 60
 
@@ -105,9 +105,9 @@ def test_every_estimate_is_inside_the_plausible_range():
     highlight's column lies almost in the set and least squares took any ks (335 at ns 55; 4.6e9
     on the demo from captures). Every estimate is now within ks's range at its θ (ranges.py), its
     σ never NaN (infinite where ks is 0: θ then means nothing); the box stays unresolved, the tile is resolved and within 3σ of the truth."""
-    from hardware.sim.lab import build_lab
-    from hardware.sim.reference import render_reference
-    from inverse.ranges import phong_lobe_albedo
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.hardware.sim.reference import render_reference
+    from reflab.inverse.fit.ranges import phong_lobe_albedo
 
     lab = build_lab(W, H)
     clean = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)

@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from app.cli import main
-from hardware.images import write_image
-from hardware.workspace import write_json
+from reflab.app.cli import main
+from reflab.core.images import write_image
+from reflab.core.workspace import write_json
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def test_fit_writes_materials_sigmas_trace_and_columns(workspace):
     np.testing.assert_allclose(tile["ns"], truth[4]["ns"], rtol=1e-3)
     assert by_name["tile"]["sigma"]["ns"] > 0
     # `reflab render` reads these materials back.
-    from reconstruction.scene import Material
+    from reflab.reconstruction.scene import Material
 
     for i, s in enumerate(fit["surfaces"]):
         Material.from_json(s["material"], root / "fit.json", f"surfaces[{i}].material")
@@ -94,8 +94,8 @@ def test_poor_fit_is_reported_and_exits_3(workspace, capsys):
 
 def test_fit_workspace_task_progress_and_cancel(workspace):
     """fit_workspace steps the task per iteration; a cancel raises Cancelled and writes no fit.json."""
-    from hardware.task import Cancelled, Task
-    from inverse.fit_stage import fit_workspace
+    from reflab.core.task import Cancelled, Task
+    from reflab.inverse.fit.workspace_fit import fit_workspace
 
     root, img, truth = workspace
     write_image(root / "input.exr", img)

@@ -4,9 +4,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from inverse.factorization import Factorization
-from inverse.fitting import params_of
-from inverse.models import get_model
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.rounds import params_of
+from reflab.inverse.forward.models import get_model
 
 
 def _hand_trees():
@@ -76,16 +76,16 @@ def test_mask_drops_rows_and_nodes():
 
 @pytest.fixture(scope="module")
 def lab80():
-    from hardware.sim.lab import build_lab
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(80, 60, textured=False)
     return lab, build_trees(lab.scene, lab.camera, lab.lights, depth=3)
 
 
 def test_lab_image_equals_forward_model_for_random_materials(lab80):
-    """A(θ) y reproduces inverse.rendering.render (the forward model) for parameters far from the truth."""
-    from inverse.rendering import render
+    """A(θ) y reproduces reflab.inverse.forward.rendering.render (the forward model) for parameters far from the truth."""
+    from reflab.inverse.forward.rendering import render
 
     lab, tr = lab80
     rng = np.random.default_rng(7)
@@ -141,9 +141,9 @@ def test_theta_derivative_matches_finite_differences(lab80):
 def test_linear_basis_is_reused_only_for_the_same_inputs():
     """rendering.linear_basis keeps its last result (read-only) for the same trees, θ and lamps,
     and computes anew when any of them changes (the same values as computing it afresh)."""
-    from hardware.sim.lab import build_lab
-    from inverse.rendering import linear_basis, linear_basis_and_grad
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.rendering import linear_basis, linear_basis_and_grad
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(40, 30)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=2)

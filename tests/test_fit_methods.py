@@ -2,25 +2,25 @@
 import numpy as np
 import pytest
 
-from inverse.factorization import Factorization
-from inverse.fitting import fit, params_of
-from inverse.models import get_model
-from inverse.rendering import render
-from reconstruction.scene import Material
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.rounds import fit, params_of
+from reflab.inverse.forward.models import get_model
+from reflab.inverse.forward.rendering import render
+from reflab.reconstruction.scene import Material
 
 W, H = 80, 60
 
 
 def _initial(materials):
-    """What a user knows before fitting: brdf and ior only (METHOD.md §3 initial values for the rest)."""
+    """What a user knows before fitting: brdf and ior only (docs/method.md §3 initial values for the rest)."""
     return [Material.from_json({"brdf": m.brdf, "ior": m.ior}, "scene.json", f"surfaces[{i}].material")
             for i, m in enumerate(materials)]
 
 
 @pytest.fixture(scope="module")
 def lab():
-    from hardware.sim.lab import build_lab
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(W, H, textured=False)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
@@ -196,8 +196,8 @@ def test_ftbo_with_a_known_texture_recovers_the_rest_exactly():
     surfaces gets the non-Lambertian parameters wrong; with the true texture it recovers them
     and a gain of 1 — the building block of a texture-aware fit (docs/texture.md).
     """
-    from hardware.sim.lab import build_lab
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(W, H)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
@@ -227,12 +227,12 @@ def test_ftbo_with_a_known_texture_recovers_the_rest_exactly():
 
 
 def test_texture_rounds_correct_what_texture_hid_from_the_homogeneous_fit():
-    """inverse.texture_fit on the textured lab (forward model, true per-node albedo, 80x60), the
+    """reflab.inverse.fit.texture_aware on the textured lab (forward model, true per-node albedo, 80x60), the
     paper ground given r = 0: the homogeneous fit is off by 0.13-0.15 in the mirror's r and the
     tile's ks and r; two texture rounds bring them within 0.03 of the truth."""
-    from hardware.sim.lab import build_lab
-    from inverse.texture_fit import fit_with_texture
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.texture_aware import fit_with_texture
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(W, H)
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)

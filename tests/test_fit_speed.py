@@ -1,14 +1,14 @@
 """The fit's speed-ups keep its answers: the coarse scan from a poor start, the phase timings."""
 import numpy as np
 
-import inverse.ftbo as ftbo
-from hardware.sim.lab import build_lab
-from inverse.factorization import Factorization
-from inverse.fitting import Problem, fit, params_of
-from inverse.models import get_model
-from inverse.rendering import render
-from inverse.trees import build_trees
-from reconstruction.scene import Material
+import reflab.inverse.fit.ftbo as ftbo
+from reflab.hardware.sim.lab import build_lab
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.rounds import Problem, fit, params_of
+from reflab.inverse.forward.models import get_model
+from reflab.inverse.forward.rendering import render
+from reflab.inverse.forward.trees import build_trees
+from reflab.reconstruction.scene import Material
 
 
 def _homogeneous_lab_from_ns_2_14(width: int, height: int):

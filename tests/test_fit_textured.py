@@ -4,20 +4,20 @@ ranges; values the user gave. docs/fit.md, "Trustworthy on textured scenes", has
 import numpy as np
 import pytest
 
-from inverse.factorization import Factorization
-from inverse.fitting import Free, fit, params_of
-from inverse.models import get_model
-from inverse.ranges import at_bound, clip, linear_upper, phong_lobe_albedo
-from hardware.sim.scenes import determined, user_materials
-from reconstruction.scene import Scene, Surface
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.rounds import Free, fit, params_of
+from reflab.inverse.forward.models import get_model
+from reflab.inverse.fit.ranges import at_bound, clip, linear_upper, phong_lobe_albedo
+from reflab.hardware.sim.scenes import determined, user_materials
+from reflab.reconstruction.scene import Scene, Surface
 
 W, H = 80, 60
 
 
 def _fit_scene(ts, image, rounds=None):
     """(fit, factorization, user scene); ``rounds``, a list, gets fit.json's texture round records."""
-    from inverse.texture_fit import fit_with_texture
-    from inverse.trees import build_trees
+    from reflab.inverse.fit.texture_aware import fit_with_texture
+    from reflab.inverse.forward.trees import build_trees
 
     init = user_materials(ts.scene)
     user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
@@ -45,11 +45,11 @@ def _check(res, fac, truth, user):
 def test_singly_seen_textured_lobe_is_claimed_only_from_its_colours(name, noise):
     """A shiny textured surface seen once. Printed in two inks (curved, shiny_box) its albedo is on
     a line in RGB and its highlight has the lamps' colour, off that line: the lobe is determined
-    from colour (inverse.dichromatic) and within 3σ + 2 % of the truth. Printed in full colour
+    from colour (reflab.inverse.fit.dichromatic) and within 3σ + 2 % of the truth. Printed in full colour
     (print_can) nothing separates highlight from texture: ks and ns are reported undetermined (the
     homogeneous fit of the same image claimed them to 1e-4). Every determined value is within
     3σ + 2 %."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build(name, W, H)
     img = render(ts)
@@ -79,7 +79,7 @@ def test_singly_seen_textured_lobe_is_claimed_only_from_its_colours(name, noise)
 def test_matte_floor_seen_in_a_mirror():
     """The floor is seen directly and in the mirror: its texture is fixed by the direct view, so the
     mirror's r is determined, within 3σ + 2% of the truth (80x60, noise-free)."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build("floor_mirror", W, H)
     res, fac, user = _fit_scene(ts, render(ts))
@@ -95,7 +95,7 @@ def test_a_textured_lobe_seen_twice_is_determined_and_a_reflection_is_not_attenu
     (they were undetermined: the direct view that pins the texture carries the same lobe). And
     the mirror's r, regressed on texels made from noisy pixels, is no longer pulled toward 0 by
     their noise: r[2] came out 0.83 for 0.85 in every realisation (3–4σ), now 0.85 on average."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build("floor_mirror", 160, 120)
     clean = render(ts)
@@ -111,9 +111,9 @@ def test_a_textured_lobe_seen_twice_is_determined_and_a_reflection_is_not_attenu
 
 
 def test_a_texel_seen_once_says_nothing_and_twice_only_its_difference():
-    """inverse.uncertainty.profiled against the Schur complement formed densely: each texel's
+    """reflab.inverse.fit.uncertainty.profiled against the Schur complement formed densely: each texel's
     albedo a free column of its pixels' derivatives e; a texel of one pixel adds nothing."""
-    from inverse.uncertainty import profiled
+    from reflab.inverse.fit.uncertainty import profiled
 
     rng = np.random.default_rng(3)
     m, n = 9, 4
@@ -143,7 +143,7 @@ def test_glass_block_over_texture(size):
     3σ + 2 %. Its highlight is out of view (a faint tail, 1 % of the peak at most): ks and ns
     are both reported undetermined (ns alone was called determined at 160x120, 106 ± 36 for a
     true 250, 4σ off)."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build("glass_block", *size)
     res, fac, user = _fit_scene(ts, render(ts))
@@ -156,7 +156,7 @@ def test_glass_block_over_texture(size):
 @pytest.mark.parametrize("name", ["ward_tile", "near_lamp", "oren_mirror", "sheet_flat", "high_ns", "two_textured",
                                   "tile_mirror", "glossy_floor_mirror"])
 def test_other_designs_are_honest(name):
-    """The further designs of hardware.sim.scenes.MORE (a textured Ward tile, a lamp 3 cm off a
+    """The further designs of reflab.hardware.sim.scenes.MORE (a textured Ward tile, a lamp 3 cm off a
     textured floor, a textured Oren-Nayar box before a mirror, a flat sheet over texture, a tile of
     shininess 3000, two glossy textured surfaces, a glossy textured tile and a glossy textured
     floor each seen directly and in a mirror), 80x60, 1 % noise: σ never NaN, nothing outside its
@@ -164,7 +164,7 @@ def test_other_designs_are_honest(name):
     Ward tile's lobe is claimed from its colours; the Oren-Nayar roughness never. The glossy floor
     in a mirror at 160x120: at 80x60 its mirror's kd and r trade in one band past 3σ in 1 of 10
     realisations (docs/fit.md)."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build(name, *((160, 120) if name == "glossy_floor_mirror" else (W, H)))
     img = render(ts)
@@ -186,7 +186,7 @@ def test_held_parameters_keep_their_uncertainty_in_the_others_sigma():
     its start; the mirror's r[0], which shares its pixels, was then reported with the σ of a known
     kd[0] (5.4, 4.1, 4.7, 3.9σ off for these noise seeds). Counted free in the σ, every determined
     value is within 3σ (measured at most 2.5σ)."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build("floor_mirror", W, H)
     clean = render(ts)
@@ -202,7 +202,7 @@ def test_a_value_held_by_an_earlier_round_keeps_its_uncertainty():
     first texture round holds the mirror's kd[1] (0.001 for 0.02); the last round, which starts
     with it held, reported r[1] 0.8825 ± 0.0007 (true 0.85, 47σ) by counting it known. Counted
     free, as the holding rounds' own holds are, every determined value is within 3σ + 2 %."""
-    from hardware.sim.scenes import build, render
+    from reflab.hardware.sim.scenes import build, render
 
     ts = build("tile_mirror", 160, 120, texture_seed=2)
     img = render(ts)
@@ -217,8 +217,8 @@ def test_a_value_still_held_is_never_reported_fitted():
     """A value an earlier round held (``still_held``) is a guess even when the same round greys a
     textured lobe (``guessed``, reported like a fitted value once its σ resolves it): the mirror's
     r held at its start value was reported determined beside the floor's grey ks."""
-    from hardware.sim.scenes import build, render
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.scenes import build, render
+    from reflab.inverse.forward.trees import build_trees
 
     ts = build("floor_mirror", W, H)
     init = user_materials(ts.scene)
@@ -240,8 +240,8 @@ def test_a_textured_surface_lobe_is_grey():
     round holds ks at the mean over the bands and refits the shininess. Where its colours do not
     determine it (the full-colour print_can, 160x120, 1 % noise) it is still reported undetermined;
     a ks the user gave is left as given."""
-    from hardware.sim.scenes import build, render
-    from inverse.texture_fit import grey_lobes
+    from reflab.hardware.sim.scenes import build, render
+    from reflab.inverse.fit.texture_aware import grey_lobes
 
     ts = build("print_can", 160, 120)
     img = render(ts)
@@ -260,9 +260,9 @@ def test_corrupted_pane_edge_pixels_are_rejected():
     """Homogeneous lab by the reference renderer, 20 pixels at the transparent sheet's edges scaled by
     0.3-2: without rejection the fit is poor and parameters move by up to 0.24; with it, every
     determined parameter is within 1e-3 (θ relative) and the pixels are counted and mapped."""
-    from hardware.sim.lab import build_lab
-    from hardware.sim.reference import render_reference
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.hardware.sim.reference import render_reference
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(W, H, textured=False)
     truth = [s.material for s in lab.scene]
@@ -294,9 +294,9 @@ def test_corrupted_pane_edge_pixels_are_rejected():
 def test_plausible_ranges_are_kept_and_flagged():
     """Phong ks at most 1 / L(ns) (energy); a fit whose best ks lies beyond stops at the bound,
     flags it, and the reconstructed box of the issue (ks = [16.1, 0, 0]) is clipped."""
-    from hardware.sim.lab import build_lab
-    from inverse.rendering import render
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
 
     np.testing.assert_allclose(1 / phong_lobe_albedo([2.0, 30.0]), [1.2, 4.53], rtol=2e-3)
     lab = build_lab(W, H, textured=False)
@@ -321,8 +321,8 @@ def test_an_oren_nayar_roughness_at_zero_is_flagged_quietly():
     at its lower bound, with no log of zero on the way (it warned "divide by zero")."""
     import warnings
 
-    from hardware.sim.lab import build_lab, _material
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab, _material
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(W, H, textured=False)
     mats = [s.material for s in lab.scene]
@@ -339,9 +339,9 @@ def test_an_oren_nayar_roughness_at_zero_is_flagged_quietly():
 
 def test_values_given_in_scene_json_are_held():
     """A shininess the user wrote down is kept, even a wrong one; the rest is fitted around it."""
-    from hardware.sim.lab import build_lab
-    from inverse.rendering import render
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(W, H, textured=False)
     truth = [s.material for s in lab.scene]
@@ -358,10 +358,10 @@ def test_values_given_in_scene_json_are_held():
 
 def test_sigma_holds_over_noise_and_texture_realisations():
     """σ is honest when both the noise and the texture change (the issue's calibration of σ):
-    6 realisations of each scene, each its own texture (hardware.sim.scenes.build's texture_seed)
+    6 realisations of each scene, each its own texture (reflab.hardware.sim.scenes.build's texture_seed)
     photographed by the reference renderer with 1 % noise: at least 95 % of the determined values
     within 3σ of the truth, every one within 3σ + 2 % (docs/fit.md: 99.7 % of 289 over 20)."""
-    from hardware.sim.scenes import NAMES, build, render
+    from reflab.hardware.sim.scenes import NAMES, build, render
 
     ratios, bar = [], []
     for name in NAMES:
@@ -382,10 +382,10 @@ def test_sigma_holds_over_noise_and_texture_realisations():
 def test_a_reflection_the_user_gave_is_not_zeroed_as_confounded():
     """The shiny box's r is confounded with its texture and held at 0 when unknown; a value the
     user wrote in scene.json is held at that value instead."""
-    from hardware.sim.scenes import build, render
-    from inverse.texture_fit import fit_with_texture
-    from inverse.trees import build_trees
-    from reconstruction.scene import Material
+    from reflab.hardware.sim.scenes import build, render
+    from reflab.inverse.fit.texture_aware import fit_with_texture
+    from reflab.inverse.forward.trees import build_trees
+    from reflab.reconstruction.scene import Material
 
     ts = build("shiny_box", W, H)
     img = render(ts)

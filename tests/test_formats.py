@@ -4,11 +4,11 @@ import json
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from calibration.lights import Lights
-from hardware.images import read_image, write_image
-from hardware.workspace import WorkspaceError, write_json
-from reconstruction.scene import INITIAL, Mesh, Scene
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights
+from reflab.core.images import read_image, write_image
+from reflab.core.workspace import WorkspaceError, write_json
+from reflab.reconstruction.scene import INITIAL, Mesh, Scene
 
 
 def _camera_json():
@@ -155,7 +155,7 @@ def test_cli_help_is_light():
     import subprocess
     import sys
 
-    code = ("import sys, app.cli; app.cli.build_parser();"
+    code = ("import sys, reflab.app.cli; reflab.app.cli.build_parser();"
             "heavy = [m for m in ('mitsuba', 'open3d', 'pycolmap', 'PySide6', 'cv2', 'scipy', 'matplotlib', 'jinja2') if m in sys.modules];"
             "print(heavy); sys.exit(bool(heavy))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from inverse.models import MODELS, get_model
-from inverse.optics import fresnel, fresnel_amplitudes, reflect, refract
-from reconstruction.scene import BRDF_PARAMS
+from reflab.inverse.forward.models import MODELS, get_model
+from reflab.inverse.forward.optics import fresnel, fresnel_amplitudes, reflect, refract
+from reflab.reconstruction.scene import BRDF_PARAMS
 
 
 def fresnel_eq23(theta_i, theta_t):

@@ -3,12 +3,12 @@ intersection, Snell's law with angles and eq. 2.3 computed here, never from inve
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from calibration.lights import Lights, PointLight
-from hardware.workspace import WorkspaceError
-from inverse.rendering import linear_basis_and_grad, node_parameters, render, render_albedo
-from inverse.trees import REFLECTION, TRANSMISSION, Trees, build_trees
-from reconstruction.scene import Material, Mesh, Scene, Surface
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights, PointLight
+from reflab.core.workspace import WorkspaceError
+from reflab.inverse.forward.rendering import linear_basis_and_grad, node_parameters, render, render_albedo
+from reflab.inverse.forward.trees import REFLECTION, TRANSMISSION, Trees, build_trees
+from reflab.reconstruction.scene import Material, Mesh, Scene, Surface
 
 W, H = 40, 30
 

@@ -1,7 +1,7 @@
-"""The one copy of each shared geometry helper (calibration/rotations.py, sRGB in hardware/images.py), against closed forms."""
+"""The one copy of each shared geometry helper (calibration/rotations.py, sRGB in core/images.py), against closed forms."""
 import numpy as np
 
-from calibration.rotations import axis_rotation, nearest_rotation, rodrigues, rotation_vector
+from reflab.calibration.rotations import axis_rotation, nearest_rotation, rodrigues, rotation_vector
 
 
 def test_quarter_turns_about_z_and_x():
@@ -27,7 +27,7 @@ def test_rodrigues_round_trip_and_nearest_rotation():
 
 
 def test_srgb_curves_invert_each_other():
-    from hardware.images import linear_to_srgb, srgb_to_linear
+    from reflab.core.images import linear_to_srgb, srgb_to_linear
 
     x = np.linspace(0.0, 1.0, 101)
     np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-12)

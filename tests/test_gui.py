@@ -1,4 +1,4 @@
-"""The guided lab window on the simulated lab, driven through INTERFACES.md's object names.
+"""The guided lab window on the simulated lab, driven through docs/formats.md's object names.
 
 Every wait is on a signal (the window's ``step_finished``, a worker's ``progress``), never a sleep.
 Images are 80x60 so that each test takes seconds.
@@ -15,9 +15,9 @@ pytest.importorskip("pytestqt")
 from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtWidgets import QLabel, QProgressBar, QPushButton, QWidget  # noqa: E402
 
-from app.gui import MainWindow  # noqa: E402
-from app.gui.stages import NAMES  # noqa: E402
-from hardware.workspace import read_json  # noqa: E402
+from reflab.app.gui import MainWindow  # noqa: E402
+from reflab.app.gui.stages import NAMES  # noqa: E402
+from reflab.core.workspace import read_json  # noqa: E402
 
 SIZE = (80, 60)
 
@@ -62,9 +62,9 @@ def drag(qtbot, view, start, end):
 @pytest.fixture
 def lab_workspace(tmp_path):
     """The simulated lab's camera, lamps and geometry (materials unknown) and its photograph, 80x60."""
-    from hardware.images import write_image
-    from hardware.sim.lab import build_lab, write_lab
-    from hardware.sim.reference import render_reference
+    from reflab.core.images import write_image
+    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.hardware.sim.reference import render_reference
 
     lab = build_lab(*SIZE)
     write_lab(tmp_path, lab, materials=False)
@@ -132,7 +132,7 @@ def test_sweep_cancel_then_resume_keeps_the_finished_shots(qtbot, tmp_path):
     assert window.findChild(QWidget, "steps").item(NAMES.index("sweep")).text().startswith("✓")
 
     # mark two corners of a transparent sheet on two shots each; reconstruct's reader takes the file
-    from reconstruction.surfaces import load_marks
+    from reflab.reconstruction.surfaces import load_marks
 
     window.go_to("sweep")
     shots, view = window.findChild(QWidget, "sweep_shots"), window.findChild(QWidget, "sweep_view")
@@ -200,7 +200,7 @@ def test_fit_texture_results_on_the_simulated_lab(qtbot, lab_workspace):
              if w.objectName().startswith("texture_") and w.array is not None}
     assert maps and shown == maps
     # the page's figure is the re-render's RMS difference, computed here from the files
-    from hardware.images import read_image
+    from reflab.core.images import read_image
 
     photo, model = read_image(lab_workspace / "input.exr"), read_image(lab_workspace / "render.exr")
     rel = np.sqrt(np.mean((model - photo) ** 2)) / np.sqrt(np.mean(photo ** 2))
@@ -217,7 +217,7 @@ def test_fit_texture_results_on_the_simulated_lab(qtbot, lab_workspace):
 
 
 def test_rod_marks_clicked_on_a_shot_are_saved_as_marks_json(qtbot, tmp_path):
-    from calibration.lamps import read_marks
+    from reflab.calibration.lamps import read_marks
 
     window = open_window(qtbot, tmp_path, calibrate_lights={"rod_height": 0.12, "angles": "0"})
     assert run(qtbot, window, "devices")[0] == "done"
@@ -256,7 +256,7 @@ def test_reflab_help_imports_no_qt():
     import sys
 
     code = ("import sys, contextlib, io\n"
-            "from app.cli import main\n"
+            "from reflab.app.cli import main\n"
             "for argv in (['--help'], ['gui', '--help']):\n"
             "    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.suppress(SystemExit):\n"
             "        main(argv)\n"
@@ -341,9 +341,9 @@ def test_naming_a_fitted_surface_by_clicking_it_writes_marks_json(qtbot, lab_wor
 
 
 def test_novel_view_orbits_the_input_camera_and_relights_linearly(lab_workspace):
-    from app.gui.pages.results import novel_view, orbit
-    from calibration.camera import Camera
-    from inverse.stages import render_workspace
+    from reflab.app.gui.pages.results import novel_view, orbit
+    from reflab.calibration.camera import Camera
+    from reflab.inverse.stages import render_workspace
 
     cam = Camera.load(lab_workspace / "camera.json")
     same = orbit(cam, 0.0, 0.0)
@@ -367,8 +367,8 @@ def test_lamps_located_from_the_rod_shots_the_window_takes(qtbot, tmp_path):
     """The lamp page on the simulated lab's rod and grey card (160x120): rod found in every shot,
     lamps located near the lab's true lamps. The camera is the lab's true one (camera
     calibration needs larger images than a quick test takes)."""
-    from calibration.lights import Lights
-    from hardware.sim.lab import build_lab
+    from reflab.calibration.lights import Lights
+    from reflab.hardware.sim.lab import build_lab
 
     lab = build_lab(160, 120)
     lab.camera.save(tmp_path / "camera.json")
@@ -388,8 +388,8 @@ def test_lamps_located_from_the_rod_shots_the_window_takes(qtbot, tmp_path):
 def test_camera_calibrated_from_the_target_shots_the_window_takes(qtbot, tmp_path):
     """The camera page on the simulated lab's circle target (320x240): the flat reference shot and
     the target on its wedge at the turntable's angles; intrinsics and pose against the lab's camera."""
-    from calibration.camera import Camera
-    from hardware.sim.lab import build_lab
+    from reflab.calibration.camera import Camera
+    from reflab.hardware.sim.lab import build_lab
 
     window = MainWindow(tmp_path, size=(320, 240), live_preview_ms=0)
     qtbot.addWidget(window)
@@ -442,7 +442,7 @@ def test_sweep_reconstruct_and_input_through_the_window(qtbot, tmp_path):
     """The sweep, the reconstruction from its shots and the input photograph, each run by its
     button on the simulated lab (480x360, 24 shots as `reflab demo --quick`); the lab's true camera stands in for the
     camera step (tested above at 320x240)."""
-    from hardware.sim.lab import build_lab
+    from reflab.hardware.sim.lab import build_lab
 
     build_lab(480, 360).camera.save(tmp_path / "camera.json")
     window = MainWindow(tmp_path, size=(480, 360), live_preview_ms=0, options={"sweep": {"count": 24}})
@@ -467,7 +467,7 @@ def test_sweep_reconstruct_and_input_through_the_window(qtbot, tmp_path):
 def test_a_tethered_camera_previews_its_newest_shot_without_taking_one(qtbot, tmp_path):
     """`--camera folder:PATH`: the live view shows the folder's newest image and never waits for a
     new one (a shot would wait up to the camera's 60 s timeout, holding the rig from the steps)."""
-    from hardware.images import write_image
+    from reflab.core.images import write_image
 
     folder = tmp_path / "tether"
     folder.mkdir()

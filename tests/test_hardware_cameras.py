@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from hardware.cameras import CameraError, FolderCamera, OpenCVCamera, open_camera, srgb_to_linear
-from hardware.images import write_image
+from reflab.hardware.cameras import CameraError, FolderCamera, OpenCVCamera, open_camera, srgb_to_linear
+from reflab.core.images import write_image
 
 
 def test_srgb_curve_against_the_standard_values():

@@ -8,16 +8,16 @@ import re
 import numpy as np
 import pytest
 
-from app.cli import main as cli
-from hardware.sim.camera import SimulatedCamera, lab_renderer, rotate_about_z
-from hardware.capture import (CaptureCancelled, CaptureError, CaptureSession, Control, plan_calibration, plan_input,
+from reflab.app.cli import main as cli
+from reflab.hardware.sim.camera import SimulatedCamera, lab_renderer, rotate_about_z
+from reflab.hardware.capture import (CaptureCancelled, CaptureError, CaptureSession, Control, plan_calibration, plan_input,
                               plan_lights, plan_sweep)
-from hardware.grbl import GrblAlarm, GrblConfig, GrblController
-from hardware.images import read_image
-from hardware.sim.reference import render_reference
-from hardware.sim.device import SimulatedGrbl
-from hardware.sim.lab import build_lab
-from hardware.workspace import WorkspaceError, read_json
+from reflab.hardware.grbl import GrblAlarm, GrblConfig, GrblController
+from reflab.core.images import read_image
+from reflab.hardware.sim.reference import render_reference
+from reflab.hardware.sim.device import SimulatedGrbl
+from reflab.hardware.sim.lab import build_lab
+from reflab.core.workspace import WorkspaceError, read_json
 
 CFG = GrblConfig(timeout_s=0.4, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
 

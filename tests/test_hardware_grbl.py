@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import serial
 
-from hardware.grbl import (DeviceLost, GrblAlarm, GrblCommandError, GrblConfig, GrblController, GrblProtocolError,
+from reflab.hardware.grbl import (DeviceLost, GrblAlarm, GrblCommandError, GrblConfig, GrblController, GrblProtocolError,
                            GrblTimeout, Status)
-from hardware.sim.device import SimulatedGrbl
-from hardware.workspace import WorkspaceError
+from reflab.hardware.sim.device import SimulatedGrbl
+from reflab.core.workspace import WorkspaceError
 
 FAST = dict(timeout_s=0.4, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
 

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
-from calibration.camera import Camera
-from calibration.target import target_points
-from hardware.images import to_display
-from hardware.sim import props as st
+from reflab.app.cli import main
+from reflab.calibration.camera import Camera
+from reflab.calibration.target import target_points
+from reflab.core.images import to_display
+from reflab.hardware.sim import props as st
 
 COLS, ROWS, SPACING, RADIUS = 11, 8, 0.015, 0.0045
 K_TRUE = np.array([[620.0, 0, 325.0], [0, 620.0, 236.0], [0, 0, 1]])

@@ -9,14 +9,14 @@ import hashlib
 import numpy as np
 import pytest
 
-from app.cli import main
-from hardware.capture import CaptureError, CaptureSession, plan_input
-from hardware.grbl import GrblConfig, GrblController
-from hardware.images import read_image, write_image
-from hardware.sim.camera import SimulatedCamera, lab_renderer
-from hardware.sim.device import SimulatedGrbl
-from hardware.sim.lab import build_lab, write_lab
-from hardware.workspace import read_json
+from reflab.app.cli import main
+from reflab.hardware.capture import CaptureError, CaptureSession, plan_input
+from reflab.hardware.grbl import GrblConfig, GrblController
+from reflab.core.images import read_image, write_image
+from reflab.hardware.sim.camera import SimulatedCamera, lab_renderer
+from reflab.hardware.sim.device import SimulatedGrbl
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.core.workspace import read_json
 
 SIM = ["--port", "sim", "--camera", "sim", "--depth", "1"]
 

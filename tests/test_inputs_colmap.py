@@ -11,8 +11,8 @@ import json
 import cv2
 import numpy as np
 
-from app.cli import main
-from calibration.camera import Camera
+from reflab.app.cli import main
+from reflab.calibration.camera import Camera
 
 
 def test_colmap_log_goes_to_the_workspace(tmp_path, capfd):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from app.cli import main
+from reflab.app.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,10 +23,10 @@ def snapshot(folder: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    from hardware.sim.lab import build_lab, write_lab
-    from inverse.rendering import render
-    from inverse.trees import build_trees
-    from hardware.images import write_image
+    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+    from reflab.core.images import write_image
 
     root = tmp_path_factory.mktemp("ws")
     lab = build_lab(64, 48, textured=False)
@@ -67,10 +67,10 @@ def test_read_only_workspace_stops_every_stage_before_work(workspace, tmp_path):
     lines = [f"mount --bind {workspace} {workspace}", f"mount -o remount,ro,bind {workspace} {workspace}"]
     for name, argv in COMMANDS.items():
         args = " ".join(shlex.quote(a.format(ws=workspace)) for a in argv)
-        lines.append(f"{python} -m app.cli {args} >{tmp_path}/{name}.out 2>{tmp_path}/{name}.err; "
+        lines.append(f"{python} -m reflab.app.cli {args} >{tmp_path}/{name}.out 2>{tmp_path}/{name}.err; "
                      f"echo $? >{tmp_path}/{name}.rc")
     # A read-only workspace still renders elsewhere (the trees cache is skipped).
-    lines.append(f"{python} -m app.cli render {workspace} -o {tmp_path}/elsewhere/out.exr >{tmp_path}/out.out "
+    lines.append(f"{python} -m reflab.app.cli render {workspace} -o {tmp_path}/elsewhere/out.exr >{tmp_path}/out.out "
                  f"2>{tmp_path}/out.err; echo $? >{tmp_path}/out.rc")
     subprocess.run(["unshare", "-m", "sh", "-c", " && ".join(lines[:2]) + "; " + "; ".join(lines[2:])],
                    cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, check=True, timeout=600)

@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
-from calibration.camera import Camera
-from calibration.lights import Lights
-from hardware.capture import plan_lights
-from hardware.images import to_display
-from hardware.sim import props as st
+from reflab.app.cli import main
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights
+from reflab.hardware.capture import plan_lights
+from reflab.core.images import to_display
+from reflab.hardware.sim import props as st
 
 CAM = Camera.look_at(640, 480, 55, eye=[0.0, -0.4, 0.4], target=[0, 0, 0], dist=[-0.1, 0.02, 0, 0, 0])
 LAMPS = np.array([[0.25, 0.3, 0.7], [-0.3, 0.35, 0.7]])

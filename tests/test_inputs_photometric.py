@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
-from hardware.images import write_image
+from reflab.app.cli import main
+from reflab.core.images import write_image
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,9 @@
 """The house's layers (docs/architecture.md), read from the import graph of every product module.
 
 Every ``import`` and ``from ... import`` is read with ``ast``, those inside functions included.
-Layers: hardware < calibration < reconstruction < inverse < app; a module may import its own
-layer and lower ones. The simulated twin (``hardware/sim``) may import any stage, and only app/
+Layers: core < hardware < calibration < reconstruction < inverse < app; a module may import its own
+layer and lower ones. Importing ``a.b.c`` runs the ``__init__`` of ``a`` and ``a.b`` too: those are
+edges of the graph, so a package whose ``__init__`` imports its own modules makes a cycle. The simulated twin (``hardware/sim``) may import any stage, and only app/
 (plus tests and docs) may import it. No cycle between modules.
 """
 import ast
@@ -12,19 +13,19 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERS = ["hardware", "calibration", "reconstruction", "inverse", "app"]
-TWIN = "hardware.sim"
+LAYERS = ["core", "hardware", "calibration", "reconstruction", "inverse", "app"]
+TWIN = "reflab.hardware.sim"
 
 
 def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    parts = ["reflab", *path.relative_to(ROOT).with_suffix("").parts]
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
 
 
 def _modules() -> dict[str, Path]:
-    out = {}
+    out = {"reflab": ROOT / "__init__.py"}
     for top in LAYERS:
         for path in sorted((ROOT / top).rglob("*.py")):
             out[_module_name(path)] = path
@@ -60,8 +61,10 @@ def _imports(module: str, path: Path) -> set[str]:
             continue
         for name in names:
             target = _resolve(name)
-            if target is not None and target != module:
-                found.add(target)
+            while target is not None and target != "reflab":  # the module, then each package above it
+                if target != module and not module.startswith(target + "."):
+                    found.add(target)
+                target = target.rpartition(".")[0]
     return found
 
 
@@ -69,7 +72,7 @@ GRAPH = {m: _imports(m, p) for m, p in MODULES.items()}
 
 
 def _layer(module: str) -> int:
-    return LAYERS.index(module.split(".")[0])
+    return LAYERS.index(module.split(".")[1])
 
 
 def _is_twin(module: str) -> bool:
@@ -78,18 +81,18 @@ def _is_twin(module: str) -> bool:
 
 def test_the_graph_is_read():
     assert len(MODULES) > 40
-    assert "calibration.camera" in GRAPH["reconstruction.stages"]  # module level
-    assert "inverse.trees" in GRAPH["inverse.stages"]  # inside a function
+    assert "reflab.calibration.camera" in GRAPH["reflab.reconstruction.stages"]  # module level
+    assert "reflab.inverse.forward.trees" in GRAPH["reflab.inverse.stages"]  # inside a function
 
 
 def test_no_upward_import():
-    bad = [f"{m} imports {t}" for m, targets in GRAPH.items() if not _is_twin(m)
+    bad = [f"{m} imports {t}" for m, targets in GRAPH.items() if not _is_twin(m) and m != "reflab"
            for t in sorted(targets) if _layer(t) > _layer(m)]
-    assert not bad, "upward imports (hardware < calibration < reconstruction < inverse < app):\n" + "\n".join(bad)
+    assert not bad, "upward imports (core < hardware < calibration < reconstruction < inverse < app):\n" + "\n".join(bad)
 
 
 def test_only_app_imports_the_twin():
-    bad = [f"{m} imports {t}" for m, targets in GRAPH.items() if not _is_twin(m) and not m.startswith("app")
+    bad = [f"{m} imports {t}" for m, targets in GRAPH.items() if not _is_twin(m) and not m.startswith("reflab.app")
            for t in sorted(targets) if _is_twin(t)]
     assert not bad, "product code imports the simulated twin (hardware/sim):\n" + "\n".join(bad)
 
@@ -131,10 +134,7 @@ KNOWN_CYCLES = []
 
 
 def test_no_import_cycle():
-    # A package's __init__ re-exporting its modules is not a cycle of ideas: leave those edges out.
-    graph = {m: {t for t in ts if not (MODULES[t].name == "__init__.py" and m.startswith(t + "."))}
-             for m, ts in GRAPH.items()}
-    cycles = _cycles(graph)
+    cycles = _cycles(GRAPH)
     new = [c for c in cycles if c not in KNOWN_CYCLES]
     assert not new, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in new)
     gone = [c for c in KNOWN_CYCLES if c not in cycles]
@@ -147,7 +147,7 @@ def test_cycle_finder_finds_a_cycle():
 
 @pytest.mark.parametrize("layer", LAYERS[:-1])
 def test_layer_packages_exist(layer):
-    assert any(m.split(".")[0] == layer for m in MODULES)
+    assert any(m.split(".")[1] == layer for m in MODULES if m != "reflab")
 
 
 # ---------------------------------------------------------------------- the workspace's file names
@@ -177,14 +177,14 @@ def _workspace_names(ws) -> set[str]:
 
 
 def test_the_workspace_owns_every_file_name_of_the_contracts(tmp_path):
-    """Each file name of INTERFACES.md and docs/formats.md is a path the Workspace object gives."""
-    from hardware.workspace import Workspace
+    """Each file name of docs/formats.md (the workspace contract) is a path the Workspace object gives."""
+    from reflab.core.workspace import Workspace
 
     names = _workspace_names(Workspace(tmp_path))
     assert set(OWNED.values()) <= names
     assert {p.name for p in Workspace(tmp_path).view("novel") + Workspace(tmp_path).view("relit")} >= {
         "novel_camera.json", "relit_lights.json"}
-    docs = [ROOT / "docs" / "formats.md", ROOT.parent / "shared" / "INTERFACES.md"]
+    docs = [ROOT / "docs" / "formats.md"]
     said = set()
     for doc in (d for d in docs if d.exists()):
         said |= set(re.findall(r"(?<![\w/.-])([a-z_]+\.(?:json|ply|exr|html|npz))\b", doc.read_text()))
@@ -230,11 +230,11 @@ def test_product_code_takes_workspace_paths_from_the_workspace_object():
     found = {}
     for module, path in MODULES.items():
         name = path.relative_to(ROOT).as_posix()
-        hits = [] if module == "hardware.workspace" or _is_twin(module) else _literal_paths(path.read_text(), name)
+        hits = [] if module == "reflab.core.workspace" or _is_twin(module) else _literal_paths(path.read_text(), name)
         if hits:
             found[name] = hits
     new = [h for f, hits in found.items() if f not in KNOWN_LITERALS for h in hits]
-    assert not new, "workspace file names outside hardware/workspace.py (use Workspace):\n" + "\n".join(new)
+    assert not new, "workspace file names outside core/workspace.py (use Workspace):\n" + "\n".join(new)
     gone = sorted(KNOWN_LITERALS - set(found))
     assert not gone, f"no literal workspace name left, remove it from KNOWN_LITERALS: {gone}"
 
@@ -246,7 +246,7 @@ def test_literal_finder_finds_a_literal():
 
 # ---------------------------------------------------------------------- one copy of each geometry helper
 #: Files that still write a rotation matrix out by hand (none left: the GUI's orbit uses
-#: calibration.rotations too); remove an entry once its file uses calibration.rotations.
+#: reflab.calibration.rotations too); remove an entry once its file uses reflab.calibration.rotations.
 KNOWN_ROTATIONS: set = set()
 HAND_ROTATION = re.compile(r"np\.cos\((\w+)\),\s*-np\.sin\(\1\)")
 
@@ -255,8 +255,8 @@ def test_rotations_come_from_the_one_copy():
     """A rotation matrix written out (``[cos a, -sin a, 0], ...``) outside calibration/rotations.py is a copy."""
     assert HAND_ROTATION.search("R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], ...])")
     found = {path.relative_to(ROOT).as_posix() for module, path in MODULES.items()
-             if module != "calibration.rotations" and HAND_ROTATION.search(path.read_text())}
-    assert not found - KNOWN_ROTATIONS, f"use calibration.rotations.axis_rotation in {sorted(found - KNOWN_ROTATIONS)}"
+             if module != "reflab.calibration.rotations" and HAND_ROTATION.search(path.read_text())}
+    assert not found - KNOWN_ROTATIONS, f"use reflab.calibration.rotations.axis_rotation in {sorted(found - KNOWN_ROTATIONS)}"
     assert not KNOWN_ROTATIONS - found, f"no copy left, remove it from KNOWN_ROTATIONS: {sorted(KNOWN_ROTATIONS - found)}"
 
 
@@ -274,16 +274,16 @@ def test_command_modules_are_thin():
 
 
 def test_open3d_loads_without_its_plotly_viewer():
-    """hardware.open3d_env: no stage draws with plotly/dash, 0.3 s of every command that reads a
+    """reflab.core.open3d_env: no stage draws with plotly/dash, 0.3 s of every command that reads a
     mesh; the viewer still loads when called (its stand-in imports the real module)."""
     import subprocess
     import sys
 
-    code = ("import sys; from hardware.open3d_env import open3d; o3d = open3d(); "
+    code = ("import sys; from reflab.core.open3d_env import open3d; o3d = open3d(); "
             "assert 'dash' not in sys.modules and 'plotly' not in sys.modules, 'viewer loaded'; "
             "o3d.io.read_triangle_mesh; from open3d.visualization import draw_plotly as d; "
             "assert sys.modules['open3d.visualization.draw_plotly']._reflab_stand_in; "
-            "from hardware.open3d_env import _real_plotly; assert hasattr(_real_plotly(), 'get_plotly_fig'); "
+            "from reflab.core.open3d_env import _real_plotly; assert hasattr(_real_plotly(), 'get_plotly_fig'); "
             "assert 'dash' in sys.modules; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT))
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from hardware.sim.lab import build_lab
-from hardware.workspace import WorkspaceError
-from reconstruction import surfaces as surf
-from reconstruction.scene import Mesh, Scene
+from reflab.hardware.sim.lab import build_lab
+from reflab.core.workspace import WorkspaceError
+from reflab.reconstruction import surfaces as surf
+from reflab.reconstruction.scene import Mesh, Scene
 
 
 def _rot_z(deg):
@@ -235,9 +235,9 @@ def test_box_edges_moved_to_where_the_shots_show_them():
     beyond them, move to where the shots show its top edges: here within 0.1 mm (true poses, six
     turntable angles); in the lab demo at 480x360, with structure from motion's poses, tile 0.57 ->
     0.22 mm RMS (worst corner 2.9 -> 0.9 mm), box 0.55 -> 0.37 mm."""
-    from calibration.rotations import axis_rotation
-    from hardware.sim.camera import lab_renderer
-    from hardware.sim.lab import build_lab
+    from reflab.calibration.rotations import axis_rotation
+    from reflab.hardware.sim.camera import lab_renderer
+    from reflab.hardware.sim.lab import build_lab
 
     lab = build_lab(480, 360, grain=0.2)
     render = lab_renderer(lab, depth=1)
@@ -265,9 +265,9 @@ def test_marked_face_moved_to_where_the_shots_show_its_edges(tmp_path):
     and side edges found in the shots that see its face (true poses, every 10 degrees; the edge on
     the ground left out) bring it to 0.04-0.20 degrees, 0.10-0.15 mm (measured over 6 seeds of the
     marks' noise; 4 here), the thickness kept as given."""
-    from calibration.rotations import axis_rotation
-    from hardware.sim.camera import lab_renderer
-    from hardware.sim.user import surface_marks
+    from reflab.calibration.rotations import axis_rotation
+    from reflab.hardware.sim.camera import lab_renderer
+    from reflab.hardware.sim.user import surface_marks
 
     lab = build_lab(480, 360, grain=0.2)
     render = lab_renderer(lab, depth=1)

@@ -10,15 +10,15 @@ import json
 import numpy as np
 import pytest
 
-from app.cli import main
-from calibration.camera import Camera
-from hardware.images import write_image
-from hardware.sim.lab import box_mesh
-from hardware.workspace import WorkspaceError, read_json
-from reconstruction import registration as reg
-from reconstruction import surfaces as surf
-from reconstruction.scene import Scene
-from reconstruction.sfm import moving_masks, run_sfm, static_mask, turntable_poses
+from reflab.app.cli import main
+from reflab.calibration.camera import Camera
+from reflab.core.images import write_image
+from reflab.hardware.sim.lab import box_mesh
+from reflab.core.workspace import WorkspaceError, read_json
+from reflab.reconstruction import registration as reg
+from reflab.reconstruction import surfaces as surf
+from reflab.reconstruction.scene import Scene
+from reflab.reconstruction.sfm import moving_masks, run_sfm, static_mask, turntable_poses
 
 AXIS = np.array([0.045, -0.03, 0.0])
 GRID, SPACING, RADIUS = (7, 5), 0.015, 0.004
@@ -92,8 +92,8 @@ def true_box(name):
 
 
 def render_sweep(tmpdir, angles, width=480, height=360, spp=4):
-    from hardware.mitsuba_env import mitsuba
-    from hardware.sim.props import render_view
+    from reflab.core.mitsuba_env import mitsuba
+    from reflab.hardware.sim.props import render_view
     mi = mitsuba()
     rng = np.random.default_rng(7)
     cam = camera(width, height)
@@ -254,7 +254,7 @@ def test_moving_masks_drop_a_still_ground_crossed_by_shadows():
 
 def test_turntable_poses_see_what_the_turned_objects_show():
     """The commanded poses project an unturned point where the camera sees it after the turn."""
-    from hardware.sim.camera import rotate_about_z
+    from reflab.hardware.sim.camera import rotate_about_z
 
     cam = camera(160, 120)
     X = np.array([[0.05, 0.02, 0.03], [-0.04, 0.06, 0.0]])
@@ -268,8 +268,8 @@ def test_turntable_poses_see_what_the_turned_objects_show():
 
 
 def test_bad_options_name_their_flag_on_the_command_line_and_their_field_in_the_library(tmp_path, capsys):
-    from hardware.workspace import OptionError
-    from reconstruction.stages import ReconstructOptions, reconstruct
+    from reflab.core.workspace import OptionError
+    from reflab.reconstruction.stages import ReconstructOptions, reconstruct
 
     assert main(["reconstruct", str(tmp_path), "--target", "1x8"]) == 2
     assert "--target: need at least 2 circles" in capsys.readouterr().err
@@ -283,9 +283,9 @@ def test_reconstruct_cancelled_while_matching_then_rerun(sweep, tmp_path):
     workspace it registers every shot, as the uninterrupted run did."""
     import shutil
 
-    from hardware.task import Cancelled, Task
-    from hardware.workspace import Workspace
-    from reconstruction.stages import ReconstructOptions, reconstruct
+    from reflab.core.task import Cancelled, Task
+    from reflab.core.workspace import Workspace
+    from reflab.reconstruction.stages import ReconstructOptions, reconstruct
 
     root, *_ = sweep
     ws = Workspace(tmp_path / "ws")

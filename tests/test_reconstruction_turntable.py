@@ -9,9 +9,9 @@ say so when no single axis explains the shots (a wobbling turntable).
 import numpy as np
 import pytest
 
-from hardware.sim.lab import build_lab
-from reconstruction.sfm import turntable_poses
-from reconstruction.turntable import (MAX_EVALUATIONS, Observations, explains, refine, refine_if_rigid, rotations,
+from reflab.hardware.sim.lab import build_lab
+from reflab.reconstruction.sfm import turntable_poses
+from reflab.reconstruction.turntable import (MAX_EVALUATIONS, Observations, explains, refine, refine_if_rigid, rotations,
                                       turntable_model)
 
 N = 36

@@ -7,11 +7,11 @@ mirrors by reflecting the camera, slabs by Snell's law on paper, and one case by
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from calibration.lights import Lights, PointLight
-from hardware.sim.reference import fresnel, render_reference
-from hardware.sim.lab import box_mesh, plane_mesh
-from reconstruction.scene import Material, Mesh, Scene, Surface
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights, PointLight
+from reflab.hardware.sim.reference import fresnel, render_reference
+from reflab.hardware.sim.lab import box_mesh, plane_mesh
+from reflab.reconstruction.scene import Material, Mesh, Scene, Surface
 
 
 def _mat(brdf, ior=None, **p):
@@ -132,7 +132,7 @@ def test_slab_transmission_follows_snell_and_fresnel():
 def test_agrees_with_mitsuba_path_tracer_lambert_and_mirror(tmp_path):
     # Mitsuba's own integrator: diffuse reflectance π·kd (its BSDF carries 1/π), conductor mirror r.
     # One point lamp, max_depth 3: camera -> mirror -> ground with next-event estimation, noise-free.
-    from hardware.mitsuba_env import mitsuba
+    from reflab.core.mitsuba_env import mitsuba
 
     mi = mitsuba()
     kd, r = np.array([0.25, 0.2, 0.1]), 0.7

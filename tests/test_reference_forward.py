@@ -1,14 +1,14 @@
-"""The proof: the forward model (inverse.trees + inverse.rendering) agrees with the independent
-reference renderer (hardware.sim.reference, Mitsuba ray casting) on the simulated lab, where mirror
+"""The proof: the forward model (reflab.inverse.forward.trees + reflab.inverse.forward.rendering) agrees with the independent
+reference renderer (reflab.hardware.sim.reference, Mitsuba ray casting) on the simulated lab, where mirror
 reflection, refraction through the sheet and total internal reflection all occur.
 """
 import numpy as np
 import pytest
 
-from hardware.sim.reference import render_reference
-from hardware.sim.lab import build_lab
-from inverse.rendering import render
-from inverse.trees import build_trees
+from reflab.hardware.sim.reference import render_reference
+from reflab.hardware.sim.lab import build_lab
+from reflab.inverse.forward.rendering import render
+from reflab.inverse.forward.trees import build_trees
 
 
 def _rel_rms(a, b):
@@ -79,7 +79,7 @@ def test_lab_exercises_mirror_sheet_highlights_and_shadows(small):
 
 
 def test_forward_model_matches_reference_ward_and_oren_nayar():
-    from reconstruction.scene import Material
+    from reflab.reconstruction.scene import Material
 
     lab = build_lab(120, 90)
     box, ground = lab.scene[lab.scene.index("box")], lab.scene[lab.scene.index("ground")]

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.cli import main
-from hardware.workspace import read_json
+from reflab.app.cli import main
+from reflab.core.workspace import read_json
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,13 +44,13 @@ def test_shiny_textured_box_renders_say_where_they_guess(tmp_path):
         out = tmp_path / f"{kind}.exr"
         assert main(["render", str(tmp_path / kind), "-o", str(out)]) == 0
         assert (tmp_path / f"{kind}_undetermined.png").is_file() == expected
-    from hardware.images import read_image
+    from reflab.core.images import read_image
 
     mask = read_image(tmp_path / "fitted_undetermined.png", linear=False)[:, :, 0] > 0.5
     assert 0.02 < mask.mean() < 0.5
     assert np.isfinite(read_image(tmp_path / "fitted.exr")).all()
     # The guided window's novel view says it too (app/gui/pages/results.py).
-    from app.gui.pages.results import novel_view
+    from reflab.app.gui.pages.results import novel_view
 
     for kind, expected in (("fitted", True), ("true", False)):
         text = novel_view(tmp_path / kind, 15.0, 0.0, [1.0, 1.0])[1]
@@ -63,9 +63,9 @@ def test_uncertain_radiance_is_the_renderers_derivative_times_sigma():
     lab's mirror r, the sheet's t — squared on paths through both its faces —, box kd, tile ks and
     ns), and a pixel
     whose light a ±60 % reflection carries is flagged, while exact values flag nothing."""
-    from hardware.sim.lab import build_lab
-    from inverse.rendering import node_radiance, uncertain_radiance, undetermined_pixels
-    from inverse.trees import build_trees
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.rendering import node_radiance, uncertain_radiance, undetermined_pixels
+    from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(80, 60, textured=False)
     mats = [s.material for s in lab.scene]

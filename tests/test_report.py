@@ -15,17 +15,17 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
-from app.cli import main
-from app.demo_score import true_albedo
-from calibration.camera import Camera
-from calibration.lamps import Mark, locate_lamps, write_marks
-from calibration.lights import Lights, PointLight
-from calibration.tsai import calibrate
-from hardware.images import write_image
-from hardware.sim import props as st
-from hardware.sim.lab import build_lab, write_lab
-from hardware.sim.reference import render_reference
-from hardware.workspace import write_json
+from reflab.app.cli import main
+from reflab.app.demo_score import true_albedo
+from reflab.calibration.camera import Camera
+from reflab.calibration.lamps import Mark, locate_lamps, write_marks
+from reflab.calibration.lights import Lights, PointLight
+from reflab.calibration.tsai import calibrate
+from reflab.core.images import write_image
+from reflab.hardware.sim import props as st
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.hardware.sim.reference import render_reference
+from reflab.core.workspace import write_json
 
 SIZE = (80, 60)
 LAMP_SHIFT_MM = 2.0  # lamp 0 of lights.json is this far from the truth, along x
@@ -248,8 +248,8 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
 def test_texture_section_scores_the_albedo_against_the_truth(lab_workspace):
     """The comparison's numbers follow the albedo given: the truth itself scores 0, the truth plus
     0.1 in the red band scores RMSE [0.1, 0, 0] and none within 0.05; unknown pixels are left out."""
-    from app.report.data import Sources
-    from app.report.sections.texture import texture_section
+    from reflab.app.report.data import Sources
+    from reflab.app.report.sections.texture import texture_section
 
     root, lab = lab_workspace
     src = Sources(root)
@@ -273,9 +273,9 @@ def test_truth_albedo_is_the_labs_albedo_where_each_pixel_ray_lands(lab_workspac
     """truth/albedo.exr (true_albedo) against the lab's albedo at the hits of pixel rays cast by the
     reference renderer's own ray caster (Mitsuba, not the trees' Open3D), for 40 pixels; NaN where a
     ray meets nothing (a camera looking over the horizon)."""
-    from app.report.data import Sources
-    from hardware.sim.lab import SimLab
-    from hardware.sim.reference import _Caster
+    from reflab.app.report.data import Sources
+    from reflab.hardware.sim.lab import SimLab
+    from reflab.hardware.sim.reference import _Caster
 
     root, lab = lab_workspace
     caster = _Caster(lab.scene)

@@ -1,12 +1,12 @@
-"""The simulated lab: the set METHOD.md §5 describes, written as a valid workspace."""
+"""The simulated lab: the set docs/method.md §5 describes, written as a valid workspace."""
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from calibration.lights import Lights
-from hardware.sim.reference import render_reference
-from hardware.sim.lab import A4, ALBEDO_RANGE, build_lab, write_lab
-from reconstruction.scene import Scene
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights
+from reflab.hardware.sim.reference import render_reference
+from reflab.hardware.sim.lab import A4, ALBEDO_RANGE, build_lab, write_lab
+from reflab.reconstruction.scene import Scene
 
 
 @pytest.fixture(scope="module")

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from app import steps
-from hardware.images import read_image
-from hardware.workspace import Workspace, read_json
+from reflab.app import steps
+from reflab.core.images import read_image
+from reflab.core.workspace import Workspace, read_json
 
 CONTRACT = ["devices", "calibrate_camera", "calibrate_lights", "sweep", "reconstruct", "input", "fit", "texture",
             "results"]
@@ -42,10 +42,10 @@ def test_done_follows_files_and_fit_texture_results_run_the_stages(lab_workspace
 
 
 def test_capture_steps_take_resume_and_keep_shots(tmp_path):
-    from app.devices import Rig, SimOptions
+    from reflab.app.devices import Devices, SimOptions
 
     root = tmp_path / "ws"
-    with Rig("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
+    with Devices("sim", "sim", sim=SimOptions(size=(48, 36)), log=lambda line: None) as rig:
         r = steps.step("devices").run(root, rig=rig)
         assert steps.step("devices").done(root) and "hardware.json" in r.summary
         with pytest.raises(ValueError, match="unknown option 'grid'"):

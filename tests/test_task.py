@@ -4,7 +4,7 @@ import time
 
 import pytest
 
-from hardware.task import Cancelled, Task, ensure
+from reflab.core.task import Cancelled, Task, ensure
 
 
 def test_cancel_from_another_thread_stops_the_loop_within_a_second():

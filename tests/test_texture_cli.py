@@ -4,13 +4,13 @@ import json
 import numpy as np
 import pytest
 
-from app.cli import main
-from hardware.images import read_image, write_image
-from hardware.sim.lab import build_lab, write_lab
-from inverse.rendering import render
-from inverse.texture import albedo_nodes
-from inverse.trees import build_trees
-from reconstruction.scene import Scene
+from reflab.app.cli import main
+from reflab.core.images import read_image, write_image
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.inverse.forward.rendering import render
+from reflab.inverse.texture.solve import albedo_nodes
+from reflab.inverse.forward.trees import build_trees
+from reflab.reconstruction.scene import Scene
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_albedo_nodes_matches_truth_and_is_nan_where_unseen(workspace):
     mirror = trees.surface == 3  # untextured: its homogeneous kd
     np.testing.assert_allclose(kd[mirror], np.broadcast_to(lab.scene[3].material["kd"], kd[mirror].shape))
     # The table's corner behind and below the input camera was never seen: unknown, not invented.
-    from calibration.camera import Camera
+    from reflab.calibration.camera import Camera
 
     corner = Camera.look_at(64, 48, 30.0, eye=(-0.55, -0.32, 0.3), target=(-0.55, -0.32, 0.0), up=(0, 1, 0))
     below = build_trees(scene, corner, lab.lights, depth=1)

@@ -8,12 +8,12 @@ the mirror. Ill-conditioned variants: a faint mirror, a nearly clear textured sh
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from hardware.sim.lab import build_lab
-from inverse.rendering import render
-from inverse.texture import (AMPLIFIED, SATURATED, TextureOptions, build_maps, build_system,
+from reflab.calibration.camera import Camera
+from reflab.hardware.sim.lab import build_lab
+from reflab.inverse.forward.rendering import render
+from reflab.inverse.texture.solve import (AMPLIFIED, SATURATED, SolverOptions, build_maps, build_system,
                              recover_texture, sample_texture)
-from inverse.trees import build_trees
+from reflab.inverse.forward.trees import build_trees
 
 BOX, SHEET, MIRROR = 1, 2, 3
 #: Outward normal of the purple box's back face (the lab rotates the box 12° about z).
@@ -93,7 +93,7 @@ def test_constant_albedo_system_is_consistent_and_solved_exactly():
     trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
     materials = [s.material for s in lab.scene]
     image = render(trees, materials, lab.lights.intensities)
-    options = TextureOptions()
+    options = SolverOptions()
     maps = build_maps(lab.scene, trees, options)
     system = build_system(trees, materials, lab.lights.intensities, image, maps, options)
     np.testing.assert_allclose(system.E @ system.prior, system.rhs, atol=1e-12)
@@ -170,7 +170,7 @@ def test_saturated_pixels_are_dropped_and_flagged():
         assert np.all(np.isfinite(result.kd[s])) and result.kd[s].min() >= 0 and result.kd[s].max() <= 1
     # Everything saturated: nothing is determined, nothing is invented, nothing crashes.
     flat = np.full_like(image, 0.5)
-    empty = recover_texture(lab.scene, trees, materials, lab.lights.intensities, flat, TextureOptions(saturation=0.5))
+    empty = recover_texture(lab.scene, trees, materials, lab.lights.intensities, flat, SolverOptions(saturation=0.5))
     assert empty.stats["unknowns"] == 0 and all(not m.any() for m in empty.mask.values())
 
 
@@ -183,4 +183,4 @@ def test_bad_inputs_are_named():
     with pytest.raises(ValueError, match="NaN"):
         recover_texture(lab.scene, trees, materials, lab.lights.intensities, bad)
     with pytest.raises(ValueError, match="prior"):
-        recover_texture(lab.scene, trees, materials, lab.lights.intensities, image, TextureOptions(prior=-1))
+        recover_texture(lab.scene, trees, materials, lab.lights.intensities, image, SolverOptions(prior=-1))

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from hardware.sim.lab import box_mesh, plane_mesh
-from inverse.texels import PAD, TexelMap, bilinear_weights, build_texel_map, choose_texel_size, pixel_footprint
-from reconstruction.scene import Mesh
+from reflab.calibration.camera import Camera
+from reflab.hardware.sim.lab import box_mesh, plane_mesh
+from reflab.inverse.texture.texels import PAD, TexelMap, bilinear_weights, build_texel_map, choose_texel_size, pixel_footprint
+from reflab.reconstruction.scene import Mesh
 
 
 def _random_surface_points(mesh, n, seed=0):
@@ -136,7 +136,7 @@ def test_index_entry_round_trip(tmp_path):
     np.testing.assert_allclose(back.tri_uv, tm.tri_uv, atol=1e-9)
     assert (back.width, back.height) == (tm.width, tm.height)
     other = plane_mesh((0, 1), (0, 1))
-    from hardware.workspace import WorkspaceError
+    from reflab.core.workspace import WorkspaceError
 
     with pytest.raises(WorkspaceError, match="triangles"):
         TexelMap.from_json(tm.to_json(), 4, other, tmp_path / "index.json", "surfaces[0]")

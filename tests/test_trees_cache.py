@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-from calibration.camera import Camera
-from calibration.lights import Lights
-from hardware.sim.lab import build_lab, write_lab
-from hardware.task import Cancelled, Task
-from hardware.workspace import Workspace, read_json, write_json
-from inverse.trees import _ARRAYS, build_trees, trees_for_workspace
-from reconstruction.scene import Mesh, Scene
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights
+from reflab.hardware.sim.lab import build_lab, write_lab
+from reflab.core.task import Cancelled, Task
+from reflab.core.workspace import Workspace, read_json, write_json
+from reflab.inverse.forward.trees import _ARRAYS, build_trees, trees_for_workspace
+from reflab.reconstruction.scene import Mesh, Scene
 
 
 def _load(ws):
@@ -90,8 +90,8 @@ def test_trees_cache_keeps_the_file_in_use(tmp_path, monkeypatch):
     """Relightings fill the cache; the workspace's own trees, reused in between, are not pruned."""
     import time
 
-    import inverse.trees as trees_module
-    from calibration.lights import PointLight
+    import reflab.inverse.forward.trees as trees_module
+    from reflab.calibration.lights import PointLight
 
     monkeypatch.setattr(trees_module, "CACHE_KEEP", 2)
     ws = Workspace(tmp_path / "ws")

@@ -14,7 +14,7 @@ def _number(text: str, kind, what: str):
 
 def error_text(exc: Exception) -> str:
     """A stage's error for the command line: an OptionError names the flag (``--rod-height: ...``)."""
-    from hardware.workspace import OptionError
+    from reflab.core.workspace import OptionError
 
     return exc.cli_text if isinstance(exc, OptionError) else str(exc)
 

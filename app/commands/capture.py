@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.commands._args import float_list, image_size
+from reflab.app.commands._args import float_list, image_size
 
 HELP = "capture calibration, rod-shadow, turntable or input images (hardware or simulated devices)"
 
@@ -51,11 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from app.devices import SIM_SIZE, Rig, SimOptions, load_config
-    from hardware.cameras import CameraError
-    from hardware.capture import CaptureCancelled, CaptureError, CaptureOptions, calibrated_size, run_capture
-    from hardware.grbl import GrblError
-    from hardware.workspace import Workspace, WorkspaceError
+    from reflab.app.devices import SIM_SIZE, Devices, SimOptions, load_config
+    from reflab.hardware.cameras import CameraError
+    from reflab.hardware.capture import CaptureCancelled, CaptureError, CaptureOptions, calibrated_size, run_capture
+    from reflab.hardware.grbl import GrblError
+    from reflab.core.workspace import Workspace, WorkspaceError
 
     ws = Workspace(args.workspace)
     config = load_config(args.config or (ws.hardware if ws.hardware.exists() else None))
@@ -73,14 +73,14 @@ def run(args) -> int:
                              "or calibrate again at the new size)", got=f"--size {args.size[0]}x{args.size[1]}")
     try:
         sim = SimOptions(args.size, args.depth, args.centre, args.room_light, args.grain)
-        with Rig(args.port, args.camera, config=config, unlock=args.unlock, sim=sim, trigger=args.trigger,
+        with Devices(args.port, args.camera, config=config, unlock=args.unlock, sim=sim, trigger=args.trigger,
                  camera_timeout=args.camera_timeout) as rig:
             result = run_capture(CaptureOptions(
                 args.workspace, args.kind, rig.controller, rig.camera, args.angles, args.count, args.start,
                 args.ambient, args.format, args.exposure, args.settle, args.resume, args.overwrite, on_shot, print))
             print(f"wrote {len(result.shots)} images and {result.manifest_path}")
             if args.camera == "sim" and args.kind == "sweep":
-                from hardware.sim.user import mark_sweep
+                from reflab.hardware.sim.user import mark_sweep
 
                 path = mark_sweep(ws.root, rig.camera.sim_lab, result.manifest, centre=args.centre)
                 print(f"the simulated user marked the mirror's and the sheet's corners and named the surfaces in {path}")
@@ -91,7 +91,7 @@ def run(args) -> int:
     except WorkspaceError:
         raise  # the CLI names the file and field, exit status 2
     except (CaptureError, GrblError, CameraError, ValueError) as exc:
-        from app.commands._args import error_text
+        from reflab.app.commands._args import error_text
 
         print(f"reflab capture: error: {error_text(exc)}", file=sys.stderr)
         return 1

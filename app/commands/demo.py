@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from app.commands._args import image_size, nonneg_float
+from reflab.app.commands._args import image_size, nonneg_float
 
 HELP = "the simulated lab end to end: capture, calibrate, reconstruct, fit, texture, render, report; scored against truth/"
 
@@ -34,9 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     if args.from_truth:
-        from app.demo_from_truth import run_from_truth
+        from reflab.app.demo_from_truth import run_from_truth
 
         return run_from_truth(args)
-    from app.demo_lab import run_lab
+    from reflab.app.demo_lab import run_lab
 
     return run_lab(args)

@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.commands._args import nonneg_int, positive_float, positive_int
+from reflab.app.commands._args import nonneg_int, positive_float, positive_int
 
 HELP = "fit kd, ks, shininess, r and t of every surface from the input image (F-TBO or NF-TBO)"
 
@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from inverse.stages import FitOptions, fit
+    from reflab.inverse.stages import FitOptions, fit
 
     def on_round(rec):
         rms = ", ".join(f"{v:.3g}" for v in rec["rms"])

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import argparse
 
-from app.commands._args import image_size
-from app.devices import SIM_SIZE
+from reflab.app.commands._args import image_size
+from reflab.app.devices import SIM_SIZE
 
 HELP = "the guided lab window: devices, calibration, sweep, reconstruction, input, fit, texture, results"
 
@@ -26,7 +26,7 @@ def run(args) -> int:
 
     from PySide6.QtWidgets import QApplication
 
-    from app.gui import MainWindow
+    from reflab.app.gui import MainWindow
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
     window = MainWindow(args.workspace, port=args.port, camera=args.camera, size=args.size)

@@ -32,8 +32,8 @@ def describe(ctl) -> str:
 
 
 def run(args) -> int:
-    from app.devices import load_config, open_port
-    from hardware.grbl import GrblAlarm, GrblController, GrblError
+    from reflab.app.devices import load_config, open_port
+    from reflab.hardware.grbl import GrblAlarm, GrblController, GrblError
 
     config = load_config(args.config)
     port, sim = open_port(args.port)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from app.commands._args import float_list, name_value
+from reflab.app.commands._args import float_list, name_value
 
 HELP = "recover geometry from the turntable sweep (pycolmap) and model surfaces: scene.json + meshes/"
 
@@ -40,8 +40,8 @@ def add_arguments(parser) -> None:
 
 def options(args):
     """The stage's options from the command's arguments; the stage checks them (OptionError naming the flag)."""
-    from calibration.circles import parse_grid
-    from reconstruction.stages import ReconstructOptions
+    from reflab.calibration.circles import parse_grid
+    from reflab.reconstruction.stages import ReconstructOptions
 
     return ReconstructOptions(args.workspace, dict(args.mesh), dict(args.ior), args.marks and Path(args.marks),
                               parse_grid(args.target, "target") if args.target else None, args.spacing,
@@ -49,7 +49,7 @@ def options(args):
 
 
 def run(args) -> int:
-    from reconstruction.stages import reconstruct
+    from reflab.reconstruction.stages import reconstruct
 
     result = reconstruct(options(args), log=lambda line: print(line, flush=True))
     if result.skipped:
@@ -72,7 +72,7 @@ def run(args) -> int:
                   f"{tt['max_angle_error_deg']:.3f} deg, rms {tt['rms_angle_error_deg']:.3f} deg")
         print(f"registration ({r['registration']['method']}): input view {r['reference']['centre_mm']:.2f} mm, "
               f"{r['reference']['rotation_deg']:.3f} deg from camera.json")
-        from hardware.workspace import Workspace
+        from reflab.core.workspace import Workspace
 
         ws = Workspace(args.workspace)
         print(f"wrote {ws.sfm} and {ws.sparse}")

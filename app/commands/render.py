@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from app.commands._args import positive_int
+from reflab.app.commands._args import positive_int
 
 HELP = "render the scene model (scene.json, or fit.json + textures/ when present) to an EXR image"
 
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from inverse.stages import RenderOptions, render
+    from reflab.inverse.stages import RenderOptions, render
 
     start = time.perf_counter()
     r = render(RenderOptions(args.workspace, args.output, args.camera, args.lights, args.aov, args.depth), log=print)

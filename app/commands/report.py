@@ -22,9 +22,9 @@ def add_arguments(p):
 def run(args) -> int:
     from pathlib import Path
 
-    from app.report.build import build_report
-    from app.report.data import summary_text
-    from hardware.workspace import Workspace, WorkspaceError, write_json
+    from reflab.app.report.build import build_report
+    from reflab.app.report.data import summary_text
+    from reflab.core.workspace import Workspace, WorkspaceError, write_json
 
     root = Path(args.workspace)
     if not root.is_dir():
@@ -35,7 +35,7 @@ def run(args) -> int:
     text = summary_text(summary)
     print(text or f"{root}: no stage output found (captures/, camera.json, lights.json, scene.json, fit.json, textures/)")
     if args.bench:
-        from inverse.benchmarks import load_scene, machine, run as bench, table
+        from reflab.inverse.forward.benchmarks import load_scene, machine, run as bench, table
 
         scene, camera, lights = load_scene(root)
         rows = bench(scene, camera, lights, depth=args.depth)

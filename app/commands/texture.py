@@ -1,5 +1,5 @@
 """Recover the diffuse texture of every surface point the input photograph sees, directly, in
-mirrors or through transparent sheets (METHOD.md §4, the sparse system E z = b − Q).
+mirrors or through transparent sheets (docs/method.md §4, the sparse system E z = b − Q).
 
 Non-Lambertian parameters come from fit.json when it exists, else from scene.json's materials
 (a user who knows them need not fit). Surfaces marked ``"textured": false`` keep their one
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from app.commands._args import nonneg_float, positive_float, positive_int
+from reflab.app.commands._args import nonneg_float, positive_float, positive_int
 
 HELP = "recover per-texel diffuse albedo of every surface seen directly or indirectly (textures/)"
 
@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from inverse.stages import TextureOptions, texture
+    from reflab.inverse.stages import TextureOptions, texture
 
     r = texture(TextureOptions(args.workspace, args.depth, args.texel_scale, args.texel_size, args.prior,
                                args.smoothness, args.saturation, args.max_albedo),

@@ -1,4 +1,13 @@
-"""The guided lab GUI (`reflab gui`, INTERFACES.md "GUI"). Importing this package imports Qt."""
-from app.gui.main_window import MainWindow
+"""The guided lab GUI (`reflab gui`, docs/gui.md): :class:`MainWindow`, loaded on first use.
 
+Importing the package imports nothing; ``reflab.app.gui.MainWindow`` imports Qt and the window.
+"""
 __all__ = ["MainWindow"]
+
+
+def __getattr__(name: str):
+    if name == "MainWindow":
+        from reflab.app.gui.main_window import MainWindow
+
+        return MainWindow
+    raise AttributeError(f"module 'reflab.app.gui' has no attribute {name!r}")

@@ -1,8 +1,8 @@
 """The guided lab window: a step list, one page per step, progress, cancel and a log pane.
 
-Object names are part of INTERFACES.md's contract (GUI): ``steps``, ``page_<step>``,
+Object names are part of docs/formats.md's contract (GUI): ``steps``, ``page_<step>``,
 ``run_<step>``, ``status_<step>``, ``progress``, ``cancel``. One step runs at a time, in a
-:class:`app.gui.worker.Worker` thread; its Task is what ``cancel`` stops. The window emits
+:class:`reflab.app.gui.worker.Worker` thread; its Task is what ``cancel`` stops. The window emits
 :attr:`MainWindow.step_finished` ``(step, outcome)`` with outcome ``done``, ``failed`` or
 ``cancelled`` once a step's thread has ended (tests wait on it).
 """
@@ -18,14 +18,26 @@ from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem
                                QPlainTextEdit, QProgressBar, QPushButton, QSplitter, QStackedWidget, QVBoxLayout,
                                QWidget)
 
-from app.devices import SIM_SIZE
-from app.gui import stages
-from app.gui.pages import PAGES
-from app.gui.rig import Rig
-from app.gui.worker import Worker
+from reflab.app.devices import SIM_SIZE
+from reflab.app.gui import stages
+from reflab.app.gui.pages.calibrate_camera import CameraPage
+from reflab.app.gui.pages.calibrate_lights import LightsPage
+from reflab.app.gui.pages.devices import DevicesPage
+from reflab.app.gui.pages.fit import FitPage
+from reflab.app.gui.pages.input import InputPage
+from reflab.app.gui.pages.reconstruct import ReconstructPage
+from reflab.app.gui.pages.results import ResultsPage
+from reflab.app.gui.pages.sweep import SweepPage
+from reflab.app.gui.pages.texture import TexturePage
+from reflab.app.gui.rig import Rig
+from reflab.app.gui.worker import Worker
 
 
 #: "…, RMS per band [a, b, c]" in a stage's progress message (the fit's iterations).
+#: Each step's page.
+PAGES = {"devices": DevicesPage, "calibrate_camera": CameraPage, "calibrate_lights": LightsPage, "sweep": SweepPage,
+         "reconstruct": ReconstructPage, "input": InputPage, "fit": FitPage, "texture": TexturePage,
+         "results": ResultsPage}
 RMS_IN_MESSAGE = re.compile(r"RMS per band \[([^\]]+)\]")
 
 
@@ -242,14 +254,14 @@ class MainWindow(QMainWindow):
 
     def _show_shot(self, message: str) -> None:
         """A capture steps its task with "<kind>: <file>": show that shot in the running page's live view."""
-        from hardware.capture import FOLDERS
-        from hardware.workspace import Workspace
+        from reflab.hardware.capture import FOLDERS
+        from reflab.core.workspace import Workspace
 
         kind, _, file = message.partition(": ")
         if kind in FOLDERS and file and " " not in file:
             path = Workspace(self.workspace).captures_of(kind) / file
             if path.exists():
-                from hardware.images import read_image
+                from reflab.core.images import read_image
 
                 self.pages[self.running].preview.set_image(read_image(path))
 

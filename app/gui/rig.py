@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.devices import SIM_SIZE
-from hardware.workspace import Workspace
+from reflab.app.devices import SIM_SIZE
+from reflab.core.workspace import Workspace
 
 
 class RigError(RuntimeError):
@@ -29,7 +29,7 @@ class Rig:
         self.port_spec, self.camera_spec, self.size = port, camera, tuple(size)
         self.log = log or (lambda msg: None)
         self.lock = threading.RLock()
-        self.devices = None  # app.devices.Rig while connected
+        self.devices = None  # reflab.app.devices.Devices while connected
         self._shown = (None, None)  # (file, mtime, size) and image of a tethered camera's newest shot
 
     # ------------------------------------------------------------------ connection
@@ -43,7 +43,7 @@ class Rig:
 
     @property
     def config(self):
-        from app.devices import load_config
+        from reflab.app.devices import load_config
 
         if self.devices is not None:
             return self.devices.config
@@ -52,7 +52,7 @@ class Rig:
 
     def connect(self) -> str:
         """Open the board (starting the simulated one for ``sim``) and the camera (app/devices.py); the status line."""
-        from app.devices import Rig as Devices, SimOptions
+        from reflab.app.devices import Devices, SimOptions
 
         with self.lock:
             if not self.connected:
@@ -94,7 +94,7 @@ class Rig:
 
         A tethered camera (``folder:``) has no live view: its newest image in the folder stands in,
         so a preview never fires its shutter nor waits for a shot."""
-        from hardware.cameras import FolderCamera
+        from reflab.hardware.cameras import FolderCamera
 
         if not self.lock.acquire(blocking=blocking):
             return None
@@ -109,9 +109,9 @@ class Rig:
 
     def _newest(self, folder: Path):
         """The newest complete image in ``folder`` (read again only when it changes), or None."""
-        from hardware.cameras import FOLDER_SUFFIXES
-        from hardware.images import read_image
-        from hardware.workspace import WorkspaceError
+        from reflab.hardware.cameras import FOLDER_SUFFIXES
+        from reflab.core.images import read_image
+        from reflab.core.workspace import WorkspaceError
 
         files = [p for p in folder.iterdir() if p.suffix.lower() in FOLDER_SUFFIXES and not p.name.startswith(".")]
         if not files:
@@ -127,6 +127,6 @@ class Rig:
 
     def write_config(self) -> Path:
         """WORKSPACE/hardware.json: the configuration the captures of this workspace use."""
-        from hardware.workspace import write_json
+        from reflab.core.workspace import write_json
 
         return write_json(Workspace(self.workspace).hardware, self.config.to_json())

@@ -1,6 +1,6 @@
 """The window's steps: app/steps.py's ordered steps, with what each page asks of the user.
 
-Each :class:`GuiStep` wraps one :class:`app.steps.Step` (the contract's name, its title and
+Each :class:`GuiStep` wraps one :class:`reflab.app.steps.Step` (the contract's name, its title and
 ``done(workspace)`` from the workspace's files) and adds the sentence shown at the rig and
 ``run(ctx, task)``: it connects the rig when the step captures, holds the rig while the step
 runs, hands the page's options to the step, and returns the step's one-line summary. A stage's
@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from app import steps as core
-from app.gui.worker import StepFailed
-from hardware.workspace import Workspace, read_json, write_json
+from reflab.app import steps as core
+from reflab.app.gui.worker import StepFailed
+from reflab.core.workspace import Workspace, read_json, write_json
 
 
 @dataclass
@@ -64,7 +64,7 @@ class _Lines(io.TextIOBase):
 def run_command(ctx: Context, name: str, argv: list) -> None:
     """Run ``reflab NAME ARGV`` in this thread (for app-level commands without a step, the report),
     its output to the log; a non-zero exit raises StepFailed with its last error line."""
-    module = importlib.import_module(f"app.commands.{name}")
+    module = importlib.import_module(f"reflab.app.commands.{name}")
     parser = argparse.ArgumentParser(prog=f"reflab {name}")
     module.add_arguments(parser)
     args = parser.parse_args([str(a) for a in argv])
@@ -95,9 +95,9 @@ def update_marks_file(workspace, **sections) -> Path:
 
 
 def rod_shots(workspace) -> list:
-    """The rod shots taken (``calibration.rod.RodShot``: image, lamp, room-light frame), [] before any."""
-    from calibration.rod import rod_shots as shots
-    from hardware.workspace import WorkspaceError
+    """The rod shots taken (``reflab.calibration.rod.RodShot``: image, lamp, room-light frame), [] before any."""
+    from reflab.calibration.rod import rod_shots as shots
+    from reflab.core.workspace import WorkspaceError
 
     try:
         return shots(workspace)
@@ -107,7 +107,7 @@ def rod_shots(workspace) -> list:
 
 # ------------------------------------------------------------------ running a step
 def _run(ctx: Context, task, name: str, **options):
-    """Run app.steps' step ``name`` with the rig (connected first when the step captures)."""
+    """Run reflab.app.steps' step ``name`` with the rig (connected first when the step captures)."""
     step = core.step(name)
     rig = ctx.rig
     if step.captures is None and name != "devices":
@@ -153,9 +153,9 @@ def _calibrate_camera(ctx, task) -> str:
 def _calibrate_lights(ctx, task) -> str:
     """Capture the rod shots, detect the rod in every shot not marked yet (saving what it finds),
     stop naming the shots left to mark by hand, then locate the lamps from marks.json."""
-    from calibration.lamps import Mark, read_marks, write_marks
-    from calibration.rod import detect_marks
-    from hardware.images import read_image
+    from reflab.calibration.lamps import Mark, read_marks, write_marks
+    from reflab.calibration.rod import detect_marks
+    from reflab.core.images import read_image
 
     o = ctx.options
     height = float(o.get("rod_height", 0.10))
@@ -272,7 +272,7 @@ resume_index = core.first_missing
 
 def sim_defaults() -> dict:
     """Option values for the simulated lab's props (hardware/sim/props.py): what its user printed and measured."""
-    from hardware.sim.props import LabProps
+    from reflab.hardware.sim.props import LabProps
 
     p = LabProps()
     x0, x1, y0, y1 = p.card

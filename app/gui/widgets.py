@@ -10,7 +10,7 @@ from PySide6.QtWidgets import (QGraphicsEllipseItem, QGraphicsItem, QGraphicsPix
 
 def to_qimage(img: np.ndarray, exposure: float | None = None) -> QImage:
     """A QImage of a linear float image (sRGB-encoded for display) or of an 8-bit one."""
-    from hardware.images import to_display
+    from reflab.core.images import to_display
 
     a = np.asarray(img)
     if a.dtype != np.uint8:
@@ -47,7 +47,7 @@ class _Mark(QGraphicsEllipseItem):
 class ImageView(QGraphicsView):
     """An image (numpy, linear or 8-bit) with wheel zoom, drag to pan, and marks.
 
-    Pixel coordinates follow INTERFACES.md: (0, 0) is the centre of the top-left pixel. A left
+    Pixel coordinates follow docs/formats.md: (0, 0) is the centre of the top-left pixel. A left
     click on the image (not on a mark) emits ``clicked(u, v)``; dropping a mark emits
     ``mark_moved(key, u, v)``.
     """

@@ -1,6 +1,6 @@
 """Long work off the UI thread: one :class:`Worker` per run, in its own ``QThread``.
 
-The worker owns a :class:`hardware.task.Task`; the stage reports through ``task.step`` (emitted
+The worker owns a :class:`reflab.core.task.Task`; the stage reports through ``task.step`` (emitted
 as :attr:`Worker.progress`, queued to the UI thread) and the cancel button calls
 :meth:`Worker.cancel`, which the stage sees at its next check. Exactly one of ``succeeded``,
 ``failed`` or ``cancelled`` is emitted, then ``finished``. A failure carries the stage's one-line
@@ -12,7 +12,7 @@ import traceback
 
 from PySide6.QtCore import QObject, Qt, QThread, Signal, Slot
 
-from hardware.task import Cancelled, Task
+from reflab.core.task import Cancelled, Task
 
 
 class StepFailed(RuntimeError):
@@ -94,11 +94,11 @@ class Worker(QObject):
         return self.thread.wait() if ms < 0 else self.thread.wait(ms)
 
     def _run(self) -> None:
-        from app.gui.rig import RigError
-        from hardware.cameras import CameraError
-        from hardware.capture import CaptureCancelled, CaptureError
-        from hardware.grbl import GrblError
-        from hardware.workspace import WorkspaceError
+        from reflab.app.gui.rig import RigError
+        from reflab.hardware.cameras import CameraError
+        from reflab.hardware.capture import CaptureCancelled, CaptureError
+        from reflab.hardware.grbl import GrblError
+        from reflab.core.workspace import WorkspaceError
 
         expected = (StepFailed, WorkspaceError, CaptureError, GrblError, CameraError, RigError, ValueError)
 

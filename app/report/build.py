@@ -1,6 +1,6 @@
 """Assemble report.html: read the workspace, render the model, draw the figures, fill the template.
 
-The result is one self-contained HTML file (INTERFACES.md, "report.html"): every picture is an
+The result is one self-contained HTML file (docs/formats.md, "report.html"): every picture is an
 embedded PNG data URI, the style sheet is inline, and nothing is fetched from anywhere.
 """
 from __future__ import annotations
@@ -10,8 +10,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.report.data import Sources, summarise
-from hardware.workspace import Workspace
+from reflab.app.report.data import Sources, summarise
+from reflab.core.workspace import Workspace
 
 #: Largest width at which the novel and relit views are rendered when there is no truth to match.
 VIEW_WIDTH = 320
@@ -23,7 +23,7 @@ def render_model(src: Sources, depth: int) -> dict | None:
     """The recovered model at the input view, beside the input photograph (None without a scene)."""
     if src.scene is None or src.camera is None or src.lights is None:
         return None
-    from inverse.stages import render_workspace
+    from reflab.inverse.stages import render_workspace
 
     photo = src.image(src.ws.input_image.relative_to(src.root))
     try:
@@ -43,7 +43,7 @@ def render_albedo(src: Sources, depth: int) -> dict | None:
     if (not src.ws.truth_albedo.is_file() or src.textures is None or src.scene is None or src.camera is None
             or src.lights is None):
         return None
-    from inverse.stages import render_workspace
+    from reflab.inverse.stages import render_workspace
 
     try:
         albedo, info = render_workspace(src.root, aov="albedo", depth=depth)
@@ -58,8 +58,8 @@ def render_albedo(src: Sources, depth: int) -> dict | None:
 
 def _turned(cam, degrees: float):
     """A Camera turned about the vertical axis through the ground point on its optical axis."""
-    from calibration.camera import Camera
-    from calibration.rotations import axis_rotation
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.rotations import axis_rotation
 
     C, forward = cam.center, cam.R[2]
     s = -C[2] / forward[2] if abs(forward[2]) > 1e-9 and -C[2] / forward[2] > 0 else 1.0
@@ -81,9 +81,9 @@ def render_views(src: Sources, depth: int) -> dict:
     """
     import numpy as np
 
-    from inverse.stages import render_workspace
-    from calibration.camera import Camera
-    from calibration.lights import Lights, PointLight
+    from reflab.inverse.stages import render_workspace
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights, PointLight
 
     if src.scene is None or src.camera is None or src.lights is None or (src.fit is None and src.textures is None):
         return {}
@@ -130,16 +130,16 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
         is there to compare) and render a novel and a relit view (the report's costliest part: one
         tree build per view).
     """
-    from app.report.sections.camera import camera_section
-    from app.report.sections.captures import captures_section
-    from app.report.sections.error_vs_time import error_section
-    from app.report.sections.fit import fit_section
-    from app.report.sections.geometry import geometry_section
-    from app.report.sections.lights import lights_section
-    from app.report.sections.section import Section
-    from app.report.sections.texture import texture_section
-    from app.report.sections.views import views_section
-    from hardware.workspace import atomic_write
+    from reflab.app.report.sections.camera import camera_section
+    from reflab.app.report.sections.captures import captures_section
+    from reflab.app.report.sections.error_vs_time import error_section
+    from reflab.app.report.sections.fit import fit_section
+    from reflab.app.report.sections.geometry import geometry_section
+    from reflab.app.report.sections.lights import lights_section
+    from reflab.app.report.sections.section import Section
+    from reflab.app.report.sections.texture import texture_section
+    from reflab.app.report.sections.views import views_section
+    from reflab.core.workspace import atomic_write
 
     t0 = time.perf_counter()
     src = Sources(workspace)
@@ -178,4 +178,4 @@ def _template():
     import jinja2
 
     env = jinja2.Environment(autoescape=True, undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
-    return env.from_string((files("app.report") / "templates" / "report.html.j2").read_text(encoding="utf-8"))
+    return env.from_string((files("reflab.app.report") / "templates" / "report.html.j2").read_text(encoding="utf-8"))

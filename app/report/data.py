@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from hardware.workspace import CAPTURE_FOLDERS, Workspace
+from reflab.core.workspace import CAPTURE_FOLDERS, Workspace
 
 
 class Sources:
@@ -50,7 +50,7 @@ class Sources:
         """The linear image at ``rel`` as float (H, W, 3), None when absent or unreadable."""
         import numpy as np
 
-        from hardware.images import read_image
+        from reflab.core.images import read_image
 
         path = self.path(rel)
         if path not in self._images:
@@ -74,7 +74,7 @@ class Sources:
             self._images[path] = None
             if path.is_file():
                 try:
-                    from hardware.images import read_exr
+                    from reflab.core.images import read_exr
 
                     img = read_exr(path, np.float64)
                     if img.shape[2] < 3 or np.isinf(img).any():
@@ -110,7 +110,7 @@ class Sources:
 
     def truth(self, name: str) -> dict | None:
         """The JSON file of truth/ that :class:`Workspace` calls ``name`` (``camera``, ``lights``, ``scene``;
-        INTERFACES.md, "The simulated lab's truth"), None when there is none."""
+        docs/formats.md, "The simulated lab's truth"), None when there is none."""
         return self.json(self.rel(getattr(Workspace(self.ws.truth), name)))
 
     def truth_materials(self) -> tuple[dict[str, dict], str]:

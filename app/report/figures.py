@@ -42,8 +42,8 @@ def thumb(rgb8: np.ndarray, width: int = 360, height: int = 200) -> str:
 
 
 def display(img: np.ndarray, exposure: float | None = None) -> np.ndarray:
-    """8-bit sRGB of a linear image (hardware.images.to_display; exposure: the 99.5th percentile at 1 by default)."""
-    from hardware.images import to_display
+    """8-bit sRGB of a linear image (reflab.core.images.to_display; exposure: the 99.5th percentile at 1 by default)."""
+    from reflab.core.images import to_display
 
     return to_display(np.asarray(img, dtype=np.float64), exposure)
 

@@ -5,7 +5,7 @@ Run from the repository root: .venv/bin/python docs/figures/calibration_bias.py
 import sys; sys.path.insert(0,'tests')
 import numpy as np, cv2
 from test_calibration_camera import synthetic_views, POINTS, calibrate
-from hardware.workspace import atomic_path
+from reflab.core.workspace import atomic_path
 rows=[]
 for radius in (0.0035, 0.0050, 0.0065):
     obs, _ = synthetic_views(8, seed=2, noise_rms=0.0, radius=radius, distance=0.2, max_tilt=55.0)

@@ -1,7 +1,7 @@
 """F-TBO against NF-TBO: error against run time on the homogeneous simulated lab (docs/fit.md).
 
 The image is the forward model's rendering of the true materials plus Gaussian noise of 1% of the
-peak (seed 0), depth 3; both methods start from METHOD.md §3's initial values. Writes the numbers
+peak (seed 0), depth 3; both methods start from docs/method.md §3's initial values. Writes the numbers
 (every trace point) to a JSON file after each fit, and draws RMS against time with cv2.
 
     .venv/bin/python docs/figures/fit_benchmark.py [--sizes 160x120,320x240,640x480]
@@ -23,14 +23,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 def run(sizes, nftbo_seconds, path: Path) -> dict:
     """Fit every size with both methods; the JSON is rewritten after each fit."""
-    from hardware.sim.lab import build_lab
-    from hardware.workspace import write_json
-    from inverse.factorization import Factorization
-    from inverse.fitting import fit
-    from inverse.models import get_model
-    from inverse.rendering import render
-    from inverse.trees import build_trees
-    from reconstruction.scene import Material
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.core.workspace import write_json
+    from reflab.inverse.forward.factorization import Factorization
+    from reflab.inverse.fit.rounds import fit
+    from reflab.inverse.forward.models import get_model
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+    from reflab.reconstruction.scene import Material
 
     out = json.loads(path.read_text()) if path.exists() else {}
     for width, height in sizes:
@@ -58,7 +58,7 @@ def plot(data: dict, png: Path) -> None:
     """RMS (mean of bands, log scale) against seconds (log scale), one curve per size and method."""
     import cv2
 
-    from hardware.workspace import atomic_path
+    from reflab.core.workspace import atomic_path
 
     W, H, left, right, top, bottom = 900, 560, 80, 220, 30, 60
     img = np.full((H, W, 3), 255, np.uint8)

@@ -1,6 +1,6 @@
 """Is the fit's σ honest? Errors over noise realisations on the textured scenes of docs/fit.md.
 
-For each scene of :mod:`hardware.sim.scenes` (photograph by the independent reference renderer,
+For each scene of :mod:`reflab.hardware.sim.scenes` (photograph by the independent reference renderer,
 rendered once), ``--realisations`` noisy copies (Gaussian, ``--noise`` of the peak, seeds 0..N−1;
 with ``--vary-texture`` each on its own texture realisation, photographed anew) are fitted as ``reflab fit`` does (F-TBO, then the texture rounds; the user knows brdf, ior and
 that a lambert surface does not mirror); every determined parameter's error over its σ is pooled
@@ -10,7 +10,7 @@ bar), the worst |error|/σ, and how often each parameter was reported undetermin
 
     python docs/figures/fit_calibration.py --size 80x60 --realisations 20 --noise 0.01 [--vary-texture] [--json out.json]
     python docs/figures/fit_calibration.py --size 160x120 --realisations 1 --noise 0 --verbose   # one fit per scene
-    python docs/figures/fit_calibration.py --scenes more ...   # the further designs (hardware.sim.scenes.MORE)
+    python docs/figures/fit_calibration.py --scenes more ...   # the further designs (reflab.hardware.sim.scenes.MORE)
 """
 from __future__ import annotations
 
@@ -25,17 +25,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from hardware.sim.scenes import MORE, NAMES, build, determined, render, user_materials  # noqa: E402
-from inverse.factorization import Factorization  # noqa: E402
-from inverse.fitting import fit  # noqa: E402
-from inverse.models import get_model  # noqa: E402
-from inverse.texture_fit import fit_with_texture  # noqa: E402
-from inverse.trees import build_trees  # noqa: E402
-from reconstruction.scene import Scene, Surface  # noqa: E402
+from reflab.hardware.sim.scenes import MORE, NAMES, build, determined, render, user_materials  # noqa: E402
+from reflab.inverse.forward.factorization import Factorization  # noqa: E402
+from reflab.inverse.fit.rounds import fit  # noqa: E402
+from reflab.inverse.forward.models import get_model  # noqa: E402
+from reflab.inverse.fit.texture_aware import fit_with_texture  # noqa: E402
+from reflab.inverse.forward.trees import build_trees  # noqa: E402
+from reflab.reconstruction.scene import Scene, Surface  # noqa: E402
 
 
 def rows(res, fac, truth, user):
-    """Determined (as :func:`hardware.sim.scenes.determined`) and the names of the others."""
+    """Determined (as :func:`reflab.hardware.sim.scenes.determined`) and the names of the others."""
     det = determined(res, fac, truth, user)
     lay, free = fac.layout, res.free
     fitted = [(user.names[s], f"{n}[{c}]") for k, (s, n) in enumerate(lay.x_names) for c in range(3)
@@ -55,7 +55,7 @@ def main(argv=None):
     ap.add_argument("--json")
     ap.add_argument("--verbose", action="store_true", help="print every determined parameter of every fit")
     ap.add_argument("--vary-texture", action="store_true",
-                    help="realisation k also draws another texture (hardware.sim.scenes.build's texture_seed=k)")
+                    help="realisation k also draws another texture (reflab.hardware.sim.scenes.build's texture_seed=k)")
     args = ap.parse_args(argv)
     W, H = (int(v) for v in args.size.split("x"))
     report, pooled = {}, []

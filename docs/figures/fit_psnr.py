@@ -8,11 +8,11 @@ lamps, and a novel view (:mod:`texture_psnr_reference`'s), compared with the ref
 image of the true scene over the pixels whose albedo is known in both. The issue asks the fitted
 model within 3 dB of the true-material one (goal 1 dB).
 
-The textured scenes of our own (:mod:`hardware.sim.scenes`) are measured the same way
+The textured scenes of our own (:mod:`reflab.hardware.sim.scenes`) are measured the same way
 (``--scene``): their novel view turns the input camera 40° about its target and rises 8 cm.
 
 Usage: ``python docs/figures/fit_psnr.py [WIDTH HEIGHT] [--scene lab|shiny_box|floor_mirror|curved|glass_block|all]
-[--noise 0.01] [--texture-seed K]``; ``--scene more`` measures :data:`hardware.sim.scenes.MORE`.
+[--noise 0.01] [--texture-seed K]``; ``--scene more`` measures :data:`reflab.hardware.sim.scenes.MORE`.
 (default 320 240, the lab).
 """
 import argparse
@@ -27,19 +27,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from texture_psnr_reference import RELIGHT, novel_camera, psnr  # noqa: E402
 
-from app.cli import main  # noqa: E402
-from calibration.camera import Camera  # noqa: E402
-from calibration.lights import Lights  # noqa: E402
-from hardware.images import write_image  # noqa: E402
-from hardware.sim.lab import build_lab, write_lab  # noqa: E402
-from hardware.sim.reference import render_reference  # noqa: E402
-from hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
-from inverse.stages import render_workspace  # noqa: E402
+from reflab.app.cli import main  # noqa: E402
+from reflab.calibration.camera import Camera  # noqa: E402
+from reflab.calibration.lights import Lights  # noqa: E402
+from reflab.core.images import write_image  # noqa: E402
+from reflab.hardware.sim.lab import build_lab, write_lab  # noqa: E402
+from reflab.hardware.sim.reference import render_reference  # noqa: E402
+from reflab.hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
+from reflab.inverse.stages import render_workspace  # noqa: E402
 
 
 def turned(camera: Camera, target, degrees: float = 40.0, rise: float = 0.08) -> Camera:
     """``camera`` moved round ``target`` by ``degrees`` about the vertical and raised by ``rise``."""
-    from calibration.rotations import axis_rotation
+    from reflab.calibration.rotations import axis_rotation
 
     eye = axis_rotation((0.0, 0.0, 1.0), degrees) @ (camera.center - target) + target + [0.0, 0.0, rise]
     fov = np.degrees(2 * np.arctan(camera.width / 2 / camera.K[0, 0]))
@@ -94,7 +94,7 @@ if __name__ == "__main__":
     ap.add_argument("--scene", default="lab",
                     help="lab, one of " + ", ".join(NAMES + MORE) + ", all (the lab and " + ", ".join(NAMES) + ") or more (" + ", ".join(MORE) + ")")
     ap.add_argument("--noise", type=float, default=0.0, help="Gaussian noise on the photograph, fraction of its peak")
-    ap.add_argument("--texture-seed", type=int, help="another realisation of our scenes' textures (hardware.sim.scenes.build)")
+    ap.add_argument("--texture-seed", type=int, help="another realisation of our scenes' textures (reflab.hardware.sim.scenes.build)")
     args = ap.parse_args()
     w, h = args.size
     for scene in {"all": ("lab",) + NAMES, "more": MORE}.get(args.scene, (args.scene,)):

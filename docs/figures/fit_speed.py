@@ -9,7 +9,7 @@ matte ground's r = 0) with the truth in truth.json:
   glossy cube, one lamp moved; reference renderer, Gaussian noise of 0.5% of the peak (seed 0);
 - ``six-textured``: the same scene with the lab's textures on ground, box and tile.
 
-Each fit is `python -m app.cli fit WORKSPACE` in a fresh process with the trees cache emptied, so
+Each fit is `python -m reflab.app.cli fit WORKSPACE` in a fresh process with the trees cache emptied, so
 the wall time counts imports, trees, factorization and fit; the CPU time (user + system of that
 process) is the figure to compare on a shared machine. Errors against truth.json over the
 parameters the fit determines: the largest absolute error of kd, r, t and of ks (any band) and
@@ -43,9 +43,9 @@ SCENES = ("demo", "six", "six-textured")
 
 def build_scene(name: str, width: int, height: int):
     """(SimLab, noise σ as a fraction of the peak) of one benchmark scene."""
-    from calibration.lights import Lights, PointLight
-    from hardware.sim.lab import SimLab, _material, _rot_z, box_mesh, build_lab
-    from reconstruction.scene import Scene, Surface
+    from reflab.calibration.lights import Lights, PointLight
+    from reflab.hardware.sim.lab import SimLab, _material, _rot_z, box_mesh, build_lab
+    from reflab.reconstruction.scene import Scene, Surface
 
     if name == "demo":
         return build_lab(width, height), 0.0
@@ -69,9 +69,9 @@ def build_scene(name: str, width: int, height: int):
 
 def write_workspace(root: Path, name: str, width: int, height: int) -> float:
     """Write the scene's workspace with its photograph; returns the image's RMS."""
-    from hardware.images import write_image
-    from hardware.sim.lab import write_lab
-    from hardware.sim.reference import render_reference
+    from reflab.core.images import write_image
+    from reflab.hardware.sim.lab import write_lab
+    from reflab.hardware.sim.reference import render_reference
 
     lab, noise = build_scene(name, width, height)
     write_lab(root, lab, materials=False)
@@ -114,7 +114,7 @@ def run_fit(ws: Path, *args) -> tuple[float, float, dict, str]:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "app.cli", "fit", str(ws), *args], cwd=REPO, env=env,
+    proc = subprocess.run([sys.executable, "-m", "reflab.app.cli", "fit", str(ws), *args], cwd=REPO, env=env,
                           capture_output=True, text=True)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -2,7 +2,7 @@
 
     QT_QPA_PLATFORM=offscreen .venv/bin/python docs/figures/gui_screenshots.py WORKSPACE [OUTDIR (default docs/img)]
 
-Drives ``app.gui.MainWindow`` through the whole acquisition on the simulated lab at 480x360, each
+Drives ``reflab.app.gui.MainWindow`` through the whole acquisition on the simulated lab at 480x360, each
 step by its Run button, from an empty WORKSPACE; no truth is handed to any stage. The one thing
 not done through the window is the corner marking, which the simulated user
 (hardware/sim/user.py) writes into marks.json as the sweep page would. Writes gui-<step>.png
@@ -36,10 +36,10 @@ def wait(signal, timeout_s: float = 900.0) -> tuple:
 
 
 def main(ws: Path, out: Path) -> None:
-    from app.gui import MainWindow
-    from hardware.sim.lab import build_lab
-    from hardware.sim.user import mark_sweep
-    from hardware.workspace import Workspace, read_json
+    from reflab.app.gui import MainWindow
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.hardware.sim.user import mark_sweep
+    from reflab.core.workspace import Workspace, read_json
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
     window = MainWindow(ws, "sim", "sim", size=SIZE, live_preview_ms=0)

@@ -3,8 +3,8 @@
     .venv/bin/python docs/figures/reconstruction_simlab.py WORKDIR [--size 480x360] [--grain 0.2]
                                                            [--ground turning|fixed] [--free-poses]
 
-1. Renders the sweep as `reflab capture sweep --camera sim` does (``hardware.sim.lab.build_lab`` +
-   ``hardware.cameras.lab_renderer``, depth 3, turntable axis through (0, 0)), with the lab's
+1. Renders the sweep as `reflab capture sweep --camera sim` does (``reflab.hardware.sim.lab.build_lab`` +
+   ``reflab.hardware.cameras.lab_renderer``, depth 3, turntable axis through (0, 0)), with the lab's
    textures carrying a fine print grain (``build_lab(grain=0.2)``; ``--grain 0`` is the plain lab), into
    ``WORKDIR/captures/turntable`` with its manifest (skipped when the manifest is there).
    ``--ground turning`` puts the lab's ground (the A4 sheet and the table around it) on the
@@ -29,14 +29,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from app.cli import main  # noqa: E402
-from hardware.sim.camera import lab_renderer, rotate_about_z  # noqa: E402
-from hardware.images import write_image  # noqa: E402
-from hardware.sim.lab import build_lab  # noqa: E402
-from hardware.sim.user import surface_marks  # noqa: E402
-from hardware.workspace import read_json, write_json  # noqa: E402
-from reconstruction import surfaces as surf  # noqa: E402
-from reconstruction.scene import Scene  # noqa: E402
+from reflab.app.cli import main  # noqa: E402
+from reflab.hardware.sim.camera import lab_renderer, rotate_about_z  # noqa: E402
+from reflab.core.images import write_image  # noqa: E402
+from reflab.hardware.sim.lab import build_lab  # noqa: E402
+from reflab.hardware.sim.user import surface_marks  # noqa: E402
+from reflab.core.workspace import read_json, write_json  # noqa: E402
+from reflab.reconstruction import surfaces as surf  # noqa: E402
+from reflab.reconstruction.scene import Scene  # noqa: E402
 
 N_SHOTS = 36
 MARKED = ("mirror", "sheet")  # surfaces from marked corners (hardware/sim/user.py)

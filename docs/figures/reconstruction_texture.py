@@ -8,7 +8,7 @@ here by the reference renderer (depth 3) from the lab with ``--grain`` (default 
 lab, whose textures the texture stage resolves at this size; the 2-8 mm grain that SfM needed
 is finer than a texel and would dominate the error with any geometry). Each reconstructed surface gets the true material and ``textured`` flag of
 the lab surface it lies nearest to (RMS distance of its area samples); then the trees of the input
-view are built (``inverse.trees.build_trees``, depth 3) and ``inverse.texture.recover_texture``
+view are built (``reflab.inverse.forward.trees.build_trees``, depth 3) and ``reflab.inverse.texture.solve.recover_texture``
 runs with the default options. The same is done on the lab's true geometry for comparison.
 
 Every texel centre on a textured surface is compared with the lab's true albedo at the nearest
@@ -32,13 +32,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from hardware.sim.reference import render_reference  # noqa: E402
-from hardware.sim.lab import build_lab  # noqa: E402
-from hardware.workspace import read_json, write_json  # noqa: E402
-from inverse.texture import recover_texture  # noqa: E402
-from inverse.trees import build_trees  # noqa: E402
-from reconstruction import surfaces as surf  # noqa: E402
-from reconstruction.scene import Scene, Surface  # noqa: E402
+from reflab.hardware.sim.reference import render_reference  # noqa: E402
+from reflab.hardware.sim.lab import build_lab  # noqa: E402
+from reflab.core.workspace import read_json, write_json  # noqa: E402
+from reflab.inverse.texture.solve import recover_texture  # noqa: E402
+from reflab.inverse.forward.trees import build_trees  # noqa: E402
+from reflab.reconstruction import surfaces as surf  # noqa: E402
+from reflab.reconstruction.scene import Scene, Surface  # noqa: E402
 
 EDGE_TEXELS = 2.0
 

@@ -15,8 +15,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from hardware.images import read_image, write_preview  # noqa: E402
-from hardware.workspace import read_json  # noqa: E402
+from reflab.core.images import read_image, write_preview  # noqa: E402
+from reflab.core.workspace import read_json  # noqa: E402
 
 
 def _dot(img: np.ndarray, uv, colour, r: int = 2) -> None:

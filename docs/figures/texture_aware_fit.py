@@ -12,7 +12,7 @@ lab's truth:
 - ``alternate``: the same with the texture that `reflab texture` recovered from the homogeneous
   fit's parameters (pixels whose nodes have no known albedo left out): one round of alternation;
 - ``exclude``: the homogeneous fit, then four of `reflab fit`'s texture rounds
-  (:func:`inverse.texture_fit.fit_with_texture`: the texture from the pixels where directly seen
+  (:func:`reflab.inverse.fit.texture_aware.fit_with_texture`: the texture from the pixels where directly seen
   texture carries at least 90 % of the model's light, texels left unknown at their surface's mean);
 - ``criterion``: the texture stage's residual RMS and per-surface texel-gradient energy with
   every parameter true but one (the ground's r, the box's ns) swept;
@@ -32,18 +32,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from calibration.camera import Camera  # noqa: E402
-from calibration.lights import Lights  # noqa: E402
-from hardware.images import read_image  # noqa: E402
-from hardware.sim.lab import build_lab  # noqa: E402
-from hardware.workspace import Workspace  # noqa: E402
-from inverse.factorization import Factorization  # noqa: E402
-from inverse.fitting import fit, saturated_pixels  # noqa: E402
-from inverse.models import get_model  # noqa: E402
-from inverse.rendering import render  # noqa: E402
-from inverse.texture import TextureOptions, albedo_nodes, load_materials, recover_texture, sample_texture  # noqa: E402
-from inverse.trees import build_trees  # noqa: E402
-from reconstruction.scene import Scene  # noqa: E402
+from reflab.calibration.camera import Camera  # noqa: E402
+from reflab.calibration.lights import Lights  # noqa: E402
+from reflab.core.images import read_image  # noqa: E402
+from reflab.hardware.sim.lab import build_lab  # noqa: E402
+from reflab.core.workspace import Workspace  # noqa: E402
+from reflab.inverse.forward.factorization import Factorization  # noqa: E402
+from reflab.inverse.fit.rounds import fit, saturated_pixels  # noqa: E402
+from reflab.inverse.forward.models import get_model  # noqa: E402
+from reflab.inverse.forward.rendering import render  # noqa: E402
+from reflab.inverse.texture.solve import SolverOptions, albedo_nodes, load_materials, recover_texture, sample_texture  # noqa: E402
+from reflab.inverse.forward.trees import build_trees  # noqa: E402
+from reflab.reconstruction.scene import Scene  # noqa: E402
 
 SHOWN = ("ks", "ns", "r", "t")
 
@@ -86,8 +86,8 @@ def alternate(ctx):
 
 
 def exclude(ctx, rounds=4):
-    """The homogeneous fit, then ``rounds`` of :func:`inverse.texture_fit.fit_with_texture`."""
-    from inverse.texture_fit import fit_with_texture
+    """The homogeneous fit, then ``rounds`` of :func:`reflab.inverse.fit.texture_aware.fit_with_texture`."""
+    from reflab.inverse.fit.texture_aware import fit_with_texture
 
     scene, trees, lab, image = ctx["scene"], ctx["trees"], ctx["lab"], ctx["image"]
     models = [get_model(x.material.brdf) for x in scene]
@@ -109,7 +109,7 @@ def criterion(ctx):
         for v in values:
             mats = [copy.deepcopy(m) for m in ctx["truth"]]
             mats[s].params[name] = np.full_like(np.asarray(mats[s][name], dtype=float), v)
-            res = recover_texture(scene, trees, mats, lab.lights.intensities, image, TextureOptions())
+            res = recover_texture(scene, trees, mats, lab.lights.intensities, image, SolverOptions())
             energy = {}
             for t, m in res.mask.items():
                 kd, g = res.kd[t], 0.0
@@ -129,7 +129,7 @@ def scan(ctx):
 
     def objective(materials):
         count[0] += 1
-        res = recover_texture(scene, trees, materials, lab.lights.intensities, image, TextureOptions())
+        res = recover_texture(scene, trees, materials, lab.lights.intensities, image, SolverOptions())
         kd = np.empty((len(trees.pixel), 3))
         for s in range(len(scene)):
             sel = np.nonzero(trees.surface == s)[0]

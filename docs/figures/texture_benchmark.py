@@ -19,11 +19,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import scipy.sparse.csgraph  # noqa: E402,F401 -- import time is not the stage's
-from calibration.camera import Camera  # noqa: E402
-from hardware.sim.lab import build_lab  # noqa: E402
-from inverse.rendering import render  # noqa: E402
-from inverse.texture import TextureOptions, recover_texture, sample_texture  # noqa: E402
-from inverse.trees import build_trees  # noqa: E402
+from reflab.calibration.camera import Camera  # noqa: E402
+from reflab.hardware.sim.lab import build_lab  # noqa: E402
+from reflab.inverse.forward.rendering import render  # noqa: E402
+from reflab.inverse.texture.solve import SolverOptions, recover_texture, sample_texture  # noqa: E402
+from reflab.inverse.forward.trees import build_trees  # noqa: E402
 
 #: Outward normal of the box's back face (the lab turns the box 12° about z).
 BACK = np.array([-np.sin(np.radians(12.0)), np.cos(np.radians(12.0)), 0.0])
@@ -51,7 +51,7 @@ def main(width: int, height: int, repeats: int) -> None:
     runs = []
     for _ in range(repeats):
         load = os.getloadavg()[0]
-        result = recover_texture(lab.scene, trees, materials, lab.lights.intensities, image, TextureOptions())
+        result = recover_texture(lab.scene, trees, materials, lab.lights.intensities, image, SolverOptions())
         runs.append((result.stats["total_s"], load, result.stats))
     best = min(runs, key=lambda r: r[0])
     st = best[2]

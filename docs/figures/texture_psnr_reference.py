@@ -24,14 +24,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from app.cli import main  # noqa: E402
-from inverse.stages import render_workspace  # noqa: E402
-from calibration.camera import Camera  # noqa: E402
-from calibration.lights import Lights, PointLight  # noqa: E402
-from hardware.images import write_image  # noqa: E402
-from hardware.sim.reference import render_reference  # noqa: E402
-from hardware.sim.lab import build_lab, write_lab  # noqa: E402
-from inverse.rendering import render  # noqa: E402
+from reflab.app.cli import main  # noqa: E402
+from reflab.inverse.stages import render_workspace  # noqa: E402
+from reflab.calibration.camera import Camera  # noqa: E402
+from reflab.calibration.lights import Lights, PointLight  # noqa: E402
+from reflab.core.images import write_image  # noqa: E402
+from reflab.hardware.sim.reference import render_reference  # noqa: E402
+from reflab.hardware.sim.lab import build_lab, write_lab  # noqa: E402
+from reflab.inverse.forward.rendering import render  # noqa: E402
 
 #: Two lamps unlike the capture's: one above the camera, one bluish behind the mirror's right.
 RELIGHT = Lights([PointLight([0.0, -0.1, 0.5], [0.5, 0.5, 0.5]), PointLight([0.3, 0.4, 0.3], [0.1, 0.15, 0.3])])

@@ -2,10 +2,10 @@
 (the demo workspace) instead of the truth: input view, textured pixels."""
 import numpy as np, subprocess, sys
 from pathlib import Path
-from app.cli import main
-from hardware.sim.lab import build_lab
-from inverse.trees import build_trees
-from hardware.images import read_exr
+from reflab.app.cli import main
+from reflab.hardware.sim.lab import build_lab
+from reflab.inverse.forward.trees import build_trees
+from reflab.core.images import read_exr
 ws = Path(sys.argv[1] if len(sys.argv) > 1 else 'demo-workspace')  # made by `make demo` (320x240)
 assert main(["render", str(ws), "--aov", "albedo", "-o", "/tmp/alb.exr"]) == 0
 alb = read_exr('/tmp/alb.exr')[:, :, :3].reshape(-1, 3)

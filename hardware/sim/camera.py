@@ -36,7 +36,7 @@ class SimulatedCamera:
 
     def prepare(self, shot) -> None:
         """Told by the capture session what the next shot is for (its plan role): the simulated
-        user puts the props that role needs in front of the camera (hardware.sim.props)."""
+        user puts the props that role needs in front of the camera (reflab.hardware.sim.props)."""
         self.role = getattr(shot, "role", None) or None
 
     def capture(self, exposure: float | None = None) -> np.ndarray:
@@ -57,7 +57,7 @@ class SimulatedCamera:
 
 def rotate_about_z(points: np.ndarray, degrees: float, centre) -> np.ndarray:
     """Points (N, 3) turned by ``degrees`` (counter-clockwise seen from +z) about the vertical axis through ``centre``."""
-    from calibration.rotations import axis_rotation
+    from reflab.calibration.rotations import axis_rotation
 
     R = axis_rotation((0.0, 0.0, 1.0), degrees)
     c = np.array([centre[0], centre[1], 0.0], dtype=np.float64)
@@ -65,13 +65,13 @@ def rotate_about_z(points: np.ndarray, degrees: float, centre) -> np.ndarray:
 
 
 def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), props=None, supersample: int = 4):
-    """A ``render(angle, lamps, role=None)`` for :class:`SimulatedCamera` from a :class:`hardware.sim.lab.SimLab`.
+    """A ``render(angle, lamps, role=None)`` for :class:`SimulatedCamera` from a :class:`reflab.hardware.sim.lab.SimLab`.
 
     The surfaces not named in ``fixed`` stand on the turntable: their meshes and textures turn
     with it about the vertical axis through ``centre`` (x, y in metres). Lamps that are off are
     left out; with every lamp off the image is black.
 
-    ``props`` (a :class:`hardware.sim.props.LabProps`): a shot whose ``role`` needs a prop (the
+    ``props`` (a :class:`reflab.hardware.sim.props.LabProps`): a shot whose ``role`` needs a prop (the
     circle target for "target flat"/"target on wedge", the rod for "lamp K") shows the fixed
     surfaces and that prop only (the objects are not on the table while the camera and lamps are
     calibrated), with ray depth 1. The target's shots are rendered at ``supersample`` times the
@@ -80,9 +80,9 @@ def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), p
     0.21 %, at 480x360), 4 x 4 rays bring it to 0.01 px (focal 0.015 %, sigma 0.03 %). The rod's
     shots keep one ray per pixel (4 x 4 took 80 s at 480x360 and moved no lamp closer).
     """
-    from calibration.lights import Lights
-    from hardware.sim.reference import render_reference
-    from reconstruction.scene import Mesh, Scene, Surface
+    from reflab.calibration.lights import Lights
+    from reflab.hardware.sim.reference import render_reference
+    from reflab.reconstruction.scene import Mesh, Scene, Surface
 
     unknown = set(fixed) - set(lab.scene.names)
     if unknown:
@@ -90,7 +90,7 @@ def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), p
     turning = [s.name not in fixed for s in lab.scene]
 
     def render_props(angle: float, on, role: str):
-        from hardware.sim.props import prop_surfaces
+        from reflab.hardware.sim.props import prop_surfaces
 
         shown = prop_surfaces(props, role, angle, centre)
         still = [i for i, s in enumerate(lab.scene) if not turning[i]]
@@ -106,7 +106,7 @@ def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), p
         k = int(supersample) if role.startswith("target") else 1
         cam = lab.camera.scaled(k * lab.camera.width, k * lab.camera.height)
         if role.startswith("lamp") or role == "room light":  # the room light stays on: a dim lamp at the camera
-            from calibration.lights import PointLight
+            from reflab.calibration.lights import PointLight
 
             on = on + [PointLight(lab.camera.center + [0.0, 0.0, 0.02], np.full(3, props.room_light))]
         fine = render_reference(Scene(surfaces), cam, Lights(on), 1, albedo)

@@ -1,6 +1,6 @@
-"""The simulated lab: a virtual copy of the dissertation's table-top set (METHOD.md §5).
+"""The simulated lab: a virtual copy of the dissertation's table-top set (docs/method.md §5).
 
-World frame of INTERFACES.md (metres, ground z = 0, +z up). The camera looks down at about 45°
+World frame of docs/formats.md (metres, ground z = 0, +z up). The camera looks down at about 45°
 from about 0.6 m, toward +y. Five surfaces, in scene order:
 
 0. ``ground``: a table top with an A4 sheet of printed paper in its centre (one textured lambert
@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.rotations import axis_rotation
-from calibration.lights import Lights, PointLight
-from hardware.workspace import write_json
-from reconstruction.scene import Material, Mesh, Scene, Surface
+from reflab.calibration.camera import Camera
+from reflab.calibration.rotations import axis_rotation
+from reflab.calibration.lights import Lights, PointLight
+from reflab.core.workspace import write_json
+from reflab.reconstruction.scene import Material, Mesh, Scene, Surface
 
 #: Full resolution of the simulated camera (the dissertation's 640x480).
 FULL_SIZE = (640, 480)
@@ -54,8 +54,8 @@ def _rot_x(deg: float) -> np.ndarray:
 
 def box_mesh(size, center, rotation=None) -> Mesh:
     """A closed box of edge lengths ``size`` centred at ``center``, turned by ``rotation``
-    (box-to-world, identity when omitted): :func:`reconstruction.surfaces.box_mesh`."""
-    from reconstruction.surfaces import box_mesh as box
+    (box-to-world, identity when omitted): :func:`reflab.reconstruction.surfaces.box_mesh`."""
+    from reflab.reconstruction.surfaces import box_mesh as box
 
     return box(center, np.eye(3) if rotation is None else rotation, size)
 

@@ -1,13 +1,13 @@
 """Simulated calibration captures: a printed circle target and rod shadows, rendered with Mitsuba 3.
 
-The truth is an OpenCV camera (:class:`calibration.camera.Camera`, distortion included). Mitsuba
+The truth is an OpenCV camera (:class:`reflab.calibration.camera.Camera`, distortion included). Mitsuba
 renders an undistorted pinhole image with a wider field of view and finer pixels; ``cv2.remap``
 then samples it at the undistorted position of every output pixel, so the returned image is
 exactly what the distorted OpenCV camera sees (up to the bilinear resampling of the fine render).
 
-World frame as in INTERFACES.md: metres, the ground/target plane is z = 0, +z up toward the
+World frame as in docs/formats.md: metres, the ground/target plane is z = 0, +z up toward the
 camera. Circle (column i, row j) of the target is at ``(i * spacing, -j * spacing, 0)``, the
-order :func:`calibration.circles.detect_grid` returns (row by row, rows top to bottom).
+order :func:`reflab.calibration.circles.detect_grid` returns (row by row, rows top to bottom).
 """
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.rotations import axis_rotation, look_rotation
-from calibration.target import target_points  # noqa: F401  (re-exported for the twin's users)
+from reflab.calibration.camera import Camera
+from reflab.calibration.rotations import axis_rotation, look_rotation
+from reflab.calibration.target import target_points  # noqa: F401  (re-exported for the twin's users)
 
 
 def target_texture(cols: int, rows: int, spacing: float, radius: float, texels_per_m: float = 8000.0):
@@ -48,7 +48,7 @@ def target_texture(cols: int, rows: int, spacing: float, radius: float, texels_p
 
 def _rectangle(extent, z=0.0):
     """Mitsuba ``to_world`` of a rectangle covering ``extent`` at height z (normal +z)."""
-    from hardware.mitsuba_env import mitsuba
+    from reflab.core.mitsuba_env import mitsuba
 
     mi = mitsuba()
     xmin, xmax, ymin, ymax = extent
@@ -81,7 +81,7 @@ def render_views(cameras: list[Camera], objects: dict, spp: int = 16, oversample
     """:func:`render_view` for several poses of one camera (same intrinsics): the scene loads once."""
     import cv2
 
-    from hardware.mitsuba_env import mitsuba
+    from reflab.core.mitsuba_env import mitsuba
 
     mi = mitsuba()
     camera = cameras[0]
@@ -132,7 +132,7 @@ def render_targets(cameras: list[Camera], cols: int, rows: int, spacing: float, 
     The sheet is self-emitting (radiance = its reflectance), so the images have no lighting noise,
     over a uniform grey table of radiance ``background``; Gaussian sensor noise of std ``noise``.
     """
-    from hardware.mitsuba_env import mitsuba
+    from reflab.core.mitsuba_env import mitsuba
 
     mi = mitsuba()
     tex, extent = target_texture(cols, rows, spacing, radius)
@@ -208,7 +208,7 @@ def render_rod(camera: Camera, rod: RodScene, *, intensity: float = 0.3, ambient
     The ambient term (``ambient`` times each surface's reflectance, Mitsuba's albedo AOV) stands for
     the room's light: it keeps the rod's unlit side and the shadow distinguishable by colour.
     """
-    from hardware.mitsuba_env import mitsuba
+    from reflab.core.mitsuba_env import mitsuba
 
     mi = mitsuba()
     foot = np.asarray(rod.foot, dtype=np.float64)
@@ -245,7 +245,7 @@ def render_lit_ground(camera: Camera, lamp: np.ndarray, intensity, reflectance: 
 
 # ---------------------------------------------------------------- props in the simulated lab
 # What the simulated user puts on the table for the calibration shots, rendered by the reference
-# renderer together with the lab's ground (hardware.sim.camera.lab_renderer). The lab's objects
+# renderer together with the lab's ground (reflab.hardware.sim.camera.lab_renderer). The lab's objects
 # are not on the table then: the camera and the lamps are calibrated on the empty table, before
 # the scene is set up (docs/simulated-lab.md, "The procedure").
 
@@ -254,7 +254,7 @@ class LabProps:
     """The printed target, the wedge it is tilted on, and the rod, as the simulated user has them.
 
     The target's first circle lies at the world origin in the flat (reference) shot, rows along
-    +x, columns toward -y (:func:`calibration.target.target_points`); on the wedge it is centred on
+    +x, columns toward -y (:func:`reflab.calibration.target.target_points`); on the wedge it is centred on
     the turntable axis and tilted by ``wedge_deg`` toward the camera at angle 0. The rod stands
     on the turntable ``rod_offset`` from its axis.
     """
@@ -318,14 +318,14 @@ def target_albedo(props: LabProps, R: np.ndarray, c: np.ndarray, paper: float = 
 
 
 def _quad(corners: np.ndarray):
-    from reconstruction.scene import Mesh
+    from reflab.reconstruction.scene import Mesh
 
     return Mesh(corners, [[0, 1, 2], [0, 2, 3]])
 
 
 def _wedge(sheet: np.ndarray):
     """A closed wedge under a tilted sheet (corners 0, 1 its high edge, 3, 2 its low edge), 1 mm below it."""
-    from reconstruction.scene import Mesh
+    from reflab.reconstruction.scene import Mesh
 
     H = sheet[[0, 1]] - [0.0, 0.0, 1e-3]
     ground = lambda p: p * [1.0, 1.0, 0.0]  # noqa: E731
@@ -336,7 +336,7 @@ def _wedge(sheet: np.ndarray):
 
 def _prism(foot, height: float, radius: float, sides: int = 24):
     """A closed vertical n-sided prism (the rod) standing on ``foot``."""
-    from reconstruction.scene import Mesh
+    from reflab.reconstruction.scene import Mesh
 
     a = 2 * np.pi * np.arange(sides) / sides
     ring = np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(sides)], axis=1) + np.asarray(foot, float)
@@ -353,11 +353,11 @@ def _prism(foot, height: float, radius: float, sides: int = 24):
 def prop_surfaces(props: LabProps, role: str, angle: float, centre=(0.0, 0.0)):
     """The props a shot of ``role`` shows: a list of (Surface, albedo function or None).
 
-    Roles (hardware.capture's plans): "target flat" and "target on wedge" (calibration shots),
+    Roles (reflab.hardware.capture's plans): "target flat" and "target on wedge" (calibration shots),
     "lamp K" and "room light" (rod-shadow shots: the rod on the turntable and the grey card on the
     table); any other role shows no prop.
     """
-    from reconstruction.scene import Material, Surface
+    from reflab.reconstruction.scene import Material, Surface
 
     lambert = lambda kd: Material("lambert", {"kd": np.asarray(kd, float), "r": np.zeros(3), "t": np.zeros(3)}, None)  # noqa: E731
     out = []

@@ -1,6 +1,6 @@
 """An independent reference renderer of the image-formation model, on Mitsuba 3's ray casting.
 
-It renders exactly INTERFACES.md's "scene.json" model (METHOD.md §1): at a node on surface s
+It renders exactly docs/formats.md's "scene.json" model (docs/method.md §1): at a node on surface s
 
     B = Σ_k V_k (I_k / d_k²) g_s(n, l_k, v) · x_s  +  r_s F B_refl  +  t_s (1 − F) B_refr
 
@@ -9,7 +9,7 @@ with ``ior`` null = opaque (F = 1, no refracted branch), shadow rays blocked by 
 the scene, one ray per pixel through the undistorted pixel centre.
 
 It shares no code with ``inverse/`` (its own wavefront Whitted loop, shading, Fresnel and Snell)
-so that agreeing with the forward model of ``inverse.trees`` / ``inverse.rendering`` means
+so that agreeing with the forward model of ``reflab.inverse.forward.trees`` / ``reflab.inverse.forward.rendering`` means
 something: Mitsuba (Embree) finds the hits, numpy shades them in float64. Which medium a ray
 travels in is tracked along the path (it starts in air at the camera), so refraction does not
 depend on how a closed mesh's triangles are oriented.
@@ -20,9 +20,9 @@ import time
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.lights import Lights
-from reconstruction.scene import Scene
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights
+from reflab.reconstruction.scene import Scene
 
 #: Offset (metres) of secondary and shadow ray origins off the surface, against self-hits.
 EPS = 1e-5
@@ -31,7 +31,7 @@ MODELS = ("phong", "lambert", "ward", "oren-nayar")
 
 
 def fresnel(cos_i: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unpolarised Fresnel reflectance of a dielectric interface (METHOD.md eq. 2.3).
+    """Unpolarised Fresnel reflectance of a dielectric interface (docs/method.md eq. 2.3).
 
     Parameters
     ----------
@@ -66,7 +66,7 @@ class _Caster:
     """Mitsuba scene with one mesh shape per surface; hits come back as numpy arrays."""
 
     def __init__(self, scene: Scene):
-        from hardware.mitsuba_env import mitsuba
+        from reflab.core.mitsuba_env import mitsuba
 
         self.mi = mi = mitsuba()
         self.shapes, self.face_normals, self.smooth, self.vertices, self.triangles = [], [], [], [], []
@@ -89,7 +89,7 @@ class _Caster:
             self.vertices.append(m.vertices)
             self.triangles.append(m.triangles)
             self.smooth.append(has_n)
-        # optimize=False keeps one shape per surface (NOTES.md: shapes with equal BSDFs merge).
+        # optimize=False keeps one shape per surface (Mitsuba merges shapes whose BSDFs are equal).
         self.scene = mi.load_dict({"type": "scene", **shapes}, optimize=False)
 
     def _ray(self, o, d, tmax=None):
@@ -138,7 +138,7 @@ class _Caster:
 def _shade(material, kd: np.ndarray, n: np.ndarray, v: np.ndarray, l: np.ndarray) -> np.ndarray:
     """``g · x`` of the surface's model for one light (lit side only): (N, 3) per unit irradiance.
 
-    Written from the models' textbook definitions with explicit angles, not from inverse/models.py.
+    Written from the models' textbook definitions with explicit angles, not from inverse/forward/models.py.
     """
     cos_l = np.clip(np.sum(n * l, axis=1), 0.0, 1.0)
     cos_v = np.clip(np.sum(n * v, axis=1), 1e-6, 1.0)
@@ -176,7 +176,7 @@ def render_reference(scene: Scene, camera: Camera, lights: Lights, depth: int = 
     camera : Camera
     lights : Lights
     depth : int
-        Maximum number of internal nodes on a path (METHOD.md's D), >= 1.
+        Maximum number of internal nodes on a path (docs/method.md's D), >= 1.
     albedo : callable, optional
         ``albedo(surface_index, points (N, 3)) -> (N, 3)``: per-point ``kd`` (a texture); the
         materials' ``kd`` when omitted.

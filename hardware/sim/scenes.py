@@ -1,7 +1,7 @@
 """Textured test scenes for the fit, other than the demo lab (docs/fit.md, "Textured scenes").
 
-Each is built from :mod:`reconstruction.scene` types with a known per-point albedo, for the
-independent renderer (:func:`hardware.sim.reference.render_reference`):
+Each is built from :mod:`reflab.reconstruction.scene` types with a known per-point albedo, for the
+independent renderer (:func:`reflab.hardware.sim.reference.render_reference`):
 
 - ``shiny_box``: a shiny textured box (phong, ks 0.3, ns 40) on a plain matte ground, two lamps
   whose highlights fall on its top at different places;
@@ -22,7 +22,7 @@ textured box on a glossy textured floor), ``tile_mirror`` (a glossy textured til
 and in a mirror), ``glossy_floor_mirror`` (a glossy textured floor seen directly and in a
 mirror) — those two, a textured lobe whose texels are seen twice — and ``print_can`` (curved's
 can printed in full colour, each band its own pattern: no colour set for
-:mod:`inverse.dichromatic`, its lobe seen once).
+:mod:`reflab.inverse.fit.dichromatic`, its lobe seen once).
 
 Every other texture is two inks (:func:`_pattern`): its colours on a line in RGB.
 
@@ -33,10 +33,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.camera import Camera
-from calibration.lights import Lights, PointLight
-from hardware.sim.lab import SimLab, _material, _rot_x, _rot_z, box_mesh, plane_mesh
-from reconstruction.scene import Material, Mesh, Scene, Surface
+from reflab.calibration.camera import Camera
+from reflab.calibration.lights import Lights, PointLight
+from reflab.hardware.sim.lab import SimLab, _material, _rot_x, _rot_z, box_mesh, plane_mesh
+from reflab.reconstruction.scene import Material, Mesh, Scene, Surface
 
 NAMES = ("shiny_box", "floor_mirror", "curved", "glass_block")
 MORE = ("ward_tile", "near_lamp", "oren_mirror", "sheet_flat", "high_ns", "two_textured", "tile_mirror",
@@ -269,7 +269,7 @@ def build(name: str, width: int = 160, height: int = 120, texture_seed: int | No
 
 def render(ts: SimLab, depth: int = 3) -> np.ndarray:
     """The photograph of ``ts`` by the independent reference renderer (noise-free, float64)."""
-    from hardware.sim.reference import render_reference
+    from reflab.hardware.sim.reference import render_reference
 
     return render_reference(ts.scene, ts.camera, ts.lights, depth=depth, albedo=ts.albedo)
 
@@ -282,10 +282,10 @@ def user_materials(scene: Scene) -> list:
 
 
 def determined(result, fac, truth: list, scene: Scene) -> list:
-    """(surface, name, fitted, true, σ) of every parameter ``result`` (a FitResult) fitted and did
+    """(surface, name, fitted, true, σ) of every parameter ``result`` (a FitSolution) fitted and did
     not report undetermined; a textured surface's kd (its texture's mean) is left to the texture
     stage. ``fac``: the scene's Factorization, ``truth``: the true materials."""
-    from inverse.fitting import params_of
+    from reflab.inverse.fit.rounds import params_of
 
     p, t, sig, free, lay = result.params, params_of(fac, truth), result.sigma, result.free, fac.layout
     out = []

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.sim.camera import rotate_about_z
-from hardware.workspace import read_json, write_json
+from reflab.hardware.sim.camera import rotate_about_z
+from reflab.core.workspace import read_json, write_json
 
 #: Marked surfaces: name -> (known thickness along the box's own y, what the user knows).
 MARKED = {"mirror": (0.006, {"mirror": True}), "sheet": (0.003, {"ior": 1.46})}
@@ -36,7 +36,7 @@ def surface_marks(lab, shots: list[tuple[str, float]], *, centre=(0.0, 0.0), noi
 
     Parameters
     ----------
-    lab : hardware.sim.lab.SimLab
+    lab : reflab.hardware.sim.lab.SimLab
     shots : list of (image name relative to the workspace, turntable angle in degrees)
     """
     rng = np.random.default_rng(seed)

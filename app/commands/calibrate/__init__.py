@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 
-from app.commands.calibrate import camera, lights
+from reflab.app.commands.calibrate import camera, lights
 
 HELP = "calibrate the camera (circle target, Tsai) or the lamps (rod shadows)"
 
@@ -29,11 +29,11 @@ def run(args) -> int:
     try:
         return camera.run(args) if args.what == "camera" else lights.run(args)
     except ValueError as exc:  # CalibrationError and argument problems; WorkspaceError goes to the CLI
-        from hardware.workspace import WorkspaceError
+        from reflab.core.workspace import WorkspaceError
 
         if isinstance(exc, WorkspaceError):
             raise
-        from app.commands._args import error_text
+        from reflab.app.commands._args import error_text
 
         print(f"reflab calibrate {args.what}: error: {error_text(exc)}", file=sys.stderr)
         return 2

@@ -24,7 +24,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from calibration.stages import CameraOptions, calibrate_camera
+    from reflab.calibration.stages import CameraOptions, calibrate_camera
 
     r = calibrate_camera(CameraOptions(args.workspace, args.grid, args.spacing, args.images, args.radius,
                                        args.reference, args.pixel_size, not args.no_bias_correction))

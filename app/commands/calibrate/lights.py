@@ -30,7 +30,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from calibration.stages import LightsOptions, calibrate_lights
+    from reflab.calibration.stages import LightsOptions, calibrate_lights
 
     r = calibrate_lights(LightsOptions(args.workspace, args.images, args.rod_height, args.marks, args.light,
                                        args.mark_sigma, args.intensity, args.sheet, args.sheet_reflectance,

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 from PySide6.QtWidgets import QCheckBox, QHBoxLayout, QLineEdit, QTableWidget, QVBoxLayout, QWidget
 
-from app.gui.pages.page import StepPage, draw_segments, read_image, spin, table
-from app.gui.widgets import ImageView, text_label
-from hardware.workspace import read_json
+from reflab.app.gui.pages.page import StepPage, draw_segments, read_image, spin, table
+from reflab.app.gui.widgets import ImageView, text_label
+from reflab.core.workspace import read_json
 
 
 class CameraPage(StepPage):
@@ -69,7 +69,7 @@ class CameraPage(StepPage):
         views, residuals = self.calibration.get("views", []), self.calibration.get("residuals_px") or []
         if not 0 <= row < len(views) or len(residuals) != len(views) or not Path(views[row]["image"]).exists():
             return
-        from hardware.images import to_display
+        from reflab.core.images import to_display
 
         img = to_display(read_image(views[row]["image"])).copy()
         a = np.asarray(residuals[row], float).reshape(-1, 4)

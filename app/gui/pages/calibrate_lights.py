@@ -8,9 +8,9 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QHBoxLayout, QLabel, QLineEdit, QListWidget, QListWidgetItem, QRadioButton,
                                QVBoxLayout, QWidget)
 
-from app.gui import stages
-from app.gui.pages.page import StepPage, fmt, mark_editor, read_image, spin, table
-from hardware.workspace import read_json
+from reflab.app.gui import stages
+from reflab.app.gui.pages.page import StepPage, fmt, mark_editor, read_image, spin, table
+from reflab.core.workspace import read_json
 
 
 class LightsPage(StepPage):

@@ -4,8 +4,8 @@ from __future__ import annotations
 from PySide6.QtWidgets import (QCheckBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QVBoxLayout,
                                QWidget)
 
-from app.gui.pages.page import StepPage, spin
-from app.gui.widgets import text_label
+from reflab.app.gui.pages.page import StepPage, spin
+from reflab.app.gui.widgets import text_label
 
 
 class DevicesPage(StepPage):

@@ -5,9 +5,9 @@ import numpy as np
 from PySide6.QtGui import QColor
 from PySide6.QtWidgets import QLabel, QVBoxLayout, QWidget
 
-from app.gui.pages.page import StepPage, fmt, spin, table
-from app.gui.widgets import Curve, text_label
-from hardware.workspace import read_json
+from reflab.app.gui.pages.page import StepPage, fmt, spin, table
+from reflab.app.gui.widgets import Curve, text_label
+from reflab.core.workspace import read_json
 
 
 class FitPage(StepPage):

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QCheckBox, QVBoxLayout, QWidget
 
-from app.gui.pages.page import StepPage, read_image, spin
-from app.gui.widgets import ImageView, text_label
+from reflab.app.gui.pages.page import StepPage, read_image, spin
+from reflab.app.gui.widgets import ImageView, text_label
 
 
 class InputPage(StepPage):
@@ -26,7 +26,7 @@ class InputPage(StepPage):
         self.tab(w, "Input photograph")
 
     def refresh(self):
-        from hardware.images import clip_level
+        from reflab.core.images import clip_level
 
         path = self.ws.input_image
         if not path.exists():

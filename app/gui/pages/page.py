@@ -11,10 +11,10 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
                                QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QTabWidget,
                                QVBoxLayout, QWidget)
 
-from app.gui import stages
-from app.gui.sketch import SKETCHED, RigSketch
-from app.gui.widgets import ImageView, text_label
-from hardware.workspace import Workspace
+from reflab.app.gui import stages
+from reflab.app.gui.sketch import SKETCHED, RigSketch
+from reflab.app.gui.widgets import ImageView, text_label
+from reflab.core.workspace import Workspace
 
 
 def table(name: str, headers: list[str], rows: list[list], bad: set | None = None) -> QTableWidget:
@@ -45,8 +45,8 @@ def fmt(value, digits: int = 3) -> str:
 
 
 def read_image(path):
-    """:func:`hardware.images.read_image`, imported when a page first shows an image."""
-    from hardware import images
+    """:func:`reflab.core.images.read_image`, imported when a page first shows an image."""
+    from reflab.core import images
 
     return images.read_image(path)
 

@@ -9,10 +9,10 @@ from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QGroupBox, QHBoxLayout, QLineEdit, QListWidget,
                                QPushButton, QVBoxLayout, QWidget)
 
-from app.gui import stages
-from app.gui.pages.page import StepPage, draw_segments, read_image, spin
-from app.gui.widgets import ImageView, text_label
-from hardware.workspace import read_json
+from reflab.app.gui import stages
+from reflab.app.gui.pages.page import StepPage, draw_segments, read_image, spin
+from reflab.app.gui.widgets import ImageView, text_label
+from reflab.core.workspace import read_json
 
 #: What a user can say about a surface (reconstruction/marks.py's plain words).
 POINT_KINDS = ["matte (paper, wood)", "glossy, textured", "glossy, one colour", "mirror", "transparent"]
@@ -113,8 +113,8 @@ class ReconstructPage(StepPage):
 
     def _overlay(self, sfm):
         """The input view (or the first shot) with the sparse points and the surfaces' edges drawn over it."""
-        from calibration.camera import Camera
-        from reconstruction.scene import Scene
+        from reflab.calibration.camera import Camera
+        from reflab.reconstruction.scene import Scene
 
         ws = self.ws
         if not ws.camera.exists():
@@ -126,7 +126,7 @@ class ReconstructPage(StepPage):
         if base is None or not Path(base).exists():
             return
         cam = Camera.load(ws.camera)
-        from hardware.images import to_display
+        from reflab.core.images import to_display
 
         img = to_display(read_image(base)).copy()
         h, w = img.shape[:2]
@@ -146,7 +146,7 @@ class ReconstructPage(StepPage):
 
 
 def _read_ply_points(path) -> np.ndarray:
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     return np.asarray(o3d.io.read_point_cloud(str(path)).points)

@@ -8,9 +8,9 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QFormLayout, QGridLayout, QGroupBox, QHBoxLayout, QPushButton, QSlider, QVBoxLayout,
                                QWidget)
 
-from app.gui.pages.page import StepPage, read_image
-from app.gui.widgets import ImageView, text_label
-from hardware.workspace import Workspace
+from reflab.app.gui.pages.page import StepPage, read_image
+from reflab.app.gui.widgets import ImageView, text_label
+from reflab.core.workspace import Workspace
 
 
 class ResultsPage(StepPage):
@@ -116,7 +116,7 @@ def orbit(camera, azimuth: float, elevation: float):
     degrees about the vertical, then raised ``elevation`` degrees; same intrinsics, no roll added."""
     from dataclasses import replace
 
-    from calibration.rotations import axis_rotation
+    from reflab.calibration.rotations import axis_rotation
 
     eye, axis = camera.center, camera.R[2]
     target = eye + axis * (eye[2] / max(-axis[2], 1e-6))  # the optical axis meets z = 0
@@ -132,9 +132,9 @@ def novel_view(workspace, azimuth: float, elevation: float, dims) -> tuple:
     intensity scaled by ``dims``."""
     import tempfile
 
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from inverse.stages import render_workspace
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights
+    from reflab.inverse.stages import render_workspace
 
     ws = Workspace(workspace)
     cam = orbit(Camera.load(ws.require(ws.camera, "the Calibrate the camera step")), azimuth, elevation)

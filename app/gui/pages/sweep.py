@@ -5,9 +5,9 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QHBoxLayout, QLabel, QListWidget, QListWidgetItem,
                                QVBoxLayout, QWidget)
 
-from app.gui import stages
-from app.gui.pages.page import StepPage, mark_editor, read_image, spin
-from app.gui.widgets import text_label
+from reflab.app.gui import stages
+from reflab.app.gui.pages.page import StepPage, mark_editor, read_image, spin
+from reflab.app.gui.widgets import text_label
 
 
 CORNERS = [(x, y, z) for z in (1, -1) for y in (-1, 1) for x in (-1, 1)]

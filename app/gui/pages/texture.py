@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QGridLayout, QGroupBox, QLabel, QVBoxLayout, QWidget
 
-from app.gui.pages.page import StepPage, read_image
-from app.gui.widgets import ImageView, text_label
+from reflab.app.gui.pages.page import StepPage, read_image
+from reflab.app.gui.widgets import ImageView, text_label
 
 
 class TexturePage(StepPage):

@@ -5,10 +5,10 @@ import math
 
 import numpy as np
 
-from app.report import figures as F
-from app.report.data import Sources, as_dict, as_list
-from app.report.sections.fit import method_name
-from app.report.sections.section import Section, floats
+from reflab.app.report import figures as F
+from reflab.app.report.data import Sources, as_dict, as_list
+from reflab.app.report.sections.fit import method_name
+from reflab.app.report.sections.section import Section, floats
 
 
 def error_section(src: Sources) -> Section | None:

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.report import figures as F
-from app.report.data import Sources, as_dict, as_list
-from app.report.sections.section import Section, floats, num, pm
+from reflab.app.report import figures as F
+from reflab.app.report.data import Sources, as_dict, as_list
+from reflab.app.report.sections.section import Section, floats, num, pm
 
 
 #: fit.json's method, as the docs name it.
@@ -131,7 +131,7 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     if photo is None or photo.shape != img.shape:
         sec.images([(F.thumb(F.display(img), 480, 360), "re-rendered model")])
         return
-    from inverse.fitting import DIAG_FLOOR, DIAG_SIGMAS
+    from reflab.inverse.fit.rounds import DIAG_FLOOR, DIAG_SIGMAS
 
     exposure = 1.0 / max(float(np.percentile(photo, 99.5)), 1e-12)
     diff = np.abs(img - photo).max(axis=2)

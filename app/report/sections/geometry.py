@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.report import figures as F
-from app.report.data import Sources, as_dict, as_list
-from app.report.sections.camera import pose_centre
-from app.report.sections.section import Section, floats, mm, num
+from reflab.app.report import figures as F
+from reflab.app.report.data import Sources, as_dict, as_list
+from reflab.app.report.sections.camera import pose_centre
+from reflab.app.report.sections.section import Section, floats, mm, num
 
 
 def _meshes(src: Sources, scene_obj: dict, base) -> dict:
     """name -> Mesh for each surface of a scene.json object whose mesh loads (base: folder of the file)."""
-    from reconstruction.scene import Mesh
+    from reflab.reconstruction.scene import Mesh
 
     out = {}
     for s in as_list(scene_obj.get("surfaces")):
@@ -31,7 +31,7 @@ def _sparse_points(src: Sources) -> np.ndarray | None:
     if not path.is_file():
         return None
     try:
-        from hardware.open3d_env import open3d
+        from reflab.core.open3d_env import open3d
         o3d = open3d()
 
         return np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
@@ -115,7 +115,7 @@ def geometry_section(src: Sources) -> Section | None:
 def _surface_residuals(meshes: dict, points) -> dict:
     if points is None or not len(points) or not meshes:
         return {}
-    from reconstruction.surfaces import distance_to_mesh
+    from reflab.reconstruction.surfaces import distance_to_mesh
 
     names = list(meshes)
     dist = np.stack([distance_to_mesh(meshes[n], points) for n in names])
@@ -136,7 +136,7 @@ def _placement_error(mesh, true_mesh):
     the recovered surface's distance to it counts. Measured on vertices and face centres."""
     if mesh is None or true_mesh is None:
         return None
-    from reconstruction.surfaces import distance_to_mesh
+    from reflab.reconstruction.surfaces import distance_to_mesh
 
     def samples(m):
         return np.concatenate([m.vertices, m.vertices[m.triangles].mean(axis=1)])

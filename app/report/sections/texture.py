@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.report import figures as F
-from app.report.data import Sources, as_dict, as_list
-from app.report.sections.section import Section, num
+from reflab.app.report import figures as F
+from reflab.app.report.data import Sources, as_dict, as_list
+from reflab.app.report.sections.section import Section, num
 
 
 def texture_section(src: Sources, model: dict | None = None, albedo: dict | None = None) -> Section | None:

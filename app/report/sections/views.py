@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 
-from app.report import figures as F
-from app.report.data import Sources
-from app.report.sections.section import Section, num
+from reflab.app.report import figures as F
+from reflab.app.report.data import Sources
+from reflab.app.report.sections.section import Section, num
 
 
 def psnr(image: np.ndarray, truth: np.ndarray, known: np.ndarray | None = None) -> float:

@@ -4,7 +4,7 @@ Every textured surface gets a 2D texel grid (an *atlas*). A point on the surface
 continuous texel coordinates ``(col, row)`` (texel centres at integers) through the triangle it
 lies on: each triangle corner carries texel coordinates (``tri_uv``), the point's barycentric
 coordinates interpolate them, and the albedo at the point is the bilinear blend of the four
-surrounding texels (METHOD.md §4; the dissertation's novel views use bilinear texture too).
+surrounding texels (docs/method.md §4; the dissertation's novel views use bilinear texture too).
 
 Two kinds of map:
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError
+from reflab.core.workspace import WorkspaceError
 
 #: Gutter around each chart, in texels (≥ 1 keeps bilinear footprints inside their chart).
 PAD = 2
@@ -184,7 +184,7 @@ def locate(vertices: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> t
     Open3D's closest-point query (float32) picks the triangle; the barycentric coordinates are
     recomputed in float64 and clamped to the triangle.
     """
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -325,7 +325,7 @@ def _planar_tri_uv(vertices, triangles, charts, texel_size, path="", where="") -
 
 def _uvatlas(vertices, triangles, texel_size) -> tuple[np.ndarray, int, float]:
     """Open3D UV atlas sized so that a texel is about ``texel_size``: (tri_uv, side, texel_size)."""
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
     v = vertices[triangles]

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from inverse.factorization import BANDS
-from inverse.problem import Params, Problem
+from reflab.inverse.forward.factorization import BANDS
+from reflab.inverse.fit.problem import Params, Problem
 
 
 #: The diagnosis flags a pixel whose residual exceeds this many image-noise σ plus DIAG_FLOOR of the peak.
@@ -23,7 +23,7 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple
     """Does the fitted model explain the image? A safety net for a wrong basin or a bad scene.
 
     A pixel is *unexplained* when its residual in some band exceeds :data:`DIAG_SIGMAS` times the
-    noise σ estimated from the image itself (:func:`inverse.photograph.image_noise`) plus :data:`DIAG_FLOOR` of the
+    noise σ estimated from the image itself (:func:`reflab.inverse.fit.photograph.image_noise`) plus :data:`DIAG_FLOOR` of the
     peak, plus — on textured surfaces — the diffuse radiance that their homogeneous ``kd`` predicts
     there (albedo variation is the texture stage's job, not a misfit). With Gaussian noise no pixel
     gets there; a highlight left in the wrong place, a missing reflection or wrong geometry does.
@@ -46,7 +46,7 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple
     -------
     status : {"ok", "poor fit", "texture pending"}
         "texture pending" instead of "poor fit" when some surface is textured: its albedo may vary
-        by more than the allowance, so only ``reflab texture`` can tell. :func:`inverse.fitting.fit` turns "ok"
+        by more than the allowance, so only ``reflab texture`` can tell. :func:`reflab.inverse.fit.rounds.fit` turns "ok"
         into "not converged" when a method stopped at its cap.
     warnings : list of str
         Plain-language diagnosis (empty when ``status == "ok"``).

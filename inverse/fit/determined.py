@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from inverse.factorization import BANDS, Factorization
-from inverse.problem import SCAN_POINTS, Free, Params, Problem, materials_of
-from inverse.trees import derived
-from inverse.uncertainty import profiled, row_jacobian
+from reflab.inverse.forward.factorization import BANDS, Factorization
+from reflab.inverse.fit.problem import SCAN_POINTS, Free, Params, Problem, materials_of
+from reflab.inverse.forward.trees import derived
+from reflab.inverse.fit.uncertainty import profiled, row_jacobian
 
 
 #: A parameter whose one-sigma exceeds this fraction of its scale (its value or initial value for
@@ -36,7 +36,7 @@ ABSORB_SHARE = 0.02
 def structural_free(pb: Problem, p: Params) -> Free:
     """Parameters with signal in their columns (exact zeros left out).
 
-    Signal counts at the initial θ or anywhere on the global scan's grid (:mod:`inverse.ftbo`): a start
+    Signal counts at the initial θ or anywhere on the global scan's grid (:mod:`reflab.inverse.fit.ftbo`): a start
     at ns = 2^14 hides every highlight that a broader lobe would show.
     """
     fac, lay, srch = pb.fac, pb.fac.layout, pb.search
@@ -212,11 +212,11 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tupl
     So only pixels without free texture tell a specular term from albedo. Which points are seen
     directly: cells of twice the mean spacing of the surface's directly seen nodes. The second
     mask, with no texture pinned, is for a textured surface's own lobe, whose pinning view carries
-    the same lobe (:func:`inverse.fitting.fit`).
+    the same lobe (:func:`reflab.inverse.fit.rounds.fit`).
     """
     if textured is None or not any(textured):
         return np.zeros(fac.n_rows, dtype=bool), np.zeros(fac.n_rows, dtype=bool)
-    from inverse.rendering import node_radiance
+    from reflab.inverse.forward.rendering import node_radiance
 
     tr = fac.trees
     light = np.abs(node_radiance(tr, materials_of(fac, p, materials), fac._args[0]))
@@ -263,7 +263,7 @@ def texel_groups(tr, textured) -> np.ndarray:
 
 
 def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed=None):
-    """``extra`` for :func:`inverse.uncertainty.sigmas`: what pixels of textured surfaces seen
+    """``extra`` for :func:`reflab.inverse.fit.uncertainty.sigmas`: what pixels of textured surfaces seen
     twice (directly and in a mirror or through glass) say with each texel's albedo free; None
     when no texel is seen twice. ``lobed`` (default ``textured``): the surfaces whose texels are
     grouped, those whose own lobe is judged (a lambert ground seen in a mirror has none: its
@@ -271,13 +271,13 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
 
     A texel seen once is explained by its own albedo whatever the lobe; seen twice, at two angles,
     its two pixels must share one albedo, and the lobe's (or the reflection's) part shows in how
-    they differ (:func:`inverse.uncertainty.profiled`). Only pixels ``anywhere`` marks (the others
+    they differ (:func:`reflab.inverse.fit.uncertainty.profiled`). Only pixels ``anywhere`` marks (the others
     already inform the σ fully) and with one textured node each; a texel with any other pixel
     counts not at all.
     """
     if textured is None or not any(textured):
         return None
-    from inverse.rendering import linear_basis, path_products
+    from reflab.inverse.forward.rendering import linear_basis, path_products
 
     fac = pb.fac
     tr = fac.trees

@@ -1,25 +1,25 @@
-"""Fit the non-Lambertian parameters from one image: F-TBO and NF-TBO (METHOD.md §3).
+"""Fit the non-Lambertian parameters from one image: F-TBO and NF-TBO (docs/method.md §3).
 
-Both minimise the same objective (:mod:`inverse.problem`) with bounds ``x ≥ 0`` and
-``r, t ∈ [0, 1]``: **F-TBO** (:mod:`inverse.ftbo`) optimises θ over the exact bounded linear
-solution; **NF-TBO** (:mod:`inverse.nftbo`) every parameter at once by conjugate gradient.
+Both minimise the same objective (:mod:`reflab.inverse.fit.problem`) with bounds ``x ≥ 0`` and
+``r, t ∈ [0, 1]``: **F-TBO** (:mod:`reflab.inverse.fit.ftbo`) optimises θ over the exact bounded linear
+solution; **NF-TBO** (:mod:`reflab.inverse.fit.nftbo`) every parameter at once by conjugate gradient.
 :func:`fit` runs either in rounds around them:
 
-- parameters the image does not determine (:mod:`inverse.determined`) — no signal in their
+- parameters the image does not determine (:mod:`reflab.inverse.fit.determined`) — no signal in their
   columns, or a one-sigma uncertainty larger than their scale — are kept at their initial value,
   out of the fit, and named in ``undetermined``; so are values the user gave (``held``);
-- the reported one-sigma uncertainties (:mod:`inverse.uncertainty`) hold when the model is
+- the reported one-sigma uncertainties (:mod:`reflab.inverse.fit.uncertainty`) hold when the model is
   imperfect: the larger of ``σ² (JᵀJ)⁻¹`` and a cluster-robust sandwich over image tiles, and on
   textured scenes from the pixels a free texture cannot explain; a fitted value whose σ spans its
   scale is reported undetermined too;
-- every value stays in its plausible range (:mod:`inverse.ranges`); outlier pixels are left out
-  and counted, and :func:`inverse.diagnosis.diagnose` says in words whether the fitted model
+- every value stays in its plausible range (:mod:`reflab.inverse.fit.ranges`); outlier pixels are left out
+  and counted, and :func:`reflab.inverse.fit.diagnosis.diagnose` says in words whether the fitted model
   explains the image (``status``, ``warnings``).
 
-The result and its fit.json are :mod:`inverse.fit_result`; the input photograph's checks and
-noise :mod:`inverse.photograph`. This module is the fit's front door: it also exports what its
+The result and its fit.json are :mod:`reflab.inverse.fit.result`; the input photograph's checks and
+noise :mod:`reflab.inverse.fit.photograph`. This module is the fit's front door: it also exports what its
 callers use from those modules (``__all__``). The stage on a workspace is
-:func:`inverse.fit_stage.fit_workspace`.
+:func:`reflab.inverse.fit.workspace_fit.fit_workspace`.
 """
 from __future__ import annotations
 
@@ -28,20 +28,20 @@ import time
 
 import numpy as np
 
-from hardware.task import Task, ensure
-from inverse.determined import (RESOLVE_THETA, hold, seen_twice, structural_free, texture_absorbed, texture_confounded,
+from reflab.core.task import Task, ensure
+from reflab.inverse.fit.determined import (RESOLVE_THETA, hold, seen_twice, structural_free, texture_absorbed, texture_confounded,
                                 theta_resolution, undetermined_names, unresolved)
-from inverse.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
-from inverse.factorization import Factorization, one_blas_thread
-from inverse.fit_result import FitResult, fit_json
-from inverse.ftbo import SEED_STOP_GAIN, STOP_GAIN, ftbo
-from inverse.nftbo import nftbo
-from inverse.photograph import check_image, saturated_pixels
-from inverse.problem import Free, Params, Problem, materials_of, params_of, trace_point
-from inverse.ranges import at_bound, clip
-from inverse.uncertainty import sigmas
+from reflab.inverse.fit.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
+from reflab.inverse.forward.factorization import Factorization, one_blas_thread
+from reflab.inverse.fit.result import FitSolution, fit_json
+from reflab.inverse.fit.ftbo import SEED_STOP_GAIN, STOP_GAIN, ftbo
+from reflab.inverse.fit.nftbo import nftbo
+from reflab.inverse.fit.photograph import check_image, saturated_pixels
+from reflab.inverse.fit.problem import Free, Params, Problem, materials_of, params_of, trace_point
+from reflab.inverse.fit.ranges import at_bound, clip
+from reflab.inverse.fit.uncertainty import sigmas
 
-__all__ = ["METHODS", "fit", "FitResult", "fit_json", "check_image", "saturated_pixels", "Params", "Free", "Problem",
+__all__ = ["METHODS", "fit", "FitSolution", "fit_json", "check_image", "saturated_pixels", "Params", "Free", "Problem",
            "params_of", "materials_of", "DIAG_FLOOR", "DIAG_SIGMAS"]
 
 
@@ -53,7 +53,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
         structure: Free | None = None, uncertainty: bool = True, guessed=None, still_held: Free | None = None,
-        colour=None) -> FitResult:
+        colour=None) -> FitSolution:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -63,7 +63,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     image : (H, W, 3) array_like
         Linear radiance (validated with :func:`check_image`).
     materials : list of Material
-        Initial values, one per surface (scene.json's, else METHOD.md §3's). Their ``ior`` says
+        Initial values, one per surface (scene.json's, else docs/method.md §3's). Their ``ior`` says
         which surfaces are transparent.
     method : {"ftbo", "nftbo"}
     max_rounds : int, optional
@@ -73,32 +73,32 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         Outer iteration cap (Levenberg–Marquardt for F-TBO, CG for NF-TBO).
     max_seconds : float, optional
         Wall-clock budget of the fit: the methods stop at their next iteration once it is spent
-        (``message`` = :data:`inverse.problem.BUDGET_MESSAGE`), and the uncertainties are computed where they stopped.
+        (``message`` = :data:`reflab.inverse.fit.problem.BUDGET_MESSAGE`), and the uncertainties are computed where they stopped.
     textured : list of bool, optional
         Per surface: its albedo varies (scene.json ``textured``), so the diagnosis
-        (:func:`inverse.diagnosis.diagnose`) excuses a residual up to its diffuse radiance. Default: none textured.
+        (:func:`reflab.inverse.fit.diagnosis.diagnose`) excuses a residual up to its diffuse radiance. Default: none textured.
     names : list of str, optional
         Surface names for the diagnosis' warnings (default ``surface 0``, …).
     scan : bool
         F-TBO's coarse global scan of each θ before the local search (off when ``materials``
         already start near the answer, e.g. a refit).
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Stepped once per outer iteration (raises ``Cancelled`` when cancelled); its deadline
         stops the methods like ``max_seconds``.
     held : list of set of str, optional
         Per surface, the parameter names the user gave (scene.json): held at their value, never
-        fitted (default: none; :func:`inverse.fit_stage.fit_workspace` passes every name not ``defaulted``).
+        fitted (default: none; :func:`reflab.inverse.fit.workspace_fit.fit_workspace` passes every name not ``defaulted``).
     guessed : list of set of str, optional
         Per surface, names held at a guessed value (a textured surface's grey lobe,
-        :func:`inverse.texture_fit.grey_lobes`): held and reported undetermined like ``held``, but
+        :func:`reflab.inverse.fit.texture_aware.grey_lobes`): held and reported undetermined like ``held``, but
         every σ counts them as free, so that the others' σ keeps the guess's uncertainty.
     reject : bool or int
-        Passes (True: :data:`inverse.diagnosis.REJECT_PASSES`) in which outlier pixels
-        (:func:`inverse.diagnosis.outliers`: residual beyond ``REJECT_SIGMAS`` image-noise σ,
+        Passes (True: :data:`reflab.inverse.fit.diagnosis.REJECT_PASSES`) in which outlier pixels
+        (:func:`reflab.inverse.fit.diagnosis.outliers`: residual beyond ``REJECT_SIGMAS`` image-noise σ,
         at most ``REJECT_SHARE`` of the used pixels) are left out and the fit repeated from
         where it stopped; ``stats["rejected"]`` counts and lists them.
     structure : Free, optional
-        Which parameters have signal, from an earlier fit of the same scene (``FitResult.structure``;
+        Which parameters have signal, from an earlier fit of the same scene (``FitSolution.structure``;
         a refit without outliers or against a texture): skips the structure test, nine full
         evaluations of the system.
     still_held : Free, optional
@@ -106,7 +106,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         held), held here from the start at the value ``materials`` gives; like the holding rounds'
         own, every σ counts them free.
     colour : dict, optional
-        Surface index → :class:`inverse.dichromatic.ColourLobe`: textured lobes estimated from the
+        Surface index → :class:`reflab.inverse.fit.dichromatic.ColourLobe`: textured lobes estimated from the
         texture's colours, held (in ``guessed``) at that estimate; their ks and θ get its σ, and
         are reported determined when it resolves them. Listed in ``stats["colour_lobes"]``.
     uncertainty : bool
@@ -117,7 +117,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
 
     Returns
     -------
-    FitResult
+    FitSolution
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -208,7 +208,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         # Outliers first: a refit follows, and this pass's σ and diagnosis would be thrown away.
         bad = outliers(pb, p, A, res, textured)
         if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
-            first = FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace, [],
+            first = FitSolution(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace, [],
                               rounds, pb.evaluations, iterations, message,
                               {"phases_s": dict(pb.phases), "scan_evaluations": pb.scan_evaluations}, found)
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
@@ -233,7 +233,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
                              nit, msg, fitted + spent, stats, sigma_free, grey, colour)
 
-        return FitResult(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
+        return FitSolution(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
                           "complete": complete}, found)
@@ -243,7 +243,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
 
 def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
               method, trace, rounds, iterations, message, fitted, stats, sigma_free: Free | None = None,
-              grey: Free | None = None, colour=None) -> FitResult:
+              grey: Free | None = None, colour=None) -> FitSolution:
     """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted.
 
     ``sigma_free``: what every σ counts free, ``free`` and the parameters held at a guess (by the
@@ -251,7 +251,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     with them around a value nobody knows. Default ``free``. ``grey``: those held at the mean of
     their bands' fitted values (``guessed``): reported determined when their σ resolves them, like
     a fitted value (a lobe one band-shared height, fitted the round before). ``colour``: lobes
-    estimated from the texture's colours (:mod:`inverse.dichromatic`), whose σ their ks and θ take.
+    estimated from the texture's colours (:mod:`reflab.inverse.fit.dichromatic`), whose σ their ks and θ take.
     """
     t0 = time.perf_counter()
     fac = pb.fac
@@ -321,13 +321,13 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         status = "not converged" if status == "ok" else status
     if colour:
         stats = {**stats, "colour_lobes": {(names[s] if names else f"surface {s}"): lobe.to_json() for s, lobe in colour.items()}}
-    return FitResult(method, p, fitted_free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,
+    return FitSolution(method, p, fitted_free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,
                      undetermined_names(fac, fitted_free, materials, loose), rounds, pb.evaluations, iterations, message,
                      {**stats, "status": status, "warnings": warnings, "phases_s": {k: round(v, 6) for k, v in phases.items()}},
                      found)
 
 
-def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, passes, **kw) -> FitResult:
+def _refit_without(first: FitSolution, fac: Factorization, image, bad, method, *, passes, **kw) -> FitSolution:
     """Fit again from ``first`` with the pixels ``bad`` left out; traces, counts and time add up."""
     again = fit(fac.without(bad), image, first.materials, method, scan=False, reject=passes - 1,
                 structure=first.structure, **kw)
@@ -337,7 +337,7 @@ def _refit_without(first: FitResult, fac: Factorization, image, bad, method, *, 
     return merged
 
 
-def _merged(first: FitResult, again: FitResult, width: int, bad) -> FitResult:
+def _merged(first: FitSolution, again: FitSolution, width: int, bad) -> FitSolution:
     """The refit ``again`` with ``first``'s trace, counts, time and phases added and its outliers listed."""
     pixels = [[int(i % width), int(i // width)] for i in bad] + again.stats["rejected"]["pixels"]
     rejected = {"count": len(pixels), "pixels": pixels, "threshold_sigmas": REJECT_SIGMAS}

@@ -14,7 +14,7 @@ it receives, so each term alone is at most 1:
   ns = 2, 4.5 at ns = 30, 37 at ns = 300 — a sharper lobe concentrates the same energy;
 - Ward ``ks`` (its ρ_s, already normalised) in [0, 1];
 - ``r``, ``t`` in [0, 1] (attenuations of ideal reflection and transmission);
-- θ in scene.json's ranges (:data:`reconstruction.scene.SCALAR_RANGE`): Ward α in [1e-4, 1],
+- θ in scene.json's ranges (:data:`reflab.reconstruction.scene.SCALAR_RANGE`): Ward α in [1e-4, 1],
   Oren–Nayar σ in [0, π/2]; ns in [2, 2^20] (:data:`FIT_RANGE`; scene.json accepts 1e-3, but a
   lobe broader than ns = 2 is as broad as diffuse light and only trades with kd).
 
@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruction.scene import SCALAR_RANGE
+from reflab.reconstruction.scene import SCALAR_RANGE
 
 #: Upper bound of kd, Ward ks, r and t.
 UNIT = 1.0
@@ -96,7 +96,7 @@ def theta_bounds(fac) -> tuple[np.ndarray, np.ndarray]:
 
 
 def clip(fac, p) -> bool:
-    """Project ``p`` (:class:`inverse.fitting.Params`) onto the ranges in place; True if it moved."""
+    """Project ``p`` (:class:`reflab.inverse.fit.rounds.Params`) onto the ranges in place; True if it moved."""
     lo, hi = theta_bounds(fac)
     theta = np.clip(np.where(np.isnan(p.theta), lo, p.theta), lo, hi)  # NaN: to the lower bound
     x = np.clip(np.nan_to_num(p.x, nan=0.0), 0.0, linear_upper(fac, theta)[:, None])

@@ -1,4 +1,4 @@
-"""Photometric factorization A(θ) y = b (METHOD.md §2, dissertation eq. 2.5–2.8).
+"""Photometric factorization A(θ) y = b (docs/method.md §2, dissertation eq. 2.5–2.8).
 
 Every tree node contributes ``fresnel · Π(path factors) · Σ_j a_j(θ) x_j`` to its pixel, where
 ``a_j(θ) = Σ_k V_k I_k / d_k² · g_j(θ; n, l_k, v)`` (per band through ``I_k``). Grouping the nodes
@@ -14,7 +14,7 @@ Only the monomials that occur in the scene are kept; the dissertation's dense ``
 The sparsity pattern (which pixel meets which column) is fixed by the trees; only the values
 depend on θ, so each evaluation is a weighted ``bincount`` into a stored CSR pattern.
 
-Nonlinear parameters are handled in the model's natural units here; :mod:`inverse.fitting`
+Nonlinear parameters are handled in the model's natural units here; :mod:`reflab.inverse.fit.rounds`
 maps them to its search space (log2 shininess).
 """
 from __future__ import annotations
@@ -128,7 +128,7 @@ class Factorization:
         Pixel-intensity trees (docs/architecture.md): ``pixel, surface, normal, view, fresnel,
         path, paths, light_dir, light_dist2, visible, width, height, depth``.
     models : list
-        One model per surface (``inverse.models.get_model(brdf)``): ``.linear`` and
+        One model per surface (``reflab.inverse.forward.models.get_model(brdf)``): ``.linear`` and
         ``.nonlinear`` name tuples, ``g(theta, n, l, v) -> (N, L)``, ``dg(...) -> (N, L, P)``.
     intensities : (K, 3) array_like
         Radiant intensity of each light per band.

@@ -1,14 +1,14 @@
-"""Diffuse texture recovery (METHOD.md §4, dissertation §2.3): the sparse system E z = b − Q.
+"""Diffuse texture recovery (docs/method.md §4, dissertation §2.3): the sparse system E z = b − Q.
 
 With every non-Lambertian parameter fixed, a tree node ``n`` on a textured surface adds
 ``P_n · basis_n[kd] · ρ(p_n)`` to its pixel (docs/architecture.md; ``P_n`` the product of r and t
 along its path, ``basis_n[kd]`` the Fresnel-weighted irradiance times the model's diffuse factor).
-``ρ(p)`` is the bilinear blend of four texels of the surface's atlas (:mod:`inverse.texels`), so
+``ρ(p)`` is the bilinear blend of four texels of the surface's atlas (:mod:`reflab.inverse.texture.texels`), so
 each pixel and band is one sparse row over the texels of every surface it sees, directly, in
 mirrors or through transparent sheets (eq. 2.13). ``Q`` is everything else the trees predict
 (specular lobes, untextured surfaces at their homogeneous ``kd``).
 
-Solving (NOTES.md, "Sparse least squares"; docs/texture.md): conjugate gradient on the normal
+Solving (docs/texture.md): conjugate gradient on the normal
 equations without forming them, Jacobi-scaled, warm started from each texel's ratio of observed to
 predicted radiance; it converges in 15–20 iterations where bounded solvers take minutes. The
 unknowns are split into the connected components of the system (scipy.sparse.csgraph) and
@@ -31,16 +31,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hardware.images import clip_level
-from hardware.workspace import Workspace, WorkspaceError, atomic_write, read_json, write_json
-from inverse.texels import TexelMap, build_texel_map, choose_texel_size, pixel_footprint
+from reflab.core.images import clip_level
+from reflab.core.workspace import Workspace, WorkspaceError, atomic_write, read_json, write_json
+from reflab.inverse.texture.texels import TexelMap, build_texel_map, choose_texel_size, pixel_footprint
 
 #: Flag bits of the per-texel diagnostics.
 AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
 
 
 @dataclass
-class TextureOptions:
+class SolverOptions:
     """Settings of the texture stage.
 
     Attributes
@@ -102,7 +102,7 @@ class TextureOptions:
 
 
 @dataclass
-class TextureResult:
+class TextureSolution:
     """Recovered textures, per textured surface index (arrays are atlas-shaped, (H, W, …)).
 
     ``kd`` holds the homogeneous value where ``mask`` is False; ``weight`` is the observation
@@ -133,7 +133,7 @@ def load_materials(workspace, scene) -> tuple[list, str]:
     source : str
         ``"fit.json"`` or ``"scene.json"``.
     """
-    from reconstruction.scene import Material
+    from reflab.reconstruction.scene import Material
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     materials = [s.material for s in scene]
@@ -190,7 +190,7 @@ def load_uncertainty(workspace, scene) -> Uncertainty:
     return Uncertainty(undetermined, sigma, np.asarray(noise, dtype=np.float64) / peak if ok else None)
 
 
-def build_maps(scene, trees, options: TextureOptions, crop: bool = False) -> dict[int, TexelMap]:
+def build_maps(scene, trees, options: SolverOptions, crop: bool = False) -> dict[int, TexelMap]:
     """A texel atlas for each textured surface that some node lies on, sized from its footprint.
 
     ``crop``: planar charts cover only what the trees' nodes span (a map that only these trees'
@@ -241,7 +241,7 @@ def _compress(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(used), (np.cumsum(used) - 1)[keys]
 
 
-def build_system(trees, materials, intensities, image, maps, options: TextureOptions, exclude=None) -> _System:
+def build_system(trees, materials, intensities, image, maps, options: SolverOptions, exclude=None) -> _System:
     """Assemble E, b − Q and the per-texel coverage / weight.
 
     ``exclude`` (H*W bool, optional): pixels left out of the system, as saturated ones are (but
@@ -252,7 +252,7 @@ def build_system(trees, materials, intensities, image, maps, options: TextureOpt
     """
     import scipy.sparse as sp
 
-    from inverse.rendering import linear_basis, node_radiance, path_products
+    from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
 
     npix = trees.width * trees.height
     img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
@@ -486,7 +486,7 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([label, label + len(sizes), label + 2 * len(sizes)]), np.tile(sizes, 3)
 
 
-def solve(system: _System, maps, options: TextureOptions, task=None, also=None) -> tuple[np.ndarray, dict]:
+def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -> tuple[np.ndarray, dict]:
     """Solve the bounded, regularised system by connected components; returns (z per column, stats).
 
     Minimises ``|E z − rhs|² + Σ w_j (z_j − kd_j)² + Σ μ_ab (z_a − z_b)²`` within the bounds by
@@ -495,7 +495,7 @@ def solve(system: _System, maps, options: TextureOptions, task=None, also=None) 
     + L p``. Jacobi scaling (unit diagonal), a warm start from each texel's ratio of observed to
     predicted radiance, per-component step sizes and stopping; then up to four active-set rounds
     (violators fixed at their bound, the rest re-solved warm) and a final projection. ``task``
-    (:class:`hardware.task.Task`, optional) is checked every CG iteration. ``also`` (per row,
+    (:class:`reflab.core.task.Task`, optional) is checked every CG iteration. ``also`` (per row,
     optional): a second right-hand side solved with the same setup, warm from the first's
     solution and to a 10x looser gradient (a perturbed photograph:
     :func:`recover_texture`'s ``perturb``); its solution is ``stats["also"]``.
@@ -585,15 +585,15 @@ def solve(system: _System, maps, options: TextureOptions, task=None, also=None) 
     return out, stats
 
 
-def recover_texture(scene, trees, materials, intensities, image, options: TextureOptions | None = None,
-                    exclude=None, guess=None, task=None, maps=None, perturb=None) -> TextureResult:
+def recover_texture(scene, trees, materials, intensities, image, options: SolverOptions | None = None,
+                    exclude=None, guess=None, task=None, maps=None, perturb=None) -> TextureSolution:
     """Recover the diffuse texture of every textured surface the trees reach.
 
     Parameters
     ----------
-    scene : reconstruction.scene.Scene
+    scene : reflab.reconstruction.scene.Scene
         Surfaces with meshes; ``textured`` says which get a texture.
-    trees : inverse.trees.Trees
+    trees : reflab.inverse.forward.trees.Trees
         Trees of the input camera and lights.
     materials : list of Material
         Fixed non-Lambertian parameters (and the homogeneous ``kd``), surface order.
@@ -601,28 +601,28 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
         Light intensities.
     image : (H, W, 3) array_like
         The linear input image (same size as the trees).
-    options : TextureOptions, optional
+    options : SolverOptions, optional
     exclude : (H, W) or (H*W,) bool array_like, optional
         Pixels to leave out (their texels are then known only from other pixels, or not at all).
     guess : (H, W) or (H*W,) bool array_like, optional
         Pixels whose light rests on parameters the fit left undetermined
-        (:func:`inverse.rendering.undetermined_pixels`): a texel that draws most of its weight from
+        (:func:`reflab.inverse.forward.rendering.undetermined_pixels`): a texel that draws most of its weight from
         them is a guess, flagged :data:`GUESSED` (kept: it is the best guess the fit allows).
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Progress and cancellation, checked every conjugate-gradient iteration.
     maps : dict, optional
         The texel maps of an earlier call with the same scene, trees and options
-        (``TextureResult.maps``), instead of building them again.
+        (``TextureSolution.maps``), instead of building them again.
     perturb : (H, W, 3) array_like, optional
         Added to the photograph for a second solve of the same system (noise, to see what the
-        texels make of it: :func:`inverse.texture_fit.deattenuated`); its texels are
-        ``TextureResult.perturbed``.
+        texels make of it: :func:`reflab.inverse.fit.texture_aware.deattenuated`); its texels are
+        ``TextureSolution.perturbed``.
 
     Returns
     -------
-    TextureResult
+    TextureSolution
     """
-    options = options or TextureOptions()
+    options = options or SolverOptions()
     options.validate()
     image = np.asarray(image, dtype=np.float64)
     if image.shape != (trees.height, trees.width, 3):
@@ -665,7 +665,7 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
     weight3, coverage3 = system.weight.reshape(3, total), system.coverage.reshape(3, total)
     full, clipped, saturated3 = full.reshape(3, total), clipped.reshape(3, total), system.saturated_touch.reshape(3, total)
 
-    result = TextureResult(maps, {}, {}, {}, {}, {}, {})
+    result = TextureSolution(maps, {}, {}, {}, {}, {}, {})
     column_texel = system.col_global % max(total, 1)
     for s, m in maps.items():
         off, n = system.offsets[s], m.n_texels
@@ -721,10 +721,10 @@ def recover_texture(scene, trees, materials, intensities, image, options: Textur
 
 
 # ---------------------------------------------------------------------- files
-def write_textures(workspace, scene, result: TextureResult, extra: dict | None = None) -> list:
+def write_textures(workspace, scene, result: TextureSolution, extra: dict | None = None) -> list:
     """Write textures/<surface>.exr, _mask.png, _diag.exr (and _uv.npy for UV atlases), then
     textures/index.json last, so the index never names a missing file. Returns the paths."""
-    from hardware.images import write_image
+    from reflab.core.images import write_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     written, entries = [], []
@@ -753,7 +753,7 @@ def write_textures(workspace, scene, result: TextureResult, extra: dict | None =
 
 def load_texture_maps(workspace, scene) -> dict[int, tuple[TexelMap, np.ndarray, np.ndarray]]:
     """Read textures/index.json: surface index -> (map, kd (H, W, 3), mask (H, W) bool)."""
-    from hardware.images import read_image
+    from reflab.core.images import read_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     path = ws.require(ws.texture_index, "reflab texture")
@@ -822,7 +822,7 @@ def albedo_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
 def guessed_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
     """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½);
     ``textures`` as for :func:`albedo_nodes`."""
-    from hardware.images import read_image
+    from reflab.core.images import read_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     out = np.zeros(len(trees), dtype=bool)

@@ -1,7 +1,7 @@
 """Fit the non-Lambertian parameters of a textured scene against its recovered texture.
 
 F-TBO on a textured photograph holds each surface's albedo constant, as the dissertation does
-(METHOD.md §3), so texture passes for specular light, reflections and transmission; the
+(docs/method.md §3), so texture passes for specular light, reflections and transmission; the
 texture stage then absorbs those errors (docs/texture.md). Alternating the two plainly does not
 undo it: a texture recovered with wrong parameters explains the image with them. Here the
 texture is recovered only from the pixels that directly seen texture lights almost alone, so
@@ -12,14 +12,14 @@ those against it. Each round:
    surfaces seen directly (the first node of its tree), with the current parameters and texture
    (:func:`direct_share`);
 2. the texture from the pixels where that share is at least ``min_share`` in every band
-   (:func:`inverse.texture.recover_texture` with ``exclude``);
+   (:func:`reflab.inverse.texture.solve.recover_texture` with ``exclude``);
 3. F-TBO from the current parameters (no global scan) with every textured node's diffuse term
    scaled by its albedo relative to its surface's mean (:func:`relative_albedo`,
    ``Factorization(albedo=...)``): ``kd`` stays the surface's mean albedo, and texels no kept
    pixel sees count as the mean.
 
 The last round holds textured lobes grey (:func:`grey_lobes`), and a lobe the texture's colours
-determine at that estimate (:func:`colour_held`, :mod:`inverse.dichromatic`).
+determine at that estimate (:func:`colour_held`, :mod:`reflab.inverse.fit.dichromatic`).
 
 Measured on the demo (docs/fit.md): the mirror's r, the sheet's t and the tile's ks and r come
 to within 0.03 of the truth; the box's shininess, whose stripes cross its highlight, does not.
@@ -31,10 +31,10 @@ import time
 
 import numpy as np
 
-from inverse.factorization import Factorization
-from inverse.fitting import FitResult, fit
-from inverse.rendering import linear_basis, node_radiance, path_products
-from inverse.texture import TextureOptions, build_maps, recover_texture, sample_texture
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.rounds import FitSolution, fit
+from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
+from reflab.inverse.texture.solve import SolverOptions, build_maps, recover_texture, sample_texture
 
 #: A round whose fit leaves an RMS residual more than RISE times the best so far is not kept. Each
 #: round's residual is against its own texture, so the rounds share no objective: a lower RMS does
@@ -75,7 +75,7 @@ def grey_lobes(materials, textured, held=None) -> tuple[list, list]:
         ``materials`` with those lobes grey.
     guessed : list of set of str
         Per surface, the names made grey: the round that uses them holds them, its σ counting
-        them free (:func:`inverse.fitting.fit`'s ``guessed``).
+        them free (:func:`reflab.inverse.fit.rounds.fit`'s ``guessed``).
     """
     out, guessed = list(materials), [set() for _ in materials]
     for i, (m, tex) in enumerate(zip(materials, textured)):
@@ -88,9 +88,9 @@ def grey_lobes(materials, textured, held=None) -> tuple[list, list]:
 
 def colour_held(trees, materials, guessed, intensities, image, textured, noise, mask, held, rms):
     """``materials`` and ``guessed`` with each textured lobe the texture's colours resolve
-    (:func:`inverse.dichromatic.colour_lobes`) set to that estimate and held as a guess, and those
+    (:func:`reflab.inverse.fit.dichromatic.colour_lobes`) set to that estimate and held as a guess, and those
     lobes (surface index → ColourLobe; None if none). Without a noise estimate, nothing."""
-    from inverse.dichromatic import colour_lobes
+    from reflab.inverse.fit.dichromatic import colour_lobes
 
     if noise is None:
         return materials, guessed, None
@@ -112,7 +112,7 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
 
     Parameters
     ----------
-    trees : inverse.trees.Trees
+    trees : reflab.inverse.forward.trees.Trees
     materials : list of Material
     intensities : (K, 3) array_like
     textured : (S,) bool array_like
@@ -133,7 +133,7 @@ def direct_share(trees, materials, intensities, textured, relative=None) -> np.n
     basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd in slot 0
     light = node_radiance(trees, materials, intensities, kd_nodes=kd, basis=basis)
     # Only the diffuse term of a directly seen textured node counts (path product · kd's basis · kd,
-    # as inverse.texture.build_system weighs a texel): its highlight the texture must not absorb.
+    # as reflab.inverse.texture.solve.build_system weighs a texel): its highlight the texture must not absorb.
     diffuse = path_products(trees, materials) * basis[:, :, 0] * kd
     first = (np.asarray(trees.level) == 1) & on  # the primary hit: seen directly
 
@@ -151,10 +151,10 @@ def seen_elsewhere(trees, textured) -> np.ndarray:
 
 def noise_like(image, trees, textured, sigma=None) -> np.ndarray | None:
     """Gaussian noise of the photograph's own σ per band (``sigma``, the fit's estimate; default
-    :func:`inverse.photograph.image_noise`), seeded, for :func:`deattenuated`; None where nothing
+    :func:`reflab.inverse.fit.photograph.image_noise`), seeded, for :func:`deattenuated`; None where nothing
     textured is seen in a mirror or through glass, or the photograph is noise-free (σ under 1e-4
     of its peak)."""
-    from inverse.photograph import image_noise
+    from reflab.inverse.fit.photograph import image_noise
 
     image = np.asarray(image, dtype=np.float64)
     if not seen_elsewhere(trees, textured).any():
@@ -176,7 +176,7 @@ def deattenuated(relative, trees, textured, tex) -> np.ndarray:
     noisy estimate, ``μ + (1 − λ)(a − μ)`` with λ = noise variance / total variance per band over
     those nodes, removes that bias. The noise variance is measured, not modelled: ``tex`` was also
     solved from the photograph plus noise of its own σ (:func:`noise_like`,
-    ``TextureResult.perturbed``), and the change at the nodes is that noise's image. Without it
+    ``TextureSolution.perturbed``), and the change at the nodes is that noise's image. Without it
     (a noise-free photograph) ``relative`` is returned as it is. Directly seen nodes are not
     touched: they were made from the very pixels they explain.
     """
@@ -216,23 +216,23 @@ def relative_albedo(trees, textured, result, only=None) -> np.ndarray:
     return out
 
 
-def fit_with_texture(trees, scene, models, intensities, image, start: FitResult, *, mask=None, rounds: int = 2,
-                     min_share: float = MIN_SHARE, method: str = "ftbo", options: TextureOptions | None = None,
+def fit_with_texture(trees, scene, models, intensities, image, start: FitSolution, *, mask=None, rounds: int = 2,
+                     min_share: float = MIN_SHARE, method: str = "ftbo", options: SolverOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
-                     progress=None, task=None, held=None) -> tuple[FitResult, list]:
+                     progress=None, task=None, held=None) -> tuple[FitSolution, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
     Parameters
     ----------
-    trees : inverse.trees.Trees
-    scene : reconstruction.scene.Scene
+    trees : reflab.inverse.forward.trees.Trees
+    scene : reflab.reconstruction.scene.Scene
         ``textured`` flags and names.
     models : list
         One model per surface (as for :class:`Factorization`).
     intensities : (K, 3) array_like
     image : (H, W, 3) ndarray
-    start : FitResult
-        The homogeneous fit (:func:`inverse.fitting.fit`).
+    start : FitSolution
+        The homogeneous fit (:func:`reflab.inverse.fit.rounds.fit`).
     mask : (H*W,) bool, optional
         Pixels the fit may use (saturated ones left out).
     rounds : int
@@ -241,7 +241,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         A pixel feeds the texture when directly seen texture carries at least this share of its
         predicted light in every band.
     method : {"ftbo", "nftbo"}
-    options : TextureOptions, optional
+    options : SolverOptions, optional
         The rounds' texture settings; default: texels :data:`TEXEL_SCALE` footprints across.
     maxiter : int, optional
         Outer iteration cap of each round's fit.
@@ -250,14 +250,14 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         round's fit gets what is left.
     progress : callable, optional
         Called with each round's record.
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Handed to each round's fit; no round starts once it is out of time.
     held : list of set of str, optional
-        Per surface, the names given in scene.json (held; :func:`inverse.fitting.fit`).
+        Per surface, the names given in scene.json (held; :func:`reflab.inverse.fit.rounds.fit`).
 
     Returns
     -------
-    FitResult
+    FitSolution
         The last round kept: a round is dropped when its RMS residual (against its own texture)
         is more than :data:`RISE` times the best so far, and the next round starts from the
         best; ``stats["best_round"]`` says which was kept (0 = the start); ``trace`` continues the start's, ``time_s``, ``evaluations`` and
@@ -269,7 +269,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
     textured = np.array([s.textured for s in scene], dtype=bool)
-    options = options or TextureOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
+    options = options or SolverOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
     # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
     # for outliers where the homogeneous fit excused it as albedo variation).
     rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
@@ -299,7 +299,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitResult,
         materials, guessed = grey_lobes(result.materials, textured, held) if last else (result.materials, None)
         colour, colour_s = None, None
         if last:
-            # A lobe the texture's colours determine is held at that estimate (inverse.dichromatic).
+            # A lobe the texture's colours determine is held at that estimate (reflab.inverse.fit.dichromatic).
             materials, guessed, colour = colour_held(trees, materials, guessed, intensities, image, textured,
                                                      start.stats.get("noise"), mask, held, result.rms)
             colour_s = time.perf_counter() - t0

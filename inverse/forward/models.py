@@ -1,10 +1,10 @@
 """Partially linear BRTDF models (dissertation eq. 2.2): radiance = I · g(θ; n, l, v) · x.
 
 Each model names its linear parameters ``x`` (per colour band) and its nonlinear parameters
-``θ`` (scalars) exactly as ``reconstruction.scene.BRDF_PARAMS`` does, and gives ``g`` (the BRDF
+``θ`` (scalars) exactly as ``reflab.reconstruction.scene.BRDF_PARAMS`` does, and gives ``g`` (the BRDF
 times the cosine of incidence, one column per linear parameter) and ``dg/dθ`` analytically. All
 terms are 0 where the light is below the surface (``n·l <= 0``). ``kd`` multiplies ``n·l``
-itself (no 1/π), as in INTERFACES.md.
+itself (no 1/π), as in docs/formats.md.
 
 Inputs are batches: ``theta`` (N, P), ``n``, ``l``, ``v`` (N, 3) unit vectors (normal, toward
 the light, toward the viewer). Evaluate several lights by stacking them along N.
@@ -105,7 +105,7 @@ class Lambert(Model):
 
 
 class Phong(Model):
-    """``g = [n·l, (n·h)^ns]`` (INTERFACES.md: kd (n·l) + ks (n·h)^ns), h the half vector."""
+    """``g = [n·l, (n·h)^ns]`` (docs/formats.md: kd (n·l) + ks (n·h)^ns), h the half vector."""
 
     name, linear, nonlinear, shaped = "phong", ("kd", "ks"), ("ns",), (1,)
 

@@ -1,7 +1,7 @@
-"""The fit stage on a workspace: read the inputs, fit (:mod:`inverse.fitting`), refit against the
-texture on textured scenes (:mod:`inverse.texture_fit`), write fit.json.
+"""The fit stage on a workspace: read the inputs, fit (:mod:`reflab.inverse.fit.rounds`), refit against the
+texture on textured scenes (:mod:`reflab.inverse.fit.texture_aware`), write fit.json.
 
-Its own module so that :mod:`inverse.fitting` (the methods) needs nothing from the texture
+Its own module so that :mod:`reflab.inverse.fit.rounds` (the methods) needs nothing from the texture
 rounds, which build on it: no import cycle.
 """
 from __future__ import annotations
@@ -10,15 +10,15 @@ import time
 
 import numpy as np
 
-from hardware.task import Task, ensure
-from hardware.workspace import WorkspaceError
-from inverse.factorization import Factorization
-from inverse.fitting import FitResult, check_image, fit, fit_json, saturated_pixels
+from reflab.core.task import Task, ensure
+from reflab.core.workspace import WorkspaceError
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
-                  progress=None, task: Task | None = None) -> tuple[dict, FitResult]:
+                  progress=None, task: Task | None = None) -> tuple[dict, FitSolution]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -37,11 +37,11 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         Wall-clock budget of the fit itself (trees and factorization excluded).
     texture_rounds : int
         When some surface is textured: rounds of refitting against the recovered texture after
-        the homogeneous fit (:func:`inverse.texture_fit.fit_with_texture`); 0 keeps the
+        the homogeneous fit (:func:`reflab.inverse.fit.texture_aware.fit_with_texture`); 0 keeps the
         homogeneous fit, as the dissertation does.
     progress : callable, optional
         Called with each texture round's record.
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Progress, pause and cancel (``Cancelled`` is raised before fit.json is written); its
         deadline stops the fit like ``max_seconds``.
 
@@ -49,15 +49,15 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     -------
     report : dict
         What was written to fit.json.
-    result : FitResult
+    result : FitSolution
     """
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from hardware.images import read_image
-    from hardware.workspace import Workspace, write_json
-    from inverse.models import get_model
-    from inverse.trees import trees_for_workspace
-    from reconstruction.scene import Scene
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights
+    from reflab.core.images import read_image
+    from reflab.core.workspace import Workspace, write_json
+    from reflab.inverse.forward.models import get_model
+    from reflab.inverse.forward.trees import trees_for_workspace
+    from reflab.reconstruction.scene import Scene
 
     ws = Workspace(workspace)
     camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
@@ -87,7 +87,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if "complete" in result.stats and result.message.startswith("stopped"):
         result = result.stats["complete"]()  # no round follows a fit that ran out of time
     if refit and not result.message.startswith("stopped"):
-        from inverse.texture_fit import MIN_SHARE, fit_with_texture
+        from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
         result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,

@@ -7,7 +7,7 @@ Per node ``i`` on surface ``s`` and band ``c`` (docs/architecture.md)::
     P_i[c]        = Π over the node's path of r_s[c] (reflection) or t_s[c] (transmission)
 
 and a pixel's value is the sum over its nodes. ``materials`` is the list of
-:class:`reconstruction.scene.Material` in surface order (``[s.material for s in scene]``);
+:class:`reflab.reconstruction.scene.Material` in surface order (``[s.material for s in scene]``);
 ``intensities`` is ``lights.intensities`` (K, 3).
 """
 from __future__ import annotations
@@ -16,8 +16,8 @@ from collections import Counter
 
 import numpy as np
 
-from inverse.models import MAX_LINEAR, MAX_NONLINEAR, get_model
-from inverse.trees import derived
+from reflab.inverse.forward.models import MAX_LINEAR, MAX_NONLINEAR, get_model
+from reflab.inverse.forward.trees import derived
 
 
 def _check(trees, materials, intensities=None):
@@ -62,7 +62,7 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
 
     Parameters
     ----------
-    trees : inverse.trees.Trees
+    trees : reflab.inverse.forward.trees.Trees
     materials : list of Material
         The nonlinear parameters (and model) of each surface are read here.
     intensities : (K, 3) array_like
@@ -96,7 +96,7 @@ def node_geometry(trees, idx) -> tuple:
 
 def basis_on(model, theta, geometry, intensities) -> np.ndarray:
     """(n, 3, L) coefficients of ``model``'s linear parameters at nonlinear parameters ``theta``
-    (P,) on nodes of :func:`node_geometry` (a few nodes at many θ: :mod:`inverse.dichromatic`)."""
+    (P,) on nodes of :func:`node_geometry` (a few nodes at many θ: :mod:`reflab.inverse.fit.dichromatic`)."""
     normal, light, view, weight = geometry
     g = model.g(np.broadcast_to(np.asarray(theta, dtype=np.float64), (len(normal), model.n_nonlinear)), normal, light, view)
     return _weighted(weight, intensities, g)
@@ -266,7 +266,7 @@ def undetermined_radiance(trees, materials, intensities, undetermined, *, kd_nod
         light rested on undetermined parameters): their diffuse term counts as undetermined.
 
     A linear term is undetermined when its parameter is, or when it is shaped by an undetermined
-    θ (:attr:`inverse.models.Model.shaped`: a Phong lobe whose ns is free); a whole node when its
+    θ (:attr:`reflab.inverse.forward.models.Model.shaped`: a Phong lobe whose ns is free); a whole node when its
     path passes a reflection or transmission coefficient that is undetermined.
     """
     intensities = _check(trees, materials, intensities)
@@ -366,7 +366,7 @@ def undetermined_pixels(trees, materials, intensities, undetermined, *, kd_nodes
     parameters (and for more than ``floor`` of the peak); see :func:`undetermined_radiance`.
 
     ``noise`` (3,), optional: the photograph's noise σ per band as a fraction of its peak
-    (:class:`inverse.texture.Uncertainty`): a part above :data:`UNDETERMINED_NOISE` times it (at
+    (:class:`reflab.inverse.texture.solve.Uncertainty`): a part above :data:`UNDETERMINED_NOISE` times it (at
     this view's peak) is undetermined too, however small its share.
 
     ``image`` (H, W, 3), optional: the photograph to measure the share against (the texture stage,

@@ -1,4 +1,4 @@
-"""NF-TBO: every parameter at once by nonlinear conjugate gradient (METHOD.md §3).
+"""NF-TBO: every parameter at once by nonlinear conjugate gradient (docs/method.md §3).
 
 Preconditioned Polak–Ribière on a bounded reparametrisation (``x = w²``, ``r = sin² φ``,
 ``log2 ns = lo + (hi − lo) sin² ψ``), with a diagonal (Gauss–Newton) preconditioner; every
@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from inverse.factorization import BANDS
-from inverse.problem import BUDGET_MESSAGE, Free, Params, Problem, step_message, trace_point
-from inverse.uncertainty import normal_matrix
+from reflab.inverse.forward.factorization import BANDS
+from reflab.inverse.fit.problem import BUDGET_MESSAGE, Free, Params, Problem, step_message, trace_point
+from reflab.inverse.fit.uncertainty import normal_matrix
 
 
 def nftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=5000):

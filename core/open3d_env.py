@@ -30,7 +30,7 @@ def _real_plotly():
 
 
 def _stand_in() -> types.ModuleType:
-    module = types.ModuleType(_PLOTLY, "Loads open3d's plotly viewer on first use (hardware.open3d_env).")
+    module = types.ModuleType(_PLOTLY, "Loads open3d's plotly viewer on first use (reflab.core.open3d_env).")
     module._reflab_stand_in = True
     for name in _NAMES:
         def call(*args, _name=name, **kwargs):

@@ -1,4 +1,4 @@
-"""Pixel-intensity computation trees (METHOD.md §1, docs/architecture.md): built once by ray casting.
+"""Pixel-intensity computation trees (docs/method.md §1, docs/architecture.md): built once by ray casting.
 
 :func:`build_trees` casts one primary ray per pixel centre and follows ideal mirror reflections
 and Snell refractions up to ``depth`` internal nodes per path, level by level, with Open3D's
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import WorkspaceError, atomic_write
-from inverse.optics import fresnel, normalize, reflect, refract
+from reflab.core.workspace import WorkspaceError, atomic_write
+from reflab.inverse.forward.optics import fresnel, normalize, reflect, refract
 
 #: Kinds of ideal interaction in a path.
 REFLECTION, TRANSMISSION = 0, 1
@@ -168,13 +168,13 @@ def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, pru
 
     Parameters
     ----------
-    workspace : path-like or hardware.workspace.Workspace
+    workspace : path-like or reflab.core.workspace.Workspace
     scene, camera, lights, depth, prune_tol
         As for :func:`build_trees`.
     log : callable, optional
         Called with one line: ``"trees: reused cache <file> (N nodes, X s)"`` or
         ``"trees: built in X s (N nodes), cached as <file>"``.
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Checked between levels of a build (pause, cancel); a cancelled build writes nothing.
 
     Returns
@@ -183,7 +183,7 @@ def trees_for_workspace(workspace, scene, camera, lights, depth: int = 3, *, pru
         ``stats["cache"]`` is ``"reused"`` or ``"built"``, ``stats["load_s"]`` the seconds to read
         a reused file.
     """
-    from hardware.workspace import Workspace
+    from reflab.core.workspace import Workspace
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     key = trees_key(scene, camera, lights, depth, prune_tol)
@@ -232,7 +232,7 @@ class _Caster:
     """The scene in an Open3D RaycastingScene plus the float64 mesh data to refine its hits."""
 
     def __init__(self, scene):
-        from hardware.open3d_env import open3d
+        from reflab.core.open3d_env import open3d
         o3d = open3d()
 
         self.o3d = o3d
@@ -328,16 +328,16 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
 
     Parameters
     ----------
-    scene : reconstruction.scene.Scene
+    scene : reflab.reconstruction.scene.Scene
         Surfaces with loaded meshes; only geometry, ``ior`` and r/t given as exactly 0 are used.
-    camera : calibration.camera.Camera
-    lights : calibration.lights.Lights
+    camera : reflab.calibration.camera.Camera
+    lights : reflab.calibration.lights.Lights
     depth : int
         Maximum number of internal nodes on a path (1 = direct lighting only).
     prune_tol : float
         A branch whose largest possible weight (product of Fresnel factors, r and t being <= 1)
         is below this is not followed.
-    task : hardware.task.Task, optional
+    task : reflab.core.task.Task, optional
         Told after each level (``step``: pause, cancel).
 
     Returns

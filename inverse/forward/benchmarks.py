@@ -1,6 +1,6 @@
 """Timings of the forward model: tree building and re-rendering at three image sizes.
 
-Run ``python -m inverse.benchmarks WORKSPACE``: it times that workspace's scene (camera.json,
+Run ``python -m reflab.inverse.forward.benchmarks WORKSPACE``: it times that workspace's scene (camera.json,
 lights.json, scene.json) and prints a Markdown table and the machine it ran on. The table of
 docs/forward-model.md times the simulated lab: ``python docs/figures/forward_benchmark.py``
 (product code does not import the simulated twin; that script hands its scene to :func:`run`).
@@ -29,7 +29,7 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
 
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
             f"numpy {np.__version__}, open3d {open3d().__version__}")
@@ -37,10 +37,10 @@ def machine() -> str:
 
 def load_scene(workspace):
     """(scene, camera, lights) of a workspace."""
-    from calibration.camera import Camera
-    from calibration.lights import Lights
-    from hardware.workspace import Workspace
-    from reconstruction.scene import Scene
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights
+    from reflab.core.workspace import Workspace
+    from reflab.reconstruction.scene import Scene
 
     ws = Workspace(workspace)
     return Scene.load(ws.scene), Camera.load(ws.camera), Lights.load(ws.lights)
@@ -65,8 +65,8 @@ def run(scene, camera, lights, sizes=SIZES, depth: int = 3, repeats: int = 3) ->
         ``basis_grad_s`` (:func:`linear_basis_and_grad`), ``render_s`` (:func:`render` from
         scratch), ``rerender_s`` (:func:`render` with a precomputed basis: new linear parameters).
     """
-    from inverse.rendering import linear_basis, linear_basis_and_grad, render
-    from inverse.trees import build_trees
+    from reflab.inverse.forward.rendering import linear_basis, linear_basis_and_grad, render
+    from reflab.inverse.forward.trees import build_trees
 
     materials = [s.material for s in scene.surfaces]
     intens = lights.intensities
@@ -100,10 +100,10 @@ def compare_ray_casters(scene, camera, repeats: int = 3) -> dict:
 
     The rays are the camera's pixel rays; both casters get the same triangles.
     """
-    from hardware.open3d_env import open3d
+    from reflab.core.open3d_env import open3d
     o3d = open3d()
 
-    from hardware.mitsuba_env import mitsuba
+    from reflab.core.mitsuba_env import mitsuba
 
     origin, direction = camera.pixel_rays()
     rays = np.concatenate([origin, direction], axis=1).astype(np.float32)
@@ -139,7 +139,7 @@ def compare_ray_casters(scene, camera, repeats: int = 3) -> dict:
 
 def main(argv=None, scene=None, name: str = "") -> int:
     """The command line; ``scene`` = (scene, camera, lights) given by a caller replaces WORKSPACE."""
-    parser = argparse.ArgumentParser(prog="python -m inverse.benchmarks", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m reflab.inverse.forward.benchmarks", description=__doc__.splitlines()[0])
     parser.add_argument("workspace", nargs="?" if scene is not None else None, help="workspace folder")
     parser.add_argument("--depth", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=3)

@@ -4,7 +4,7 @@ Arrays are float32, shape (H, W, 3), RGB order (OpenCV's BGR is hidden here). Op
 through Mitsuba's Bitmap (the OpenCV 5 wheels are built without OpenEXR), with no variant set: a
 variant starts Dr.Jit's LLVM back end, 0.15 s that a command reading an image does not need.
 
-Two kinds of reader (INTERFACES.md, Images): photometric stages need linear radiance
+Two kinds of reader (docs/formats.md, Images): photometric stages need linear radiance
 (:func:`read_image`, then :func:`check_radiance`); geometric stages take any image a camera
 writes (``read_image(path, linear=False)``: 8-bit JPEG/PNG too, sRGB-decoded).
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.workspace import IMAGE_SUFFIXES, WorkspaceError, atomic_path
+from reflab.core.workspace import IMAGE_SUFFIXES, WorkspaceError, atomic_path
 
 
 def _cv2():
@@ -144,7 +144,7 @@ def check_radiance(image, path="image") -> np.ndarray:
     """Refuse what cannot be a linear photograph; return the image as float64.
 
     Small negative values are data (noise where a dark or ambient frame was subtracted:
-    INTERFACES.md, Images). Refused: NaN or inf, no pixel above 0 (all zero or black), more than
+    docs/formats.md, Images). Refused: NaN or inf, no pixel above 0 (all zero or black), more than
     :data:`MAX_NEGATIVE_SHARE` of the values below 0.
     """
     image = np.asarray(image, dtype=np.float64)

@@ -1,6 +1,6 @@
 """The workspace folder, its validation errors and atomic writes.
 
-Every stage reads and writes one folder (INTERFACES.md, "Workspace"). A stage that finds a bad
+Every stage reads and writes one folder (docs/formats.md, "Workspace"). A stage that finds a bad
 file raises :class:`WorkspaceError`, whose message names the file, the field and what was
 expected; a stage never leaves a half-written file (:func:`atomic_write`).
 """
@@ -51,10 +51,10 @@ IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
 #: The file in each capture folder that lists its shots (docs/hardware.md).
 MANIFEST = "manifest.json"
 
-#: Scoring view -> the file of its camera or lamps (INTERFACES.md, "The simulated lab's truth").
+#: Scoring view -> the file of its camera or lamps (docs/formats.md, "The simulated lab's truth").
 VIEWS = {"novel": "novel_camera.json", "relit": "relit_lights.json"}
 
-#: Capture kind -> folder under WORKSPACE/captures (INTERFACES.md).
+#: Capture kind -> folder under WORKSPACE/captures (docs/formats.md).
 CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
 
 
@@ -75,7 +75,7 @@ class OptionError(ValueError):
 
 
 class Workspace:
-    """Paths of one scene's workspace: every file name of INTERFACES.md and docs/formats.md."""
+    """Paths of one scene's workspace: every file name of docs/formats.md."""
 
     def __init__(self, root):
         self.root = Path(root)
@@ -119,7 +119,7 @@ class Workspace:
         return self.root / ("albedo.exr" if aov == "albedo" else "render.exr")
 
     def view(self, which: str) -> tuple[Path, Path]:
-        """A view that scores the recovered model (INTERFACES.md, "The simulated lab's truth"): ``novel``
+        """A view that scores the recovered model (docs/formats.md, "The simulated lab's truth"): ``novel``
         -> (novel_camera.json, novel.exr), ``relit`` -> (relit_lights.json, relit.exr); in truth/
         (``Workspace(ws.truth).view(...)``) the truth, in the workspace the model's render."""
         if which not in VIEWS:
@@ -127,7 +127,7 @@ class Workspace:
         return self.root / VIEWS[which], self.root / f"{which}.exr"
 
     def trees_cache(self, key: str) -> Path:
-        """Cached pixel-intensity trees named by their inputs' hash (inverse.trees.trees_for_workspace)."""
+        """Cached pixel-intensity trees named by their inputs' hash (reflab.inverse.forward.trees.trees_for_workspace)."""
         return self.cache / f"trees-{key}.npz"
 
     @property

@@ -1,7 +1,7 @@
-"""The fit's parameters and objective, shared by F-TBO (:mod:`inverse.ftbo`) and NF-TBO (:mod:`inverse.nftbo`).
+"""The fit's parameters and objective, shared by F-TBO (:mod:`reflab.inverse.fit.ftbo`) and NF-TBO (:mod:`reflab.inverse.fit.nftbo`).
 
 Both minimise ``ε = Σ_c ‖A_c(θ) y_c(x, r, t) − b_c‖²`` over the used pixels
-(:mod:`inverse.factorization`), normalised by ``Σ b²``, with bounds ``x ≥ 0`` and ``r, t ∈ [0, 1]``;
+(:mod:`reflab.inverse.forward.factorization`), normalised by ``Σ b²``, with bounds ``x ≥ 0`` and ``r, t ∈ [0, 1]``;
 linear parameters are per band, θ is shared by the bands of a surface.
 """
 from __future__ import annotations
@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.task import ensure
-from inverse.factorization import BANDS, Factorization
-from inverse.photograph import image_noise
-from inverse.ranges import theta_bounds
+from reflab.core.task import ensure
+from reflab.inverse.forward.factorization import BANDS, Factorization
+from reflab.inverse.fit.photograph import image_noise
+from reflab.inverse.fit.ranges import theta_bounds
 
 
 #: Nonlinear parameters searched in log2 (scale parameters spanning decades).
@@ -22,7 +22,7 @@ LOG2 = frozenset({"ns", "alpha"})
 #: Noise assumed at least this fraction of the image peak: a noise-free float image still carries
 #: rounding, so σ never reaches 0 and a parameter with vanishing signal stays undetermined.
 NOISE_FLOOR = 1e-6
-#: Values per θ of F-TBO's coarse global scan (:mod:`inverse.ftbo`), also where a θ's signal is sought.
+#: Values per θ of F-TBO's coarse global scan (:mod:`reflab.inverse.fit.ftbo`), also where a θ's signal is sought.
 SCAN_POINTS = 8
 #: The scan's range in search units (log2 for LOG2 names; others scan their whole range). Shininess
 #: below 2 is a lobe flat enough to pass for diffuse light: ks would trade with kd and fit noise.
@@ -33,7 +33,7 @@ BUDGET_MESSAGE = "stopped: wall-clock budget (max_seconds) spent before converge
 
 @dataclass
 class Params:
-    """Flat parameters (layout of :class:`inverse.factorization.Layout`), natural units."""
+    """Flat parameters (layout of :class:`reflab.inverse.forward.factorization.Layout`), natural units."""
 
     x: np.ndarray  # (X, 3)
     s: np.ndarray  # (F, 3): r_s at 2s, t_s at 2s+1
@@ -146,14 +146,14 @@ class Problem:
         self.onehot = np.zeros((fac.n_columns, fac.layout.n_x))
         self.onehot[np.arange(fac.n_columns), fac.col_x] = 1.0
         self.evaluations = 0
-        #: Seconds per phase of :func:`inverse.fitting.fit` (fit.json ``phases_s``) and the scan's evaluations.
+        #: Seconds per phase of :func:`reflab.inverse.fit.rounds.fit` (fit.json ``phases_s``) and the scan's evaluations.
         self.phases = {"structure": 0.0, "scan": 0.0, "refinement": 0.0, "uncertainty": 0.0}
         self.scan_evaluations = 0
         #: The scan's gain threshold scales with this share of the full image's pixels (coarse scan).
         self.scan_share = 1.0
         #: perf_counter() time after which the methods stop (None: no wall-clock budget).
         self.deadline = None
-        #: The stage's :class:`hardware.task.Task` (progress, pause, cancel, deadline).
+        #: The stage's :class:`reflab.core.task.Task` (progress, pause, cancel, deadline).
         self.task = ensure(None)
 
     def out_of_time(self) -> bool:
@@ -161,7 +161,7 @@ class Problem:
         return (self.deadline is not None and time.perf_counter() > self.deadline) or self.task.out_of_time
 
     def step(self, done, total, message) -> None:
-        """Report one outer iteration to the task; raises :class:`hardware.task.Cancelled`."""
+        """Report one outer iteration to the task; raises :class:`reflab.core.task.Cancelled`."""
         self.task.step(done, total, message)
 
     def residual(self, A, y) -> np.ndarray:

@@ -1,17 +1,17 @@
-"""The result of a fit and the fit.json object of INTERFACES.md."""
+"""The result of a fit and the fit.json object of docs/formats.md."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from inverse.factorization import Factorization
-from inverse.problem import Free, Params
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.problem import Free, Params
 
 
 @dataclass
-class FitResult:
-    """Everything ``fit.json`` reports (INTERFACES.md) plus diagnostics."""
+class FitSolution:
+    """Everything ``fit.json`` reports (docs/formats.md) plus diagnostics."""
 
     method: str
     params: Params
@@ -28,12 +28,12 @@ class FitResult:
     message: str
     stats: dict = field(default_factory=dict)
     #: Which parameters have signal in the image (before any was held): a refit of the same scene
-    #: reuses it (:func:`inverse.fitting.fit`'s ``structure``).
+    #: reuses it (:func:`reflab.inverse.fit.rounds.fit`'s ``structure``).
     structure: Free | None = None
 
 
-def fit_json(result: FitResult, fac: Factorization, scene, depth: int, extra: dict | None = None) -> dict:
-    """The fit.json object of INTERFACES.md (plus diagnostics)."""
+def fit_json(result: FitSolution, fac: Factorization, scene, depth: int, extra: dict | None = None) -> dict:
+    """The fit.json object of docs/formats.md (plus diagnostics)."""
     lay, surfaces = fac.layout, []
     bounds = result.stats.get("at_bound")
     for i, (surf, model, mat) in enumerate(zip(scene.surfaces, fac.models, result.materials)):

@@ -20,7 +20,7 @@ Per textured surface with a grey lobe of one shape parameter (Phong ns, Ward α)
    ``e∘D``; linear in (μ, own r, ks) for each θ, ks within its plausible range; a scan over
    log θ (on a pixel subsample, then walked down the full objective), then Brent;
 4. the σ of ks and θ from the Gauss–Newton normal matrix of that objective, the larger of the
-   model's and the cluster-robust sandwich over image tiles (as :mod:`inverse.uncertainty`).
+   model's and the cluster-robust sandwich over image tiles (as :mod:`reflab.inverse.fit.uncertainty`).
 
 What would fool it: a texture whose colours are on a line everywhere but under the highlight, or
 a highlight whose colour lies in the texture's set (the demo's box: purple and lilac inks whose
@@ -34,11 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from inverse.models import get_model
-from inverse.problem import NOISE_FLOOR
-from inverse.ranges import FIT_RANGE, ks_upper
-from inverse.rendering import basis_on, linear_basis, node_geometry, node_radiance, path_products
-from inverse.uncertainty import robust_sd, tile_index
+from reflab.inverse.forward.models import get_model
+from reflab.inverse.fit.problem import NOISE_FLOOR
+from reflab.inverse.fit.ranges import FIT_RANGE, ks_upper
+from reflab.inverse.forward.rendering import basis_on, linear_basis, node_geometry, node_radiance, path_products
+from reflab.inverse.fit.uncertainty import robust_sd, tile_index
 
 #: A colour set is accepted when its misfit per degree of freedom is at most this many times what
 #: the photograph's noise (or the fit's residual, if larger) gives.
@@ -272,7 +272,7 @@ def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=
 
     Parameters
     ----------
-    trees : inverse.trees.Trees
+    trees : reflab.inverse.forward.trees.Trees
     materials : list of Material
         The fitted materials (the rest of the model is subtracted at these values).
     intensities : (K, 3) array_like
@@ -295,7 +295,7 @@ def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=
         colour set and at least :data:`MIN_PIXELS` pixels (resolved or not: see
         :meth:`ColourLobe.resolved`).
     """
-    from reconstruction.scene import SCALAR_RANGE
+    from reflab.reconstruction.scene import SCALAR_RANGE
 
     image = np.asarray(image, dtype=np.float64)
     peak = max(float(image.max()), 1e-300)

@@ -1,4 +1,4 @@
-"""F-TBO: θ over the exact bounded linear solution (METHOD.md §3).
+"""F-TBO: θ over the exact bounded linear solution (docs/method.md §3).
 
 For fixed θ, the Gram matrices ``G_c = A_cᵀA_c`` and ``h_c = A_cᵀb_c`` reduce the problem to the
 (few) monomial columns. There, ``x`` is the exact bounded least-squares solution for fixed r, t
@@ -13,10 +13,10 @@ import time
 
 import numpy as np
 
-from inverse.factorization import BANDS, gram
-from inverse.problem import BUDGET_MESSAGE, SCAN_POINTS, Free, Params, Problem, step_message, trace_point
-from inverse.ranges import linear_upper
-from inverse.uncertainty import normal_matrix
+from reflab.inverse.forward.factorization import BANDS, gram
+from reflab.inverse.fit.problem import BUDGET_MESSAGE, SCAN_POINTS, Free, Params, Problem, step_message, trace_point
+from reflab.inverse.fit.ranges import linear_upper
+from reflab.inverse.fit.uncertainty import normal_matrix
 
 
 #: Sweeps of the scan over the θs at most.
@@ -120,7 +120,7 @@ class _Inner:
         self.h = [A[c].T @ problem.b[c] for c in range(BANDS)]
 
     def upper(self, p: Params) -> np.ndarray:
-        """(X,) upper bounds of the linear parameters at ``p.theta`` (:mod:`inverse.ranges`)."""
+        """(X,) upper bounds of the linear parameters at ``p.theta`` (:mod:`reflab.inverse.fit.ranges`)."""
         key = p.theta.tobytes()
         if getattr(self, "_ub_key", None) != key:
             self._ub_key, self._ub = key, linear_upper(self.pb.fac, p.theta)
@@ -149,7 +149,7 @@ class _Inner:
         d = (V[:, keep].T @ qf) / np.sqrt(w[keep])
         x = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
         ub = self.upper(p)[fx]
-        if np.any(x > ub):  # a plausible range binds (inverse.ranges): bounded least squares
+        if np.any(x > ub):  # a plausible range binds (reflab.inverse.fit.ranges): bounded least squares
             from scipy.optimize import lsq_linear
 
             x = np.clip(lsq_linear(R, d, bounds=(0.0, ub), method="bvls", tol=1e-14).x, 0.0, ub)
@@ -338,7 +338,7 @@ def _scan(pb: Problem, q, u, state, evaluate, t0, trace):
 def _theta_curvature(pb: Problem, p: Params, free: Free, A, grad) -> np.ndarray:
     """JᵀJ of θ with the linear parameters profiled out (Schur complement), natural units.
 
-    The blocks are :func:`inverse.uncertainty.normal_matrix`'s (unit band weights), formed in
+    The blocks are :func:`reflab.inverse.fit.uncertainty.normal_matrix`'s (unit band weights), formed in
     monomial space: no (pixels × parameters) product.
     """
     inner = Free(free.x & (p.x > 0), free.s & (p.s > 0) & (p.s < 1), free.theta)  # bounds active: held

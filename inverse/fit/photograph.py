@@ -1,11 +1,11 @@
-"""The input photograph of the fit: its checks, its saturated pixels, its noise (METHOD.md §3)."""
+"""The input photograph of the fit: its checks, its saturated pixels, its noise (docs/method.md §3)."""
 from __future__ import annotations
 
 import numpy as np
 
-from hardware.images import clip_level
-from hardware.workspace import WorkspaceError
-from inverse.factorization import BANDS
+from reflab.core.images import clip_level
+from reflab.core.workspace import WorkspaceError
+from reflab.inverse.forward.factorization import BANDS
 
 
 #: At least this many pixel values at the image maximum make a clipped (saturated) plateau.
@@ -18,14 +18,14 @@ def check_image(image, width: int, height: int, path="input image") -> np.ndarra
     Raises
     ------
     WorkspaceError
-        Size different from camera.json, or not a photograph (:func:`hardware.images.check_radiance`:
+        Size different from camera.json, or not a photograph (:func:`reflab.core.images.check_radiance`:
         NaN, mostly negative, all black); noise-level negative values are kept.
     """
     image = np.asarray(image, dtype=np.float64)
     if image.ndim != 3 or image.shape[2] != 3 or image.shape[:2] != (height, width):
         raise WorkspaceError(path, "size", f"{width}x{height} RGB as in camera.json",
                              got=f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else image.shape)
-    from hardware.images import check_radiance
+    from reflab.core.images import check_radiance
 
     return check_radiance(image, path)
 

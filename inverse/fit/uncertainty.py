@@ -7,7 +7,7 @@ features, edges misalign over runs of pixels, and ``σ² (JᵀJ)⁻¹`` then rep
 too small (docs/fit.md). So the covariance is the larger, per parameter, of
 
 - the **model-based** one, ``H⁻¹`` with ``H = JᵀWJ``, ``W = 1/σ_c²`` per band (σ_c from the
-  residual, never below :data:`inverse.problem.NOISE_FLOOR` of the peak); and
+  residual, never below :data:`reflab.inverse.fit.problem.NOISE_FLOOR` of the peak); and
 - the **cluster-robust sandwich** over image tiles, ``H⁻¹ M H⁻¹`` with ``M = T/(T−1) Σ_t g_t g_tᵀ``
   and ``g_t = Σ_{i ∈ tile t} J_iᵀ W r_i`` (the gradient of the objective contributed by tile t):
   the spread of the parameters that the residual's actual structure implies, correlations within
@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix, diags
 
-from inverse.factorization import BANDS, gram
-from inverse.problem import NOISE_FLOOR, Free, Params, Problem
+from reflab.inverse.forward.factorization import BANDS, gram
+from reflab.inverse.fit.problem import NOISE_FLOOR, Free, Params, Problem
 
 #: Target number of tiles across the image's shorter side (tile size = shorter side / this, ≥ 4 px).
 TILES_ACROSS = 12
@@ -119,7 +119,7 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
 
     ``A``, ``grad`` from ``fac.matrices_and_grad(p.theta)`` when the caller has them. With the
     residual ``res`` (3, R) and ``tiles`` = (tile of each used pixel, T), also the per-tile
-    gradients ``g_t = Σ_{i∈t} J_iᵀ W r_i`` (n, T) of :func:`inverse.uncertainty.covariance`.
+    gradients ``g_t = Σ_{i∈t} J_iᵀ W r_i`` (n, T) of :func:`reflab.inverse.fit.uncertainty.covariance`.
     ``keep`` (R,) bool: only these pixels inform (the others' rows count as zero).
     """
     fac = pb.fac
@@ -243,8 +243,8 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     The noise of band c is estimated from its residual, but never below :data:`NOISE_FLOOR` of
     the image peak; the model-based covariance is ``(JᵀWJ)⁻¹`` with ``W = 1/σ_c²``. With
     ``robust`` each σ is the larger of that and the cluster-robust sandwich over image tiles
-    (:mod:`inverse.uncertainty`), which holds when the model is imperfect. ``keep`` (R,) bool:
-    only these pixels inform (:func:`inverse.determined.texture_absorbed` leaves out what a free texture explains).
+    (:mod:`reflab.inverse.fit.uncertainty`), which holds when the model is imperfect. ``keep`` (R,) bool:
+    only these pixels inform (:func:`reflab.inverse.fit.determined.texture_absorbed` leaves out what a free texture explains).
     ``extra``: ``extra(free, weights, tiles) -> (H, scores)`` or None, terms of further pixels
     added to the normal matrix and the tile scores (:func:`profiled`). Never NaN.
     """
