@@ -99,6 +99,19 @@ class Workspace:
     texture_index = property(lambda self: self.textures / "index.json")
     cache = property(lambda self: self.root / "cache")
     logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
+    plan = property(lambda self: self.root / "plan.json")  # reflab plan's further shots
+    inputs = property(lambda self: self.root / "inputs")  # further photographs and their camera/lamps
+
+    def input_sidecar(self, name: str) -> Path:
+        """``inputs/<name>.json``: the camera and the lit lamps of the further photograph ``name``."""
+        return self.inputs / f"{name}.json"
+
+    def input_photo(self, name: str) -> Path:
+        """``inputs/<name>.exr`` (or a 16-bit PNG/TIFF of that name): the further photograph ``name``."""
+        for suffix in IMAGE_SUFFIXES:
+            if (self.inputs / f"{name}{suffix}").exists():
+                return self.inputs / f"{name}{suffix}"
+        return self.inputs / f"{name}.exr"
 
     def captures_of(self, kind: str) -> Path:
         """``captures/<folder>`` of a capture kind (calibration, lights, sweep, input)."""

@@ -32,6 +32,7 @@ class FitOptions:
     max_iterations: int | None = None
     max_seconds: float | None = None
     texture_rounds: int = 2
+    single: bool = False  # the reference photograph alone, ignoring inputs/ (the dissertation's method)
 
 
 @dataclass
@@ -66,7 +67,7 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     check_folder(o.workspace, write=True)  # before any work: missing or read-only, named in one line
     report, result = fit_workspace(o.workspace, o.method, o.depth, saturation=o.saturation,
                                    maxiter=o.max_iterations, max_seconds=o.max_seconds,
-                                   texture_rounds=o.texture_rounds, progress=on_round, task=task)
+                                   texture_rounds=o.texture_rounds, progress=on_round, task=task, single=o.single)
     return FitResult(Workspace(o.workspace).fit, report, result)
 
 
@@ -87,6 +88,7 @@ class TextureOptions:
     smoothness: float = 0.01
     saturation: float | None = None
     max_albedo: float = 1.0
+    single: bool = False  # the reference photograph alone, ignoring inputs/
 
 
 @dataclass
@@ -120,22 +122,18 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
 
     ``log`` is told whether the trees were built or reused from the workspace's cache.
     """
-    from reflab.core.images import check_radiance, read_image
-    from reflab.core.workspace import Workspace, WorkspaceError, check_folder, read_json
-    from reflab.inverse.texture import solve as tex
+    from reflab.core.workspace import Workspace, check_folder, read_json
+    from reflab.inverse.fit.photograph import stack_photographs
     from reflab.inverse.forward.rendering import undetermined_pixels
-    from reflab.inverse.forward.trees import trees_for_workspace
+    from reflab.inverse.texture import solve as tex
+    from reflab.reconstruction.scene import Scene
 
     task = ensure(task)
     o = options
     ws = Workspace(check_folder(o.workspace, write=True))
-    camera, lights, scene = _inputs(ws)
-    image_path = ws.require(ws.input_image, "reflab capture input")
-    image = read_image(image_path)
-    if image.shape[:2] != (camera.height, camera.width):
-        raise WorkspaceError(image_path, expected=f"a {camera.width}x{camera.height} image like camera.json",
-                             got=f"{image.shape[1]}x{image.shape[0]}")
-    check_radiance(image, image_path)
+    ws.require(ws.camera, "reflab calibrate camera")
+    ws.require(ws.lights, "reflab calibrate lights")
+    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
     materials, source = tex.load_materials(ws, scene)
     depth = o.depth
     if depth is None:
@@ -143,16 +141,24 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     solver = tex.SolverOptions(texel_scale=o.texel_scale, texel_size=o.texel_size, prior=o.prior,
                                 smoothness=o.smoothness, saturation=o.saturation, bounds=(0.0, o.max_albedo))
     solver.validate()
-    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth, log=log, task=task)
+    # Every photograph adds rows to one system (one albedo per texel), the reference alone with
+    # ``single``; the solver finds each photograph's saturated pixels in the stacked image.
+    stack, image, _, photos = stack_photographs(ws, scene, depth, saturation=o.saturation, single=o.single,
+                                                     task=task, log=log)
+    trees, intensities = stack.trees, stack.intensities
+    padding = None if stack.valid is None else ~stack.valid  # right of a narrower photograph
     # Pixels whose light rests on what the fit left undetermined (a textured surface's own lobe,
     # seen once) or knows only loosely (the ground seen through a sheet whose t is ± 20 %): the
     # texels they make are flagged guessed, and renders that use them say so.
     u = tex.load_uncertainty(ws, scene)
-    guess = undetermined_pixels(trees, materials, lights.intensities, u.undetermined, image=image, sigma=u.sigma,
+    guess = undetermined_pixels(trees, materials, intensities, u.undetermined, image=image, sigma=u.sigma,
                                 noise=u.noise, textured=[s.textured for s in scene]).ravel() \
         if any(u.undetermined) or any(u.sigma) else None
-    result = tex.recover_texture(scene, trees, materials, lights.intensities, image, solver, guess=guess, task=task)
+    result = tex.recover_texture(scene, trees, materials, intensities, image, solver, guess=guess, task=task,
+                                 exclude=padding)
     extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
+             "photographs": [{"name": p.name, "width": b.width, "height": b.height, "lamps": b.lights}
+                             for p, b in zip(photos, stack.blocks)],
              "undetermined_pixels": int(np.count_nonzero(guess)) if guess is not None else 0,
              "options": {"texel_scale": solver.texel_scale, "texel_size": solver.texel_size, "prior": solver.prior,
                          "smoothness": solver.smoothness, "saturation": solver.saturation,
@@ -162,6 +168,73 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     written = tex.write_textures(ws, scene, result, extra)
     task.step(1, 1, f"wrote {len(written)} files in {ws.textures}")
     return TextureResult(ws.textures, written, result, source, depth, solver, trees.stats)
+
+
+# ---------------------------------------------------------------------- plan
+@dataclass
+class PlanOptions:
+    """Options of :func:`plan` (``reflab plan``'s flags; docs/fit.md "Plan")."""
+
+    workspace: Path
+    max_shots: int = 3
+    angles: tuple = tuple(range(-90, 91, 15))  # turntable angles tried, degrees
+    turntable_centre: tuple | None = None  # (x, y) metres; default: from the sweep reconstruct registered
+    reduce: int = 4  # candidate views ray-cast at 1/reduce of the camera's size
+
+
+@dataclass
+class PlanResult:
+    """What :func:`plan` wrote: plan.json and the shots in order (:class:`reflab.inverse.plan.Shot`)."""
+
+    path: Path
+    shots: list
+    report: dict
+
+
+def plan(options: PlanOptions, task: Task | None = None, *, log=None) -> PlanResult:
+    """Choose the further photographs that would most reduce the σ of what the fit left
+    undetermined or loose (:mod:`reflab.inverse.plan`) and write plan.json."""
+    from reflab.core.workspace import OptionError, Workspace, check_folder, read_json, write_json
+    from reflab.inverse.fit.photograph import stack_photographs
+    from reflab.inverse.forward.photographs import load_photographs, taken_shots
+    from reflab.inverse.plan import plan_shots
+    from reflab.inverse.texture import solve as tex
+    from reflab.reconstruction.scene import Scene
+
+    task = ensure(task)
+    o = options
+    ws = Workspace(check_folder(o.workspace, write=True))
+    if int(o.max_shots) < 1:
+        raise OptionError("max_shots", f"must be at least 1, got {o.max_shots}")
+    if int(o.reduce) < 1:
+        raise OptionError("reduce", f"must be at least 1, got {o.reduce}")
+    scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
+    fit_report = read_json(ws.require(ws.fit, "reflab fit"))
+    depth = int(fit_report.get("depth", 3))
+    materials, _ = tex.load_materials(ws, scene)
+    photos = load_photographs(ws)
+    if o.turntable_centre is not None:
+        centre = np.asarray(o.turntable_centre, dtype=float).ravel()
+        if centre.shape != (2,) or not np.all(np.isfinite(centre)):
+            raise OptionError("turntable_centre", f"expected X,Y in metres, got {o.turntable_centre!r}")
+        direction = 1.0
+    else:
+        from reflab.reconstruction.stages import turntable_axis
+
+        centre, direction = turntable_axis(ws)
+    stack, _, _, _ = stack_photographs(ws, scene, depth, task=task, log=log)
+    noise = np.asarray(fit_report.get("noise") or [0.0] * 3, dtype=float)
+    peak = float((fit_report.get("image") or {}).get("peak") or 1.0)
+    noise = np.maximum(noise, 1e-3 * peak)  # a noise-free photograph plans as if it had 0.1 % noise
+    result = plan_shots(stack, scene, materials, noise, n_lamps=len(photos[0].lights), lights=photos[0].lights,
+                        camera=photos[0].camera, centre=centre, direction=direction, angles=o.angles,
+                        taken=taken_shots(photos), max_shots=int(o.max_shots), reduce=int(o.reduce), depth=depth,
+                        held=[s.material.given for s in scene], task=task, log=log)
+    report = dict(result.report, turntable={"centre": [float(v) for v in centre], "direction": direction},
+                  photographs=[p.name for p in photos])
+    task.check()
+    write_json(ws.plan, report)
+    return PlanResult(ws.plan, result.shots, report)
 
 
 # ---------------------------------------------------------------------- render

@@ -312,3 +312,40 @@ def reconstruct(options: ReconstructOptions, task: Task | None = None, *, log=No
     if o.marks:  # names and what the user knows, said once in the marks file
         scene = user_marks.apply_options(ws.root, scene, specs, pointed, Camera.load(ws.camera), o.marks)
     return ReconstructResult(ws.scene, scene, modelled, sfm_report, time.perf_counter() - t0)
+
+
+def turntable_axis(workspace) -> tuple[np.ndarray, float]:
+    """Where the turntable axis meets the ground (x, y) and its sense (+1: a positive angle turns
+    the objects counter-clockwise seen from +z), from the sweep that reconstruct registered.
+
+    The camera centres of the registered sweep shots, seen from the turning objects, trace a
+    circle about the axis: ``C_i = Rz(−d a_i)(C_ref − c) + c``; ``c`` is their least-squares
+    solution. Raises WorkspaceError when sfm.json holds no sweep with angles.
+    """
+    from reflab.calibration.rotations import axis_rotation
+    from reflab.core.workspace import read_json
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    obj = read_json(ws.require(ws.sfm, "reflab reconstruct"))
+    turn = obj.get("turntable") or {}
+    angles, names, poses = turn.get("angles_deg"), obj.get("images"), obj.get("poses") or {}
+    if not isinstance(angles, list) or not isinstance(names, list) or len(angles) != len(names):
+        raise WorkspaceError(ws.sfm, "turntable.angles_deg", "the sweep's turntable angles (reconstruct from a sweep)",
+                             got=angles)
+    d = float(turn.get("direction", 1))
+    ref = names.index(obj.get("reference_shot")) if obj.get("reference_shot") in names else 0
+    centres, a = [], []
+    for name, angle in zip(names, angles):
+        if name in poses:
+            R, t = np.asarray(poses[name]["R"], float), np.asarray(poses[name]["t"], float)
+            centres.append(-R.T @ t)
+            a.append(float(angle) - float(angles[ref]))
+    if len(centres) < 2:
+        raise WorkspaceError(ws.sfm, "poses", "at least two registered sweep shots", got=len(centres))
+    C, a = np.array(centres), np.array(a)
+    C0 = C[int(np.argmin(np.abs(a)))]
+    Rz = axis_rotation((0.0, 0.0, 1.0), -d * a)[:, :2, :2]
+    lhs = (np.eye(2)[None] - Rz).reshape(-1, 2)
+    rhs = (C[:, :2] - Rz @ C0[:2]).reshape(-1)
+    centre = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    return centre, d

@@ -81,3 +81,44 @@ def image_noise(image, used=None) -> np.ndarray:
     if not ok.any():
         return np.zeros(BANDS)
     return np.median(np.abs(resp[ok]), axis=0) / (0.6745 * 6.0)
+
+
+def stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
+                      task=None, log=None):
+    """The workspace's photographs (the reference and ``inputs/``, or the reference alone with
+    ``single``) checked, their trees built or read from the cache, stacked into one system
+    (:mod:`reflab.inverse.forward.photographs`).
+
+    Returns
+    -------
+    stack : reflab.inverse.forward.photographs.Stack
+    image : (H, W, 3) float64
+        The stacked photograph.
+    saturated : (H·W,) bool
+        Saturated pixels (each photograph's own clipping level), padding included.
+    photos : list of Photograph
+    """
+    from reflab.core.images import read_image
+    from reflab.inverse.forward.photographs import load_photographs, stack_trees
+    from reflab.inverse.forward.trees import trees_for_workspace
+
+    photos = load_photographs(workspace, reference_only=single)
+    images, masks, trees = [], [], []
+    for photo in photos:
+        img = check_image(read_image(photo.image), photo.camera.width, photo.camera.height, photo.image)
+        sat = saturated_pixels(img, saturation)
+        if sat.all():
+            raise WorkspaceError(photo.image, "pixels", "some pixels below the saturation level",
+                                 got="every pixel saturated")
+        images.append(img)
+        masks.append(sat)
+        trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
+                                         task=task))
+    stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
+    image = stack.image(images)
+    if len(photos) == 1:
+        return stack, image, masks[0], photos
+    saturated = np.ones(stack.width * stack.height, dtype=bool)  # padding counts as unusable
+    for i, sat in enumerate(masks):
+        saturated[stack.pixels(i)] = sat
+    return stack, image, saturated, photos

@@ -18,7 +18,7 @@ from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, s
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
-                  progress=None, task: Task | None = None) -> tuple[dict, FitSolution]:
+                  progress=None, task: Task | None = None, single: bool = False) -> tuple[dict, FitSolution]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -42,8 +42,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     progress : callable, optional
         Called with each texture round's record.
     task : reflab.core.task.Task, optional
-        Progress, pause and cancel (``Cancelled`` is raised before fit.json is written); its
-        deadline stops the fit like ``max_seconds``.
+        Progress, pause and cancel (``Cancelled`` is raised before fit.json is written, also while
+        the trees are built); its deadline stops the fit like ``max_seconds``.
+    single : bool
+        Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
 
     Returns
     -------
@@ -51,27 +53,21 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         What was written to fit.json.
     result : FitSolution
     """
-    from reflab.calibration.camera import Camera
-    from reflab.calibration.lights import Lights
-    from reflab.core.images import read_image
     from reflab.core.workspace import Workspace, write_json
+    from reflab.inverse.fit.photograph import stack_photographs
     from reflab.inverse.forward.models import get_model
-    from reflab.inverse.forward.trees import trees_for_workspace
     from reflab.reconstruction.scene import Scene
 
     ws = Workspace(workspace)
-    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
-    lights = Lights.load(ws.require(ws.lights, "reflab calibrate lights"))
+    ws.require(ws.camera, "reflab calibrate camera")
+    ws.require(ws.lights, "reflab calibrate lights")
     scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
-    image_path = ws.require(ws.input_image, "reflab capture input")
-    image = check_image(read_image(image_path), camera.width, camera.height, image_path)
-    saturated = saturated_pixels(image, saturation)
-    if saturated.all():
-        raise WorkspaceError(image_path, "pixels", "some pixels below the saturation level", got="every pixel saturated")
     t0 = time.perf_counter()
-    trees = trees_for_workspace(ws, scene, camera, lights, depth=depth)
+    stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
+                                                        task=task)
+    trees, intensities, camera = stack.trees, stack.intensities, photos[0].camera
     t1 = time.perf_counter()
-    fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], lights.intensities, mask=~saturated)
+    fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], intensities, mask=~saturated)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
@@ -90,16 +86,18 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
-        result, records = fit_with_texture(trees, scene, fac.models, lights.intensities, image, result,
+        result, records = fit_with_texture(trees, scene, fac.models, intensities, image, result,
                                            mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
-    extra = {"image": {"file": image_path.name, "width": camera.width, "height": camera.height,
-                       "saturated_pixels": int(saturated.sum()),
+    ref = stack.blocks[0]
+    extra = {"image": {"file": photos[0].image.name, "width": camera.width, "height": camera.height,
+                       "saturated_pixels": int(saturated[stack.pixels(0)].sum()),
                        # the scale of fit.json's `noise`: renders judge a guess against noise / peak
-                       "peak": float(image.reshape(-1, image.shape[-1])[~saturated.reshape(-1)].max(initial=0.0)),
-                       "saturation_level": None if saturation is None and not saturated.any() else float(saturation if saturation is not None else image.max())},
+                       "peak": float(image[:ref.height, :ref.width].reshape(-1, 3)[~saturated[stack.pixels(0)]].max(initial=0.0)),
+                       "saturation_level": None if saturation is None and not saturated[stack.pixels(0)].any() else float(saturation if saturation is not None else image[:ref.height, :ref.width].max())},
+             "photographs": photograph_report(stack, photos, image, saturated, fac, result),
              "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
              "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
     # Where the time went: trees, factorization, then the homogeneous fit's phases, then the texture rounds.
@@ -112,3 +110,27 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     ensure(task).check()  # a cancel during the last iteration: nothing written
     write_json(ws.fit, report)
     return report, result
+
+
+def photograph_report(stack, photos, image, unused, fac, result) -> list:
+    """fit.json's ``photographs``: per photograph, its file, lamps, pixels used and RMS per band.
+
+    The RMS is the fitted model's (homogeneous albedo; a textured surface's texture is the
+    texture stage's) over the photograph's used pixels.
+    """
+    from reflab.inverse.forward.rendering import render
+
+    model = render(stack.trees, result.materials, stack.intensities).reshape(-1, 3)
+    data = np.asarray(image, dtype=np.float64).reshape(-1, 3)
+    used = np.zeros(len(data), dtype=bool)
+    used[fac.rows] = True
+    out = []
+    for i, (photo, block) in enumerate(zip(photos, stack.blocks)):
+        px = stack.pixels(i)
+        px = px[used[px]]
+        res = model[px] - data[px]
+        out.append({"name": photo.name, "file": photo.image.relative_to(photos[0].image.parent).as_posix(),
+                    "width": block.width, "height": block.height, "lamps": block.lights,
+                    "pixels_used": int(len(px)),
+                    "rms": [float(v) for v in np.sqrt(np.mean(res * res, axis=0))] if len(px) else [0.0, 0.0, 0.0]})
+    return out
