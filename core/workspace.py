@@ -99,6 +99,8 @@ class Workspace:
     texture_index = property(lambda self: self.textures / "index.json")
     cache = property(lambda self: self.root / "cache")
     logs = property(lambda self: self.root / "logs")  # tools' own logs (logs/colmap.log)
+    plan = property(lambda self: self.root / "plan.json")  # reflab plan's further shots
+    inputs = property(lambda self: self.root / "inputs")  # further photographs and their camera/lamps
 
     def captures_of(self, kind: str) -> Path:
         """``captures/<folder>`` of a capture kind (calibration, lights, sweep, input)."""

@@ -154,7 +154,7 @@ def test_layer_packages_exist(layer):
 #: Workspace files named in the contracts, as (Workspace attribute, arguments) -> the name it must give.
 OWNED = {("camera",): "camera.json", ("lights",): "lights.json", ("scene",): "scene.json", ("fit",): "fit.json",
          ("marks",): "marks.json", ("sfm",): "sfm.json", ("sparse",): "sparse.ply", ("report",): "report.html",
-         ("report_json",): "report.json", ("hardware",): "hardware.json", ("truth_materials",): "truth.json",
+         ("report_json",): "report.json", ("plan",): "plan.json", ("hardware",): "hardware.json", ("truth_materials",): "truth.json",
          ("texture_index",): "textures/index.json", ("input_image",): "input.exr", ("render",): "render.exr",
          ("view", "novel"): "novel.exr", ("view", "relit"): "relit.exr", ("mesh", "floor"): "meshes/floor.ply",
          ("trees_cache", "key"): "cache/trees-key.npz", ("manifest", "sweep"): "captures/turntable/manifest.json"}
