@@ -128,8 +128,8 @@ def test_the_checks_find_broken_references(tmp_path):
                     "inverse/fit/ftbo.py and inverse/fitting.py; app/commands/<name>.py is a pattern\n"
                     "reflab.inverse.stages.fit, reflab.core.workspace.Workspace.plan, reflab.inverse.fitting.fit, "
                     "reflab.core.task.NoSuchName.\n")
-    assert outside_references(page, "docs/page.md") == ["docs/page.md:1", "docs/page.md:1"]
+    assert outside_references(page, f"{d}/page.md") == [f"{d}/page.md:1", f"{d}/page.md:1"]
     assert outside_references(page, "tests/test_x.py") == ["tests/test_x.py:1"]
-    assert missing_doc_files(page) == ["docs/img/missing.png", "docs/no-such-page.md"]
+    assert missing_doc_files(page) == [f"{d}/img/missing.png", f"{d}/no-such-page.md"]
     assert missing_module_files(page) == ["inverse/fitting.py"]
     assert unresolved_names(page) == ["reflab.core.task.NoSuchName", "reflab.inverse.fitting.fit"]
