@@ -4,7 +4,7 @@
   name its ``third_party`` sources, and skip without them);
 - every ``docs/<page>.md``, ``docs/<path>.png`` or ``docs/<path>.py`` that a tracked file names exists;
 - every module path ``<layer>/<...>.py`` that the docs (docs/*.md, README.md) name exists;
-- every dotted ``reflab.<module>[.<attribute>]`` that docs/*.md names imports and resolves.
+- every dotted ``reflab.<module>[.<attribute>]`` that the docs name imports and resolves.
 
 Each check is a function of one file, so that the last test can show each one failing on a file
 with a broken reference.
@@ -116,7 +116,7 @@ def test_every_module_path_in_the_docs_exists():
 
 
 def test_every_dotted_name_in_the_docs_resolves():
-    bad = {f.relative_to(ROOT).as_posix(): m for f in _docs() if f.parent.name == "docs" and (m := unresolved_names(f))}
+    bad = {f.relative_to(ROOT).as_posix(): m for f in _docs() if (m := unresolved_names(f))}
     assert not bad, f"reflab.<module> names in the docs that do not resolve: {bad}"
 
 
