@@ -212,6 +212,35 @@ def _results(workspace, task=None, *, rig=None, log=print, **options) -> StepRes
     return StepResult(f"model re-rendered to {r.path.name}: RMS difference {100 * rel:.2f}% of the input", r)
 
 
+def further_photographs(workspace, rig, task=None, *, log=print, shots=None, recapture: bool = False,
+                        turntable_centre=None, **plan_options) -> StepResult:
+    """Take further photographs of the scene into ``inputs/`` with ``rig`` (docs/formats.md "inputs/").
+
+    ``shots`` (dicts with ``name``, ``angle_deg`` from the input's view and ``lamps``): these;
+    None: plan.json's, planned first (:func:`reflab.inverse.stages.plan`, ``plan_options``) when
+    it is missing or older than fit.json. The turntable turns to each shot, its lamps alone lit;
+    each photograph gets its sidecar from camera.json, lights.json and the turntable axis
+    (``turntable_centre`` (x, y), turning counter-clockwise; by default the axis reconstruct found).
+    """
+    from reflab.core.workspace import read_json
+    from reflab.inverse.forward.photographs import inputs_from_capture
+
+    ws = Workspace(workspace)
+    if rig is None:
+        raise ValueError("further photographs need the opened devices (rig)")
+    if shots is None:
+        if not ws.plan.exists() or (ws.fit.exists() and ws.plan.stat().st_mtime < ws.fit.stat().st_mtime) or plan_options:
+            from reflab.inverse.stages import PlanOptions, plan
+
+            plan(PlanOptions(ws.root, turntable_centre=turntable_centre, **plan_options), task, log=log)
+        shots = read_json(ws.plan).get("shots") or []
+    if not shots:
+        return StepResult("no further photograph planned: the plan expects no shot to gain enough")
+    result = capture(ws.root, "inputs", rig, task, log=log, recapture=recapture, shots=list(shots))
+    names = inputs_from_capture(ws, centre=turntable_centre, direction=None if turntable_centre is None else 1.0, log=log)
+    return StepResult(f"{len(names)} further photographs in {ws.inputs}: {', '.join(names)}", names, result)
+
+
 STEPS = [
     Step("devices", "Devices", _exists("hardware"), _devices),
     Step("calibrate_camera", "Calibrate the camera", _exists("camera"), _calibrate_camera, "calibration"),

@@ -55,7 +55,8 @@ MANIFEST = "manifest.json"
 VIEWS = {"novel": "novel_camera.json", "relit": "relit_lights.json"}
 
 #: Capture kind -> folder under WORKSPACE/captures (docs/formats.md).
-CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input"}
+CAPTURE_FOLDERS = {"calibration": "calibration", "lights": "lights", "sweep": "turntable", "input": "input",
+                   "inputs": "inputs"}
 
 
 class OptionError(ValueError):
@@ -114,7 +115,7 @@ class Workspace:
         return self.inputs / f"{name}.exr"
 
     def captures_of(self, kind: str) -> Path:
-        """``captures/<folder>`` of a capture kind (calibration, lights, sweep, input)."""
+        """``captures/<folder>`` of a capture kind (calibration, lights, sweep, input, inputs)."""
         if kind not in CAPTURE_FOLDERS:
             raise ValueError(f"capture kind must be one of {sorted(CAPTURE_FOLDERS)}, got {kind!r}")
         return self.captures / CAPTURE_FOLDERS[kind]

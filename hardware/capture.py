@@ -88,6 +88,21 @@ def plan_input(n_lamps: int, angle: float = 0.0, ambient: bool = False, ext: str
     return shots
 
 
+def plan_inputs(n_lamps: int, shots, start: float = 0.0, ext: str = "exr") -> list[Shot]:
+    """Further photographs (plan.json's ``shots``: ``name``, ``angle_deg`` from the input's view,
+    ``lamps`` lit): the turntable at ``start + angle_deg``, those lamps on, one shot each."""
+    if not shots:
+        raise ValueError("further inputs need shots to take (reflab plan writes them to plan.json)")
+    out = []
+    for s in shots:
+        lamps = [int(k) for k in s["lamps"]]
+        if not lamps or min(lamps) < 0 or max(lamps) >= n_lamps:
+            raise ValueError(f"shot {s.get('name')!r}: lamps {lamps} are not among the rig's {n_lamps} lamps")
+        out.append(Shot(f"{s['name']}.{ext}", float(start + float(s["angle_deg"])),
+                        [k in lamps for k in range(n_lamps)], "further input"))
+    return out
+
+
 class Control(Task):
     """Pause, resume and cancel of a running session: the one task object of every stage
     (:class:`reflab.core.task.Task`), with ``wait``, its old name for :meth:`Task.check`. A pause
@@ -354,6 +369,7 @@ class CaptureOptions:
     on_shot: object = None
     log: object = None
     size: tuple | None = None
+    shots: list | None = None  # inputs: plan.json's shots (name, angle_deg, lamps)
 
 
 @dataclass
@@ -379,6 +395,8 @@ def plan(kind: str, n_lamps: int, options: CaptureOptions) -> list[Shot]:
         return plan_sweep(n_lamps, o.count, o.start, o.format)
     if kind == "input":
         return plan_input(n_lamps, o.start, o.ambient, o.format)
+    if kind == "inputs":
+        return plan_inputs(n_lamps, o.shots, o.start, o.format)
     raise ValueError(f"capture kind must be one of {sorted(FOLDERS)}, got {kind!r}")
 
 

@@ -36,7 +36,7 @@ PLAUSIBLE = 0.1
 #: Candidate views are ray-cast at least this wide (or at the camera's width, if smaller).
 MIN_WIDTH = 160
 #: Turntable angles (degrees) tried by default.
-ANGLES = tuple(range(-90, 91, 15))
+ANGLES = tuple(range(-165, 181, 15))
 
 
 @dataclass
@@ -203,8 +203,8 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
             break
         gain, i, rel = best
         H_acc = H_acc + H_shot[i]
+        chosen.append({"index": i, "shot": cands[i], "gain": float(gain), "relative_sigma": rel, "before": best_rel})
         base, best_rel = base + gain, rel
-        chosen.append({"index": i, "shot": cands[i], "gain": float(gain), "relative_sigma": rel})
         log(f"plan: {cands[i].name} (turntable {cands[i].angle:g}°, lamps {list(cands[i].lamps)}): gain {gain:.2f}")
 
     names = _names(fac, scene)
@@ -215,7 +215,7 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
                       "gain": round(c["gain"], 4),
                       "predicted_relative_sigma": {names[t]: _num(c["relative_sigma"][t]) for t in targets},
                       "determines": sorted(names[t] for t in targets
-                                           if c["relative_sigma"][t] <= LOOSE < now[t])})
+                                           if c["relative_sigma"][t] <= LOOSE < c["before"][t])})
     H_after = H_acc
     report = {"targets": [names[t] for t in targets],
               "relative_sigma_now": {names[t]: _num(now[t]) for t in targets},

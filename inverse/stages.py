@@ -177,7 +177,7 @@ class PlanOptions:
 
     workspace: Path
     max_shots: int = 3
-    angles: tuple = tuple(range(-90, 91, 15))  # turntable angles tried, degrees
+    angles: tuple = tuple(range(-165, 181, 15))  # turntable angles tried, degrees (the whole turn)
     turntable_centre: tuple | None = None  # (x, y) metres; default: from the sweep reconstruct registered
     reduce: int = 4  # candidate views ray-cast at 1/reduce of the camera's size
 

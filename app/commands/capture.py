@@ -2,7 +2,8 @@
 
 Kinds: `calibration` (every lamp on, one shot per angle), `lights` (one lamp at a time per
 angle, for rod shadows), `sweep` (N angles over a full turn), `input` (the input photograph,
-optionally with a lamps-off ambient frame that is subtracted into WORKSPACE/input.exr).
+optionally with a lamps-off ambient frame that is subtracted into WORKSPACE/input.exr), `inputs`
+(further photographs into WORKSPACE/inputs/ with their camera and lamps: plan.json's with --plan).
 After every shot the image and captures/<kind>/manifest.json are written atomically; after a
 fault or Ctrl-C, the same command with --resume takes exactly the missing shots.
 """
@@ -18,7 +19,7 @@ HELP = "capture calibration, rod-shadow, turntable or input images (hardware or 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("kind", choices=["calibration", "lights", "sweep", "input"])
+    parser.add_argument("kind", choices=["calibration", "lights", "sweep", "input", "inputs"])
     parser.add_argument("workspace", type=Path)
     parser.add_argument("--port", required=True, help="serial port of the GRBL board, or 'sim' for the simulated board")
     parser.add_argument("--camera", required=True, help="sim | opencv:N | opencv:URL | folder:PATH (tethered camera)")
@@ -29,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--count", type=int, default=36, help="sweep: number of shots over 360 degrees (default 36)")
     parser.add_argument("--start", type=float, default=0.0, help="sweep: first angle; input: the angle (default 0)")
     parser.add_argument("--ambient", action="store_true", help="input: also take a lamps-off frame and subtract it")
+    parser.add_argument("--plan", action="store_true", help="inputs: the shots of plan.json (made first if missing); "
+                        "without it, one shot per --angles angle with every lamp on")
     parser.add_argument("--exposure", type=float, help="exposure passed to the camera and recorded (seconds)")
     parser.add_argument("--settle", type=float, default=0.0, help="seconds to wait after the lamps change")
     parser.add_argument("--format", choices=["exr", "png", "tif"], default="exr", help="image files (default exr)")
@@ -75,6 +78,13 @@ def run(args) -> int:
         sim = SimOptions(args.size, args.depth, args.centre, args.room_light, args.grain)
         with Devices(args.port, args.camera, config=config, unlock=args.unlock, sim=sim, trigger=args.trigger,
                  camera_timeout=args.camera_timeout) as rig:
+            if args.kind == "inputs":
+                from reflab.app.steps import further_photographs
+
+                shots = None if args.plan else [{"name": f"a{a:g}".replace("-", "m"), "angle_deg": a,
+                                                 "lamps": list(range(len(config.lamps)))} for a in args.angles or []]
+                print(further_photographs(ws.root, rig, log=print, shots=shots, recapture=args.overwrite).summary)
+                return 0
             result = run_capture(CaptureOptions(
                 args.workspace, args.kind, rig.controller, rig.camera, args.angles, args.count, args.start,
                 args.ambient, args.format, args.exposure, args.settle, args.resume, args.overwrite, on_shot, print))

@@ -43,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-seconds", type=positive_float, default=None,
                         help="wall-clock budget of the fit (trees excluded); it stops at the next iteration "
                              "and fit.json's message says so (default: none)")
+    parser.add_argument("--single-photograph", action="store_true",
+                        help="fit the reference photograph alone, ignoring inputs/ (the dissertation's method)")
 
 
 def run(args) -> int:
@@ -54,13 +56,16 @@ def run(args) -> int:
               f"({rec['texture_s']:.1f} s), refit RMS per band [{rms}] ({rec['fit_s']:.1f} s)", flush=True)
 
     r = fit(FitOptions(args.workspace, args.method, args.depth, args.saturation, args.max_iterations,
-                       args.max_seconds, args.texture_rounds), on_round=on_round)
+                       args.max_seconds, args.texture_rounds, single=args.single_photograph), on_round=on_round)
     report, result = r.report, r.fit
     img, cols = report["image"], report["columns"]
     seconds = report["setup_s"]["trees"]
     print(f"reflab fit: trees: {'reused cache' if report['trees']['cache'] == 'reused' else 'built'} in {seconds:.2f} s")
     print(f"reflab fit: {img['width']}x{img['height']} image, {img['saturated_pixels']} saturated pixels masked, "
           f"{report['trees']['nodes']} tree nodes")
+    if len(report.get("photographs", [])) > 1:
+        print(f"reflab fit: {len(report['photographs'])} photographs: " + ", ".join(
+            f"{p['name']} ({p['pixels_used']} px, RMS {max(p['rms']):.3g})" for p in report["photographs"]))
     print(f"reflab fit: {cols['used']} monomial columns used (the dense factorization has {cols['dense_dissertation']})")
     rms = ", ".join(f"{v:.3g}" for v in report["rms"])
     print(f"reflab fit: {args.method} {result.iterations} iterations in {report['time_s']:.2f} s, RMS per band [{rms}]"

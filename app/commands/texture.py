@@ -30,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--saturation", type=positive_float, default=None,
                         help="pixel value at which the camera clips (default: detect a clipped plateau)")
     parser.add_argument("--max-albedo", type=positive_float, default=1.0, help="upper bound of kd (default 1)")
+    parser.add_argument("--single-photograph", action="store_true",
+                        help="use the reference photograph alone, ignoring inputs/")
 
 
 def run(args) -> int:
@@ -38,7 +40,7 @@ def run(args) -> int:
     from reflab.inverse.stages import TextureOptions, texture
 
     r = texture(TextureOptions(args.workspace, args.depth, args.texel_scale, args.texel_size, args.prior,
-                               args.smoothness, args.saturation, args.max_albedo),
+                               args.smoothness, args.saturation, args.max_albedo, single=args.single_photograph),
                 log=lambda line: print(f"reflab texture: {line}"))
     result, st = r.result, r.result.stats
     trees_note = "from the cache" if r.trees["cache"] == "reused" else f"{r.trees['build_s']:.2f} s"

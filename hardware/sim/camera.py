@@ -68,7 +68,8 @@ def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), p
     """A ``render(angle, lamps, role=None)`` for :class:`SimulatedCamera` from a :class:`reflab.hardware.sim.lab.SimLab`.
 
     The surfaces not named in ``fixed`` stand on the turntable: their meshes and textures turn
-    with it about the vertical axis through ``centre`` (x, y in metres). Lamps that are off are
+    with it about the vertical axis through ``centre`` (x, y in metres); for a further input
+    photograph (role ``"further input"``) every surface does. Lamps that are off are
     left out; with every lamp off the image is black.
 
     ``props`` (a :class:`reflab.hardware.sim.props.LabProps`): a shot whose ``role`` needs a prop (the
@@ -121,13 +122,16 @@ def lab_renderer(lab, *, depth: int = 2, centre=(0.0, 0.0), fixed=("ground",), p
             return render_props(angle, on, role)
         if not on:
             return np.zeros((lab.camera.height, lab.camera.width, 3))
+        # A further photograph of the scene (reflab capture inputs): the whole set stands on the
+        # turntable's plate, table top included, as docs/formats.md's inputs/ assumes.
+        turns = [True] * len(turning) if role == "further input" else turning
         surfaces = [Surface(s.name, s.mesh_path, s.material, s.textured,
                             Mesh(rotate_about_z(s.mesh.vertices, angle, centre), s.mesh.triangles) if moves else s.mesh)
-                    for s, moves in zip(lab.scene, turning)]
+                    for s, moves in zip(lab.scene, turns)]
 
         def albedo(index: int, points: np.ndarray) -> np.ndarray:
             # A turned surface shows at p the texture its unturned self has at R^-1 p.
-            return lab.albedo(index, rotate_about_z(points, -angle, centre) if turning[index] else points)
+            return lab.albedo(index, rotate_about_z(points, -angle, centre) if turns[index] else points)
 
         return render_reference(Scene(surfaces), lab.camera, Lights(on), depth, albedo)
 

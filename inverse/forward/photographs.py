@@ -293,3 +293,43 @@ def taken_shots(photos) -> list:
         if isinstance(shot, dict) and "angle_deg" in shot and "lamps" in shot:
             out.append(SimpleNamespace(angle=float(shot["angle_deg"]), lamps=tuple(int(k) for k in shot["lamps"])))
     return out
+
+
+def inputs_from_capture(workspace, *, centre=None, direction: float | None = None, log=None) -> list:
+    """Write ``inputs/`` from a finished ``captures/inputs`` session: each shot's photograph with
+    its sidecar, the camera and lamps turned from camera.json and lights.json about the turntable
+    axis (``centre``/``direction``, by default the axis reconstruct found) by the shot's angle
+    from the reference input's, and only its lit lamps. Returns the names written."""
+    from reflab.calibration.camera import Camera
+    from reflab.calibration.lights import Lights
+    from reflab.core.images import read_image
+
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    manifest = read_json(ws.require(ws.manifest("inputs"), "reflab capture inputs"))
+    if manifest.get("status") != "complete":
+        raise WorkspaceError(ws.manifest("inputs"), "status", "'complete' (finish it with --resume)",
+                             got=manifest.get("status"))
+    if centre is None or direction is None:
+        from reflab.reconstruction.stages import turntable_axis
+
+        found, d = turntable_axis(ws)
+        centre = found if centre is None else centre
+        direction = d if direction is None else direction
+    start = 0.0
+    if ws.manifest("input").exists():
+        shots = read_json(ws.manifest("input")).get("shots") or []
+        start = float(next((s["angle"] for s in shots if s.get("role") == "input"), 0.0))
+    camera = Camera.load(ws.require(ws.camera, "reflab calibrate camera"))
+    lights = Lights.load(ws.require(ws.lights, "reflab calibrate lights"))
+    names = []
+    for shot in manifest.get("shots", []):
+        lit = [k for k, on in enumerate(shot["lamps"]) if on]
+        angle = float(shot["angle"]) - start
+        cam, li = turned_view(camera, lights, angle, centre, direction=direction, lit=lit)
+        image = read_image(ws.captures_of("inputs") / shot["file"])
+        name = Path(shot["file"]).stem
+        write_input(ws, name, image, cam, li, {"angle_deg": angle, "lamps": lit})
+        names.append(name)
+        if log is not None:
+            log(f"inputs/{name}: turntable {angle:g} deg from the input's view, lamps {lit}")
+    return names
