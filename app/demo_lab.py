@@ -6,8 +6,9 @@
    ``STEPS`` in order, the functions the GUI runs: devices -> calibrate camera (target shots) ->
    calibrate lights (rod shots) -> sweep (then the simulated user marks the mirror's and the
    sheet's corners and names the surfaces, as a person does in the GUI) -> reconstruct -> input
-   photograph -> fit -> texture -> results; then the results step again for the novel and the
-   relit view (truth/'s camera and lamps), and the report;
+   photograph -> fit -> [plan -> the planned further photographs -> fit, while the plan expects a
+   shot to fix what is still open] -> texture -> results; then the results step again for the
+   novel and the relit view (truth/'s camera and lamps), and the report;
 3. after each stage prints its error against the truth and its time, and at the end a table.
 
 The options (:func:`step_options`, :func:`views`) are those README's stepwise commands give by
@@ -57,7 +58,7 @@ def _log(line: str) -> None:
     print(line, flush=True)
 
 
-def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list) -> int:
+def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: int = 2) -> int:
     """Every step and the two views on the simulated rig; a row (stage, seconds, error) per stage."""
     from reflab.app import demo_score as score, steps
     from reflab.app.devices import Devices, SimOptions
@@ -82,6 +83,40 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list) -> int:
                 return 3
             rows.append((stage, seconds, score.score_stage(stage, root, truth)))
             _log(f"[demo] {stage}: {seconds:.1f} s{'; ' + rows[-1][2] if rows[-1][2] else ''}")
+            if step.name == "fit" and further:
+                code = _further_photographs(root, rig, options.get("fit", {}), truth, rows, further)
+                if code:
+                    return code
+    return 0
+
+
+def _further_photographs(root: Path, rig, fit_options: dict, truth: dict, rows: list, rounds: int) -> int:
+    """Plan -> take the planned shots -> fit again, until the plan expects no shot to gain enough
+    (every parameter the photographs show determined, or none that the rig's shots would fix)."""
+    from reflab.app import demo_score as score, steps
+    from reflab.core.workspace import Workspace, read_json
+
+    ws = Workspace(root)
+    for n in range(1, rounds + 1):
+        t0 = time.perf_counter()
+        _log(f"[demo] further photographs, round {n}: plan the shots that would fix what the fit left open")
+        result = steps.further_photographs(root, rig, log=_log)
+        plan = read_json(ws.plan)
+        if not result.value:
+            _log(f"[demo] round {n}: no further shot would gain enough; still open: "
+                 f"{', '.join(plan.get('left_open', [])) or 'nothing'}")
+            break
+        for shot in plan["shots"]:
+            _log(f"[demo] took {shot['name']} (turntable {shot['angle_deg']:g} deg, lamps {shot['lamps']}) because it "
+                 f"determines {', '.join(shot['determines']) or 'nothing alone but narrows the targets'}")
+        r = steps.step("fit").run(root, rig=rig, log=_log, **fit_options)
+        _log(f"[demo] step fit: {r.summary}")
+        if r.value.status == "poor fit":
+            _log("[demo] stage fit failed (exit 3) over the further photographs: later stages skipped")
+            return 3
+        stage = f"fit +{len(read_json(ws.fit).get('photographs', [])) - 1} photos"
+        rows.append((stage, time.perf_counter() - t0, score.score_stage("fit", root, truth)))
+        _log(f"[demo] {stage}: {rows[-1][1]:.1f} s{'; ' + rows[-1][2] if rows[-1][2] else ''}")
     return 0
 
 
@@ -108,7 +143,7 @@ def run_lab(args) -> int:
         return 0
     rows = []
     try:  # a bad file or option stops the demo as it stops the CLI (exit 2)
-        code = _run_steps(root, truth, size, args.quick, rows)
+        code = _run_steps(root, truth, size, args.quick, rows, getattr(args, "further_rounds", 2))
     except CaptureCancelled as exc:
         print(f"reflab demo: {exc}", file=sys.stderr)
         return 130

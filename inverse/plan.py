@@ -137,6 +137,7 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
     from reflab.core.task import ensure
     from reflab.inverse.fit.determined import hold
     from reflab.inverse.fit.problem import Free, Search, params_of
+    from reflab.inverse.fit.result import parameter_names
     from reflab.inverse.forward.factorization import Factorization
     from reflab.inverse.forward.models import get_model
     from reflab.inverse.forward.photographs import turned_view
@@ -207,7 +208,7 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
         base, best_rel = base + gain, rel
         log(f"plan: {cands[i].name} (turntable {cands[i].angle:g}°, lamps {list(cands[i].lamps)}): gain {gain:.2f}")
 
-    names = _names(fac, scene)
+    names = parameter_names(fac, scene)
     sigma_now = _sigmas(H_now, labels, p, names)
     shots = []
     for c in chosen:
@@ -232,21 +233,6 @@ def _aligned(H, lab, index, n):
     out = np.zeros((n, n))
     where = np.array([index[label] for label in lab], dtype=np.int64)
     out[np.ix_(where, where)] = H
-    return out
-
-
-def _names(fac, scene) -> dict:
-    """Label -> readable name ``surface.param[band]``."""
-    lay = fac.layout
-    out = {}
-    for i, (s, name) in enumerate(lay.x_names):
-        for c in range(BANDS):
-            out[("x", i, c)] = f"{scene[s].name}.{name}[{c}]"
-    for f in range(lay.n_factors):
-        for c in range(BANDS):
-            out[("s", f, c)] = f"{scene[f // 2].name}.{'rt'[f % 2]}[{c}]"
-    for q, (s, name) in enumerate(lay.theta_names):
-        out[("theta", q, -1)] = f"{scene[s].name}.{name}"
     return out
 
 

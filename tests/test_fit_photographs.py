@@ -101,6 +101,9 @@ def test_a_lobe_one_photograph_leaves_open_is_fixed_by_further_shots(tmp_path):
         got, sig, want = (np.atleast_1d(v) for v in (mirror["material"][name], mirror["sigma"][name],
                                                      truth["mirror"][name]))
         assert np.all(np.abs(got - want) <= 3 * sig + 0.02 * np.abs(want)), (name, got, sig, want)
+    # Which photographs determined it: the mirror's lobe not the reference, which does not show it.
+    assert "input" not in mirror["determined_by"]["ns"] and mirror["determined_by"]["ns"]
+    assert "input" in _surface(several, "tile")["determined_by"]["ns"]
     photos = several["photographs"]
     assert [p["name"] for p in photos] == ["input", *sorted(names)]
     assert all(p["pixels_used"] > 0.9 * W * H and max(p["rms"]) < 0.03 * several["image"]["peak"] for p in photos)

@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=image_size, default=None,
                         help="image size WIDTHxHEIGHT (default 480x360, the simulated camera's; --from-truth 320x240)")
     parser.add_argument("--quick", action="store_true", help="a shorter run for tests: 24 sweep shots, one texture round")
+    parser.add_argument("--further-rounds", type=int, default=2, metavar="N",
+                        help="rounds of plan -> further photographs -> fit after the first fit (default 2; 0: the "
+                             "single photograph of the dissertation)")
     parser.add_argument("--from-truth", action="store_true",
                         help="the inverse-only demo: true camera, lamps and geometry; fit, texture and render only")
     parser.add_argument("--noise", type=nonneg_float, default=0.0,

@@ -11,6 +11,11 @@ bar), the worst |error|/σ, and how often each parameter was reported undetermin
     python docs/figures/fit_calibration.py --size 80x60 --realisations 20 --noise 0.01 [--vary-texture] [--json out.json]
     python docs/figures/fit_calibration.py --size 160x120 --realisations 1 --noise 0 --verbose   # one fit per scene
     python docs/figures/fit_calibration.py --scenes more ...   # the further designs (reflab.hardware.sim.scenes.MORE)
+    python docs/figures/fit_calibration.py --photographs L0,L1,T35,T-35,T70,T-70 ...   # several photographs
+
+``--photographs``: further photographs fitted together with the reference (docs/fit.md "Several
+photographs"): ``Lk`` lamp k alone, ``TA`` the turntable turned by A degrees about the vertical
+axis through the origin, every lamp on; each rendered by the reference renderer, noisy like it.
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ from reflab.hardware.sim.scenes import MORE, NAMES, build, determined, render, u
 from reflab.inverse.forward.factorization import Factorization  # noqa: E402
 from reflab.inverse.fit.rounds import fit  # noqa: E402
 from reflab.inverse.forward.models import get_model  # noqa: E402
+from reflab.inverse.forward.photographs import stack_trees  # noqa: E402
 from reflab.inverse.fit.texture_aware import fit_with_texture  # noqa: E402
 from reflab.inverse.forward.trees import build_trees  # noqa: E402
 from reflab.reconstruction.scene import Scene, Surface  # noqa: E402
@@ -46,6 +52,28 @@ def rows(res, fac, truth, user):
     return det, [f for f in fitted if f not in shown]
 
 
+def _views(ts, shots: str) -> list:
+    """(camera, lights) of the reference and of each further shot named in ``shots``."""
+    from reflab.inverse.forward.photographs import turned_view
+
+    out = [(ts.camera, ts.lights)]
+    for shot in filter(None, shots.split(",")):
+        if shot[0] == "L" and int(shot[1:]) >= len(ts.lights):
+            continue  # a scene with fewer lamps
+        if shot[0] == "L":
+            out.append(turned_view(ts.camera, ts.lights, 0.0, (0.0, 0.0), lit=[int(shot[1:])]))
+        else:
+            out.append(turned_view(ts.camera, ts.lights, float(shot[1:]), (0.0, 0.0)))
+    return out
+
+
+def _photographs(ts, views) -> np.ndarray:
+    """The views photographed by the reference renderer, stacked one below the other."""
+    from reflab.hardware.sim.reference import render_reference
+
+    return np.concatenate([render_reference(ts.scene, c, li, depth=3, albedo=ts.albedo) for c, li in views], axis=0)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="80x60")
@@ -54,6 +82,7 @@ def main(argv=None):
     ap.add_argument("--scenes", default=",".join(NAMES), help="comma-separated names, or 'more' for " + ", ".join(MORE))
     ap.add_argument("--json")
     ap.add_argument("--verbose", action="store_true", help="print every determined parameter of every fit")
+    ap.add_argument("--photographs", default="", help="further shots: Lk (lamp k alone), TA (turntable A degrees)")
     ap.add_argument("--vary-texture", action="store_true",
                     help="realisation k also draws another texture (reflab.hardware.sim.scenes.build's texture_seed=k)")
     args = ap.parse_args(argv)
@@ -61,10 +90,12 @@ def main(argv=None):
     report, pooled = {}, []
     for name in (MORE if args.scenes == "more" else args.scenes.split(",")):
         ts = build(name, W, H)
-        clean = render(ts)
+        views = _views(ts, args.photographs)
+        clean = _photographs(ts, views)
         init = user_materials(ts.scene)
         user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
-        trees = build_trees(user, ts.camera, ts.lights, depth=3)
+        stack = stack_trees([build_trees(user, c, li, depth=3) for c, li in views], [li for _, li in views])
+        trees, intensities = stack.trees, stack.intensities
         models = [get_model(m.brdf) for m in init]
         held = [m.given for m in init]
         truth = [s.material for s in ts.scene]
@@ -72,11 +103,11 @@ def main(argv=None):
         for seed in range(args.realisations):
             if args.vary_texture:  # another texture on the same geometry: its own photograph and truth
                 ts = build(name, W, H, texture_seed=seed)
-                clean, truth = render(ts), [s.material for s in ts.scene]
+                clean, truth = _photographs(ts, views), [s.material for s in ts.scene]
             img = clean + (np.random.default_rng(seed).normal(0.0, args.noise * clean.max(), clean.shape) if args.noise else 0.0)
-            fac = Factorization(trees, models, ts.lights.intensities)
+            fac = Factorization(trees, models, intensities)
             start = fit(fac, img, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)
-            res, _ = fit_with_texture(trees, user, models, ts.lights.intensities, img, start, rounds=2, held=held)
+            res, _ = fit_with_texture(trees, user, models, intensities, img, start, rounds=2, held=held)
             det, und = rows(res, fac, truth, user)
             if args.verbose:
                 for r in det:

@@ -61,6 +61,21 @@ def fit_json(result: FitSolution, fac: Factorization, scene, depth: int, extra: 
     return _finite(out)
 
 
+def parameter_names(fac: Factorization, scene) -> dict:
+    """(kind, index, band) label of :func:`reflab.inverse.fit.uncertainty.normal_matrix` -> readable
+    name ``surface.param[band]`` (``surface.param`` for a nonlinear parameter)."""
+    lay, out = fac.layout, {}
+    for i, (s, name) in enumerate(lay.x_names):
+        for c in range(3):
+            out[("x", i, c)] = f"{scene[s].name}.{name}[{c}]"
+    for f in range(lay.n_factors):
+        for c in range(3):
+            out[("s", f, c)] = f"{scene[f // 2].name}.{'rt'[f % 2]}[{c}]"
+    for q, (s, name) in enumerate(lay.theta_names):
+        out[("theta", q, -1)] = f"{scene[s].name}.{name}"
+    return out
+
+
 def _finite(obj):
     """``obj`` (JSON-like) with every NaN or infinite float replaced by None."""
     if isinstance(obj, dict):

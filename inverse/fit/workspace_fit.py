@@ -107,6 +107,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if rounds is not None:
         extra["texture_rounds"] = rounds
     report = fit_json(result, fac, scene, depth, extra)
+    if len(photos) > 1:
+        for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
+            item["determined_by"] = shares
     ensure(task).check()  # a cancel during the last iteration: nothing written
     write_json(ws.fit, report)
     return report, result
@@ -133,4 +136,34 @@ def photograph_report(stack, photos, image, unused, fac, result) -> list:
                     "width": block.width, "height": block.height, "lamps": block.lights,
                     "pixels_used": int(len(px)),
                     "rms": [float(v) for v in np.sqrt(np.mean(res * res, axis=0))] if len(px) else [0.0, 0.0, 0.0]})
+    return out
+
+
+#: A photograph "determines" a parameter when it holds at least this share of its information.
+SHARE = 0.1
+
+
+def determined_by(stack, photos, fac, image, result, scene) -> list:
+    """Per surface, per fitted parameter name: the photographs holding at least :data:`SHARE` of
+    its Fisher information (the diagonal of ``JᵀWJ`` over that photograph's pixels)."""
+    from reflab.inverse.fit.problem import Problem
+    from reflab.inverse.fit.result import parameter_names
+    from reflab.inverse.fit.uncertainty import normal_matrix
+
+    pb = Problem(fac, image, [m.transparent for m in result.materials])
+    noise = np.maximum(np.asarray(result.stats.get("noise") or pb.noise, dtype=np.float64), 1e-300)
+    photo_of_row = stack.photograph_of(fac.rows)
+    diags, labels = [], None
+    for i in range(len(photos)):
+        H, labels = normal_matrix(pb, result.params, result.free, 1.0 / noise ** 2, keep=photo_of_row == i)
+        diags.append(np.diag(H))
+    out = [{} for _ in scene]
+    if not labels:
+        return out
+    total = np.maximum(np.sum(diags, axis=0), 1e-300)
+    names = parameter_names(fac, scene)
+    for j, label in enumerate(labels):
+        surface, _, param = names[label].partition(".")
+        who = [p.name for p, d in zip(photos, diags) if d[j] >= SHARE * total[j] and d[j] > 0]
+        out[scene.index(surface)][param] = who
     return out
