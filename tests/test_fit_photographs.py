@@ -107,6 +107,11 @@ def test_a_lobe_one_photograph_leaves_open_is_fixed_by_further_shots(tmp_path):
     photos = several["photographs"]
     assert [p["name"] for p in photos] == ["input", *sorted(names)]
     assert all(p["pixels_used"] > 0.9 * W * H and max(p["rms"]) < 0.03 * several["image"]["peak"] for p in photos)
+    # The report shows the photographs and which determined each value.
+    from reflab.app.report.build import build_report
+
+    html = build_report(root, render=False)[0].read_text()
+    assert "The photographs fitted together" in html and "determined by a" in html and names[0] in html
     # The dissertation's single photograph on demand: the same answer as before the shots.
     single = fit(FitOptions(root, single=True)).report
     assert single["photographs"] == one["photographs"]

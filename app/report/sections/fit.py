@@ -68,6 +68,9 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
                 a, b = floats(mat[key]), floats(true[key])
                 err = (a - b).tolist() if a is not None and b is not None and a.shape == b.shape else None
                 lines.append(f"truth {num(true[key])}, error {num(err, 3)}")
+            who = _determined_by(s, key)
+            if who:
+                lines.append("determined by " + who)
             row.append("\n".join(lines))
         rows.append(row)
     sec.table(["surface", "BRDF"] + list(keys), rows,
@@ -75,11 +78,33 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
               "does not fix it: either held at its initial or user-given value (no σ), or fitted with a σ that spans "
               "its plausible range (value and σ shown, docs/fit.md)" + (f"; truth: {truth_file}." if truth else "."))
     _colour_lobes(sec, fit)
+    _photographs(sec, fit)
     if model and model.get("image") is not None:
         _model_images(sec, src, fit, model)
     elif model and model.get("error"):
         sec.note(f"re-render of the model failed: {model['error']}", "bad")
     return sec
+
+
+def _determined_by(surface: dict, key: str) -> str:
+    """Which photographs determined parameter ``key`` (fit.json ``determined_by``, several photographs)."""
+    shares = as_dict(surface.get("determined_by"))
+    names = sorted({str(p) for k, v in shares.items() if k == key or str(k).startswith(key + "[") for p in as_list(v)})
+    return ", ".join(names)
+
+
+def _photographs(sec: Section, fit: dict) -> None:
+    """The photographs fitted together (fit.json ``photographs``), when there are several."""
+    photos = [p for p in as_list(fit.get("photographs")) if isinstance(p, dict)]
+    if len(photos) < 2:
+        return
+    sec.table(["photograph", "file", "size", "lamps lit", "pixels used", "RMS per band"],
+              [[p.get("name"), p.get("file"), f"{p.get('width')} × {p.get('height')}", num(p.get("lamps")),
+                num(p.get("pixels_used")), num(p.get("rms"), 3)] for p in photos],
+              "The photographs fitted together (the reference input and inputs/, docs/fit.md \"Several photographs "
+              "and the plan\"): one set of parameters for all; \"determined by\" in the table above names the "
+              "photographs holding at least 10 % of a parameter's information. RMS: the fitted model with "
+              "homogeneous albedo, linear radiance.")
 
 
 def _colour_lobes(sec: Section, fit: dict) -> None:
