@@ -211,8 +211,15 @@ def _reconstruct(ctx, task) -> str:
 
 def _input(ctx, task) -> str:
     o = ctx.options
-    return _run(ctx, task, "input", start=float(o.get("angle", 0.0)), ambient=bool(o.get("ambient")),
-                recapture=bool(o.get("recapture"))).summary
+    summary = _run(ctx, task, "input", start=float(o.get("angle", 0.0)), ambient=bool(o.get("ambient")),
+                   recapture=bool(o.get("recapture"))).summary
+    if not o.get("further"):
+        return summary
+    if not ctx.ws.fit.exists():
+        raise StepFailed("further photographs are planned from fit.json: run Fit first, then this step again")
+    with ctx.rig.lock:
+        more = core.further_photographs(ctx.workspace, ctx.rig.devices, task, log=ctx.log)
+    return f"{summary}; {more.summary}; run Fit again to use them"
 
 
 def _fit(ctx, task) -> str:

@@ -24,15 +24,21 @@ def table(name: str, headers: list[str], rows: list[list], bad: set | None = Non
     widget.setHorizontalHeaderLabels(headers)
     widget.verticalHeader().setVisible(False)
     widget.setEditTriggers(QTableWidget.EditTrigger.NoEditTriggers)
+    refill(widget, rows, bad)
+    widget.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+    widget.horizontalHeader().setStretchLastSection(True)
+    return widget
+
+
+def refill(widget: QTableWidget, rows: list[list], bad: set | None = None) -> None:
+    """Replace the rows of a :func:`table` (the cells ``bad`` in red)."""
+    widget.setRowCount(len(rows))
     for i, row in enumerate(rows):
         for j, value in enumerate(row):
             item = QTableWidgetItem(str(value))
             if bad and (i, j) in bad:
                 item.setForeground(QColor("#c00000"))
             widget.setItem(i, j, item)
-    widget.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-    widget.horizontalHeader().setStretchLastSection(True)
-    return widget
 
 
 def fmt(value, digits: int = 3) -> str:

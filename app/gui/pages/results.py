@@ -8,9 +8,32 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QFormLayout, QGridLayout, QGroupBox, QHBoxLayout, QPushButton, QSlider, QVBoxLayout,
                                QWidget)
 
-from reflab.app.gui.pages.page import StepPage, read_image
+from reflab.app.gui.pages.page import StepPage, fmt, read_image, refill, table
 from reflab.app.gui.widgets import ImageView, text_label
 from reflab.core.workspace import Workspace
+
+
+PARAM_HEADERS = ["surface", "parameter", "value ± σ", "determined by"]
+
+
+def parameter_rows(fit: dict) -> list:
+    """fit.json's surfaces as rows: surface, parameter, value ± σ per band (or "undetermined"),
+    and the photographs holding ≥ 10 % of its information (several photographs)."""
+    rows = []
+    for s in fit.get("surfaces", []) if isinstance(fit, dict) else []:
+        mat, sig = s.get("material") or {}, s.get("sigma") or {}
+        und, by = set(s.get("undetermined") or []), s.get("determined_by") or {}
+        for key, value in mat.items():
+            if key in ("brdf", "ior") or value is None:
+                continue
+            if key in und:
+                text = f"undetermined (held at {fmt(value)})"
+            else:
+                sd = sig.get(key)
+                text = f"{fmt(value)} ± {fmt(sd, 2)}" if sd is not None else f"{fmt(value)} (given)"
+            who = sorted({p for k, v in by.items() if k == key or k.startswith(key + "[") for p in v})
+            rows.append([s.get("name"), key, text, ", ".join(who) or ("input" if key not in und and sig.get(key) else "")])
+    return rows
 
 
 class ResultsPage(StepPage):
@@ -35,6 +58,11 @@ class ResultsPage(StepPage):
         self.summary.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
         lay.addWidget(self.summary, 1, 1)
         self.tab(w, "Model against photograph")
+        pw = QWidget()
+        self.params_layout = QVBoxLayout(pw)
+        self.params_table = table("results_parameters", PARAM_HEADERS, [])
+        self.params_layout.addWidget(self.params_table)
+        self.tab(pw, "Parameters")
         nv = QWidget()
         nl = QHBoxLayout(nv)
         controls = QFormLayout()
@@ -69,6 +97,7 @@ class ResultsPage(StepPage):
         self.tab(nv, "Novel view and relighting")
 
     def refresh(self):
+        self._refresh_parameters()
         ws = self.ws
         if not ws.render().exists() or not ws.input_image.exists():
             self.summary.setText(self.nothing_yet("re-render"))
@@ -86,6 +115,17 @@ class ResultsPage(StepPage):
                       "to open in a browser." if html.exists() else "")
             self.summary.setText(f"RMS difference <b>{100 * rel:.2f}%</b> of the photograph's RMS.{report}<br><br>"
                                  "The next tab shows the model from another view and under dimmed or brightened lamps.")
+
+    def _refresh_parameters(self):
+        """Each fitted parameter: value ± σ (or undetermined) and the photographs that determined it."""
+        from reflab.core.workspace import WorkspaceError, read_json
+
+        try:
+            fit = read_json(self.ws.fit) if self.ws.fit.exists() else {}
+        except WorkspaceError:
+            fit = {}
+        rows = parameter_rows(fit)
+        refill(self.params_table, rows, {(i, 2) for i, r in enumerate(rows) if r[2].startswith("undetermined")})
 
     def _describe_novel(self, _=None):
         dims = ", ".join(f"{s.value()}%" for s in self.dimmers)
