@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QCheckBox, QVBoxLayout, QWidget
 
-from reflab.app.gui.pages.page import StepPage, read_image, spin
+from reflab.app.gui.pages.page import StepPage, from_table, read_image
 from reflab.app.gui.widgets import ImageView, text_label
+from reflab.hardware.capture import CaptureOptions
 
 
 class InputPage(StepPage):
@@ -13,7 +14,7 @@ class InputPage(StepPage):
     run_text = "Take the photograph"
 
     def build(self):
-        self.add_option("angle", "Turntable angle", spin(0.0, -360, 360, 1.0, 2, " °"))
+        self.add_option("angle", "Turntable angle", from_table(CaptureOptions, "start", -360, 360, 1.0, 2))
         self.add_option("ambient", "", QCheckBox("ambient frame (lamps off) subtracted"))
         self.add_option("recapture", "", QCheckBox("capture again"))
         w = QWidget()
