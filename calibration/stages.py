@@ -32,7 +32,8 @@ class CameraOptions:
                             metavar="COLSxROWS", required=True)
     spacing: float = opt(0.015, "circle spacing of the target", unit="m")
     images: list | None = None
-    radius: float | None = opt(None, "printed circle radius (default: estimated from the images)", unit="m")
+    radius: float | None = opt(None, "printed circle radius (default: estimated from the images)", unit="m",
+                                  type=float)
     reference: int = opt(0, "index of the image taken from the input photograph's pose")
     pixel_size: float = opt(0.005, "sensor element size, Tsai's dx = dy", unit="mm")
     bias_correction: bool = opt(True, "fit projected circle centres (as OpenCV does) instead of ellipse centres",
@@ -87,7 +88,7 @@ class LightsOptions:
 
     workspace: Path
     images: list | None = None
-    rod_height: float | None = opt(None, "rod height (default: marks.json's)", unit="m", typical=0.10)
+    rod_height: float | None = opt(None, "rod height (default: marks.json's)", unit="m", type=float, typical=0.10)
     marks: Path | None = opt(None, "marks.json to use instead of detecting marks", type=Path)
     light: int | list | None = opt(None, "lamp index of the images given (default: the lamp captures/lights/"
                                          "manifest.json gives for a shot of the lights session, else 0)", type=int)

@@ -124,6 +124,8 @@ def add_arguments(parser, cls, *, only=None, skip=(), override: dict | None = No
                 kw["action"] = i["action"]
                 kw["default"] = []
             kind = i["type"] or (type(i["default"]) if isinstance(i["default"], (int, float, str)) else None)
+            if kind is None and i["default"] is None and i["choices"] is None:
+                raise TypeError(f"{cls.__name__}.{name}: an option without a default needs type=")
             if kind is not None:
                 kw["type"] = kind
             for key in ("choices", "metavar", "nargs"):
