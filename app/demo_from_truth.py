@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 
+from reflab.app.console import LOG, running
 from reflab.core.workspace import Workspace
 
 #: Later steps of the guided acquisition (app/steps.py), in order.
@@ -21,7 +22,7 @@ STEPS = ("fit", "texture", "results")
 
 
 def _log(line: str) -> None:
-    print(f"[demo] {line}")
+    LOG.info(f"[demo] {line}")
 
 
 def _fmt(value) -> str:
@@ -40,7 +41,7 @@ def _compare_materials(ws: Workspace) -> None:
         for key in ("kd", "ks", "ns", "r", "t"):
             if key in item.get("material", {}) and true.get(key) is not None:
                 parts.append(f"{key} {_fmt(item['material'][key])} (true {_fmt(true[key])})")
-        print(f"[demo]   {item.get('name')}: " + "; ".join(parts))
+        LOG.info(f"[demo]   {item.get('name')}: " + "; ".join(parts))
 
 
 def run_from_truth(args) -> int:
@@ -58,8 +59,8 @@ def run_from_truth(args) -> int:
     lab = build_lab(width, height)
     write_lab(ws.root, lab, materials=False)
     write_image(ws.truth_albedo, true_albedo(lab), allow_nan=True)  # the report's texture truth
-    print(f"[demo] 1/4 wrote the simulated lab ({width}x{height}, {len(lab.scene)} surfaces, {len(lab.lights)} lamps) "
-          f"to {ws.root}/ (true materials in {ws.truth_materials.name})")
+    LOG.info(f"[demo] 1/4 wrote the simulated lab ({width}x{height}, {len(lab.scene)} surfaces, {len(lab.lights)} lamps) "
+             f"to {ws.root}/ (true materials in {ws.truth_materials.name})")
 
     t0 = time.perf_counter()
     stats = {}
@@ -68,22 +69,23 @@ def run_from_truth(args) -> int:
         photo = np.maximum(photo + np.random.default_rng(args.seed).normal(0.0, args.noise, photo.shape), 0.0)
     write_image(ws.input_file(), photo)
     write_preview(ws.input_file(".png"), photo)
-    print(f"[demo] 2/4 rendered {ws.input_file().name} with the reference renderer in {time.perf_counter() - t0:.1f} s "
-          f"({stats['refractions']} refractions, {stats['tir']} total internal reflections, noise {args.noise:g})")
+    LOG.info(f"[demo] 2/4 rendered {ws.input_file().name} with the reference renderer in {time.perf_counter() - t0:.1f} s "
+             f"({stats['refractions']} refractions, {stats['tir']} total internal reflections, noise {args.noise:g})")
 
-    print("[demo] 3/4 recovering the model")
+    LOG.info("[demo] 3/4 recovering the model")
     options = {"results": {"depth": args.depth}}
     for name in STEPS:  # a WorkspaceError stops the demo as it stops the CLI (exit 2)
         t0 = time.perf_counter()
-        result = steps.step(name).run(ws.root, log=_log, **options.get(name, {}))
-        print(f"[demo] step {name}: {result.summary} ({time.perf_counter() - t0:.1f} s)")
+        with running(f"demo {name}") as task:  # a progress bar; Ctrl-C cancels the step
+            result = steps.step(name).run(ws.root, task, log=_log, **options.get(name, {}))
+        LOG.info(f"[demo] step {name}: {result.summary} ({time.perf_counter() - t0:.1f} s)")
     image, info = result.value.image, result.value.info
     rms = np.sqrt(np.mean((image - photo) ** 2, axis=(0, 1)))
     rel = float(np.sqrt(np.mean((image - photo) ** 2)) / max(np.sqrt(np.mean(photo**2)), 1e-300))
     texture = "homogeneous kd" if info["texture_nodes"] is None else "recovered texture"
-    print(f"[demo] 4/4 rendered the model (materials from {info['materials']}, {texture}) to {result.value.path}")
-    print(f"[demo] RMS model vs input per band: {rms[0]:.4f} {rms[1]:.4f} {rms[2]:.4f} "
-          f"(relative {100 * rel:.2f}%, input peak {photo.max():.3f})")
+    LOG.info(f"[demo] 4/4 rendered the model (materials from {info['materials']}, {texture}) to {result.value.path}")
+    LOG.info(f"[demo] RMS model vs input per band: {rms[0]:.4f} {rms[1]:.4f} {rms[2]:.4f} "
+             f"(relative {100 * rel:.2f}%, input peak {photo.max():.3f})")
     _compare_materials(ws)
-    print(f"[demo] done in {time.perf_counter() - start:.1f} s")
+    LOG.info(f"[demo] done in {time.perf_counter() - start:.1f} s")
     return 0

@@ -18,10 +18,10 @@ interrupted, 3 when the fit is poor, 2 for a bad file or option (app/cli.py).
 """
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
+from reflab.app.console import LOG, running
 from reflab.app.devices import SIM_SIZE
 
 #: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
@@ -55,7 +55,7 @@ def views(workspace) -> dict[str, dict]:
 
 
 def _log(line: str) -> None:
-    print(line, flush=True)
+    LOG.info(line)
 
 
 def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: int = 2) -> int:
@@ -71,7 +71,8 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
         for stage, step, opts in runs:
             _log(f"[demo] step {step.name}: {step.title}")
             t0 = time.perf_counter()
-            result = step.run(root, rig=rig, log=_log, **opts)
+            with running(f"demo {stage}") as task:  # a progress bar; Ctrl-C cancels the step
+                result = step.run(root, task, rig=rig, log=_log, **opts)
             if step.name == "sweep":  # what a person marks in the GUI after the sweep
                 path = mark_sweep(root, rig.camera.sim_lab, result.capture.manifest, centre=CENTRE)
                 _log(f"[demo] the simulated user marked the mirror's and the sheet's corners and named the surfaces "
@@ -145,22 +146,22 @@ def run_lab(args) -> int:
     try:  # a bad file or option stops the demo as it stops the CLI (exit 2)
         code = _run_steps(root, truth, size, args.quick, rows, getattr(args, "further_rounds", 2))
     except CaptureCancelled as exc:
-        print(f"reflab demo: {exc}", file=sys.stderr)
+        LOG.error(f"reflab demo: {exc}")
         return 130
     except (CaptureError, GrblError, CameraError) as exc:
-        print(f"reflab demo: error: {exc}", file=sys.stderr)
+        LOG.error(f"reflab demo: error: {exc}")
         return 1
     if code:
         return code
     t0 = time.perf_counter()
     html, summary = build_report(root)
     for path, why in summary.get("unreadable", {}).items():
-        print(f"warning: {path} is unreadable, left out of the report ({why})", file=sys.stderr)
+        LOG.warning(f"warning: {path} is unreadable, left out of the report ({why})")
     _log(f"{summary_text(summary)}\nwrote {write_json(Workspace(root).report_json, summary)}\nwrote {html}")
     rows.append(("report", time.perf_counter() - t0, ""))
     _log(f"[demo] report: {rows[-1][1]:.1f} s")
-    print("[demo] stage             time (s)  error against truth/")
+    LOG.info("[demo] stage             time (s)  error against truth/")
     for stage, seconds, error in rows:
-        print(f"[demo] {stage:<17} {seconds:8.1f}  {error}")
-    print(f"[demo] done in {time.perf_counter() - start:.1f} s")
+        LOG.info(f"[demo] {stage:<17} {seconds:8.1f}  {error}")
+    LOG.info(f"[demo] done in {time.perf_counter() - start:.1f} s")
     return 0

@@ -6,7 +6,9 @@ The CLI (``reflab capture``), the GUI and the demo open their devices here.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+
+from reflab.core.options import float_list, image_size, opt
 
 #: The simulated camera's default image size: at 320x240 structure from motion registers too few
 #: of the simulated sweep's shots (docs/reconstruction.md), so every default is 480x360.
@@ -36,11 +38,15 @@ class SimOptions:
     """The simulated camera's knobs (``--camera sim``): image size, ray depth, turntable axis
     (x, y, metres), ambient radiance added to every pixel, print grain of the lab's textures."""
 
-    size: tuple = SIM_SIZE
-    depth: int = 3
-    centre: list = field(default_factory=lambda: [0.0, 0.0])
-    room_light: float = 0.0
-    grain: float = 0.2
+    size: tuple = opt(SIM_SIZE, "simulated camera image size WxH (at 320x240 structure from motion registers too "
+                                "few sweep shots)", type=image_size, metavar="WxH")
+    depth: int = opt(3, "maximum internal nodes per path of the simulated camera's renderer", flag="--sim-depth",
+                     aliases=("--depth",))
+    centre: list = opt(factory=lambda: [0.0, 0.0], help="where the turntable axis meets the ground, x,y",
+                       unit="m", flag="--turntable-centre", aliases=("--centre",), type=float_list, metavar="X,Y")
+    room_light: float = opt(0.0, "ambient radiance added to every pixel")
+    grain: float = opt(0.2, "fine print grain of the lab's textures (as printed paper has; 0 = the plain procedural "
+                            "lab, too poorly textured for structure from motion)")
 
 
 class Devices:
@@ -85,7 +91,7 @@ class Devices:
         if not 0.0 <= sim.grain < 1.0:
             raise ValueError(f"--grain must be in [0, 1), got {sim.grain}")
         if len(sim.centre) != 2:
-            raise ValueError(f"--centre takes x,y, got {sim.centre}")
+            raise ValueError(f"--turntable-centre takes x,y, got {sim.centre}")
         lab = build_lab(*sim.size, grain=sim.grain)
         if len(self.config.lamps) != len(lab.lights):
             raise ValueError(f"the simulated lab has {len(lab.lights)} lamps but the configuration "

@@ -80,7 +80,8 @@ def capture(workspace, kind: str, rig, task=None, *, log=print, recapture: bool 
     from reflab.core.workspace import read_json
 
     ws = Workspace(workspace)
-    opts = CaptureOptions(ws.root, kind, rig.controller, rig.camera, log=log, **options)
+    opts = CaptureOptions(workspace=ws.root, kind=kind, controller=rig.controller, camera=rig.camera, log=log,
+                          **options)
     shots = plan(kind, len(rig.controller.config.lamps), opts)
     path = ws.manifest(kind)
     old = read_json(path) if path.exists() else {}

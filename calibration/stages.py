@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reflab.core.options import opt
 from reflab.core.task import Task, ensure
 from reflab.core.workspace import OptionError
 
@@ -27,13 +28,16 @@ class CameraOptions:
     """
 
     workspace: Path
-    grid: str | tuple = "11x8"
-    spacing: float = 0.015
+    grid: str | tuple = opt("11x8", "circles per row and column of the target, COLSxROWS (e.g. 11x8)",
+                            metavar="COLSxROWS", required=True)
+    spacing: float = opt(0.015, "circle spacing of the target", unit="m")
     images: list | None = None
-    radius: float | None = None
-    reference: int = 0
-    pixel_size: float = 0.005
-    bias_correction: bool = True
+    radius: float | None = opt(None, "printed circle radius (default: estimated from the images)", unit="m",
+                                  type=float)
+    reference: int = opt(0, "index of the image taken from the input photograph's pose")
+    pixel_size: float = opt(0.005, "sensor element size, Tsai's dx = dy", unit="mm")
+    bias_correction: bool = opt(True, "fit projected circle centres (as OpenCV does) instead of ellipse centres",
+                                flag="--no-bias-correction")
 
 
 @dataclass
@@ -84,14 +88,20 @@ class LightsOptions:
 
     workspace: Path
     images: list | None = None
-    rod_height: float | None = None
-    marks: Path | None = None
-    light: int | list | None = None
-    mark_sigma: float | None = None
-    intensity: list | None = None
-    sheet: list | None = None
-    sheet_reflectance: float | None = None
-    sheet_region: tuple | None = None
+    rod_height: float | None = opt(None, "rod height (default: marks.json's)", unit="m", type=float, typical=0.10)
+    marks: Path | None = opt(None, "marks.json to use instead of detecting marks", type=Path)
+    light: int | list | None = opt(None, "lamp index of the images given (default: the lamp captures/lights/"
+                                         "manifest.json gives for a shot of the lights session, else 0)", type=int)
+    mark_sigma: float | None = opt(None, "marking noise for the covariance (default: from the residuals)", unit="px",
+                                   type=float)
+    intensity: list | None = opt(None, "radiant intensity from the data sheet, every lamp (1 or 3 values)",
+                                 unit="W/sr", type=float, nargs="+")
+    sheet: list | None = opt(None, "per lamp in index order, an image of the reference sheet lit by that lamp alone",
+                             type=Path, nargs="+")
+    sheet_reflectance: float | None = opt(None, "the sheet's Lambertian reflectance (0..1; kd = reflectance / pi)",
+                                          type=float)
+    sheet_region: tuple | None = opt(None, "the sheet's extent on the ground (default: all visible ground)", unit="m",
+                                     type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"))
 
 
 @dataclass

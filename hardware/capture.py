@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reflab.core.options import float_list, opt
 from reflab.core.task import Cancelled, Task
 from reflab.core.workspace import CAPTURE_FOLDERS, Workspace, WorkspaceError, read_json, write_json
 
@@ -339,7 +340,7 @@ class CaptureSession:
 
 
 # ---------------------------------------------------------------------- the capture stage
-@dataclass
+@dataclass(kw_only=True)
 class CaptureOptions:
     """Options of :func:`run_capture`.
 
@@ -357,15 +358,18 @@ class CaptureOptions:
     kind: str
     controller: object = None
     camera: object = None
-    angles: list | None = None  # None: the kind's default (CALIBRATION_ANGLES, LIGHTS_ANGLES)
-    count: int = 36
-    start: float = 0.0
-    ambient: bool = False
-    format: str = "exr"
-    exposure: float | None = None
-    settle: float = 0.0
-    resume: bool = False
-    overwrite: bool = False
+    angles: list | None = opt(None, "turntable angles: calibration, of the target on its wedge (default "
+                                    f"{','.join(f'{a:g}' for a in CALIBRATION_ANGLES)}, after one shot of it lying "
+                                    f"flat); lights, of the rod (default {','.join(f'{a:g}' for a in LIGHTS_ANGLES)})",
+                              unit="deg", type=float_list)
+    count: int = opt(36, "sweep: number of shots over 360 degrees")
+    start: float = opt(0.0, "sweep: first angle; input: the angle", unit="deg")
+    ambient: bool = opt(False, "input: also take a lamps-off frame and subtract it")
+    format: str = opt("exr", "image files", choices=["exr", "png", "tif"])
+    exposure: float | None = opt(None, "exposure passed to the camera and recorded", unit="s", type=float)
+    settle: float = opt(0.0, "time to wait after the lamps change", unit="s")
+    resume: bool = opt(False, "continue a stopped session; take only the missing shots")
+    overwrite: bool = opt(False, "discard an earlier session of this kind and start again")
     on_shot: object = None
     log: object = None
     size: tuple | None = None

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reflab.core.options import float_list, nonneg_float, nonneg_int, opt, positive_float, positive_int
 from reflab.core.task import Task, ensure
 
 
@@ -26,13 +27,21 @@ class FitOptions:
     """Options of :func:`fit` (``reflab fit``'s flags; docs/fit.md)."""
 
     workspace: Path
-    method: str = "ftbo"
-    depth: int = 3
-    saturation: float | None = None
-    max_iterations: int | None = None
-    max_seconds: float | None = None
-    texture_rounds: int = 2
-    single: bool = False  # the reference photograph alone, ignoring inputs/ (the dissertation's method)
+    method: str = opt("ftbo", "ftbo: factorized (faster); nftbo: all parameters by conjugate gradient",
+                      choices=["ftbo", "nftbo"])
+    depth: int = opt(3, "maximum internal nodes per path of the forward model", type=positive_int)
+    saturation: float | None = opt(None, "pixel value at which the camera clips (default: detect a clipped plateau)",
+                                   type=positive_float)
+    max_iterations: int | None = opt(None, "cap on outer iterations (default: 100 for ftbo, 5000 for nftbo)",
+                                     type=positive_int)
+    max_seconds: float | None = opt(None, "wall-clock budget of the fit (trees excluded); it stops at the next "
+                                          "iteration and fit.json's message says so (default: none)", unit="s",
+                                    type=positive_float)
+    texture_rounds: int = opt(2, "when a surface is textured: rounds of refitting against the texture recovered "
+                                 "from the pixels that directly seen texture lights (0 = the homogeneous fit alone, "
+                                 "as in the dissertation)", type=nonneg_int)
+    single: bool = opt(False, "fit the reference photograph alone, ignoring inputs/ (the dissertation's method)",
+                       flag="--single-photograph")
 
 
 @dataclass
@@ -81,14 +90,18 @@ class TextureOptions:
     """
 
     workspace: Path
-    depth: int | None = None
-    texel_scale: float = 1.0
-    texel_size: float | None = None
-    prior: float = 1e-3
-    smoothness: float = 0.01
-    saturation: float | None = None
-    max_albedo: float = 1.0
-    single: bool = False  # the reference photograph alone, ignoring inputs/
+    depth: int | None = opt(None, "maximum internal nodes per path of the forward model (default: fit.json's, else 3)",
+                            type=positive_int)
+    texel_scale: float = opt(1.0, "texel size as a multiple of the pixel footprint on each surface",
+                             type=positive_float)
+    texel_size: float | None = opt(None, "texel size for every surface (overrides --texel-scale)", unit="m",
+                                   type=positive_float)
+    prior: float = opt(1e-3, "relative weight of the pull toward each surface's homogeneous kd", type=nonneg_float)
+    smoothness: float = opt(0.01, "relative weight of neighbouring-texel smoothness", type=nonneg_float)
+    saturation: float | None = opt(None, "pixel value at which the camera clips (default: detect a clipped plateau)",
+                                   type=positive_float)
+    max_albedo: float = opt(1.0, "upper bound of kd", type=positive_float)
+    single: bool = opt(False, "use the reference photograph alone, ignoring inputs/", flag="--single-photograph")
 
 
 @dataclass
@@ -176,10 +189,13 @@ class PlanOptions:
     """Options of :func:`plan` (``reflab plan``'s flags; docs/fit.md "Plan")."""
 
     workspace: Path
-    max_shots: int = 3
-    angles: tuple = tuple(range(-165, 181, 15))  # turntable angles tried, degrees (the whole turn)
-    turntable_centre: tuple | None = None  # (x, y) metres; default: from the sweep reconstruct registered
-    reduce: int = 4  # candidate views ray-cast at 1/reduce of the camera's size
+    max_shots: int = opt(3, "shots to plan at most", type=positive_int)
+    angles: tuple = opt(tuple(range(-165, 181, 15)), "turntable angles to consider, from the input's view",
+                        unit="deg", type=float_list)
+    turntable_centre: tuple | None = opt(None, "where the turntable axis meets the ground, x,y (default: from the "
+                                               "sweep reconstruct registered)", unit="m", type=float_list,
+                                         metavar="X,Y")
+    reduce: int = opt(4, "candidate views are ray-cast at 1/REDUCE of the camera's size", type=positive_int)
 
 
 @dataclass
@@ -245,11 +261,14 @@ class RenderOptions:
     defaults to WORKSPACE/render.exr (albedo.exr for the AOV)."""
 
     workspace: Path
-    output: Path | None = None
-    camera: Path | None = None
-    lights: Path | None = None
-    aov: str | None = None
-    depth: int = 3
+    output: Path | None = opt(None, "output image (.exr, .png or .tif); default WORKSPACE/render.exr",
+                              flag=("-o", "--output"), type=str)
+    camera: Path | None = opt(None, "the camera to render from: a camera.json (a novel view); default the "
+                                    "workspace's", type=str, metavar="CAMERA.json")
+    lights: Path | None = opt(None, "lights.json to light with (relighting); default the workspace's", type=str,
+                              metavar="LIGHTS.json")
+    aov: str | None = opt(None, "write the kd of the surface seen at each pixel instead", choices=["albedo"])
+    depth: int = opt(3, "maximum internal nodes per path of the forward model", type=positive_int)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from reflab.calibration.camera import Camera
+from reflab.core.options import float_list, name_value, opt
 from reflab.core.task import Task, ensure
 from reflab.core.workspace import OptionError, Workspace, WorkspaceError, check_folder
 
@@ -41,16 +42,24 @@ class ReconstructOptions:
     """
 
     workspace: Path
-    meshes: dict = field(default_factory=dict)
-    iors: dict = field(default_factory=dict)
-    marks: Path | None = None
-    target: tuple | str | None = None
-    spacing: float = 0.015
-    turntable_centre: tuple | None = None
-    overlap: int = 5
-    rigid_turntable: bool = True
-    fit_surfaces: bool = True
-    force: bool = False
+    meshes: dict = opt(factory=dict, help="import a mesh (PLY/OBJ, metres, world frame) as surface NAME; repeatable",
+                       flag="--mesh", action="append", type=name_value(Path, "PATH"), metavar="NAME=PATH", convert=dict)
+    iors: dict = opt(factory=dict, help="refraction index of an imported surface (its mesh must then be closed)",
+                     flag="--ior", action="append", type=name_value(float, "INDEX"), metavar="NAME=INDEX", convert=dict)
+    marks: Path | None = opt(None, "corners marked in the turntable shots and what the user knows per surface "
+                                   "(default: WORKSPACE/marks.json when it has 'surfaces'; docs/reconstruction.md)",
+                             type=Path, metavar="FILE")
+    target: tuple | str | None = opt(None, "circles per row and column of the circle target lying on the turntable, "
+                                           "to fix the frame", flag="--grid", aliases=("--target",), type=str,
+                                     metavar="COLSxROWS")
+    spacing: float = opt(0.015, "circle spacing of --grid's target", unit="m")
+    turntable_centre: tuple | None = opt(None, "where the turntable axis meets the ground, to fix the scale without "
+                                               "a target", unit="m", type=float_list, metavar="X,Y")
+    overlap: int = opt(5, "each shot is matched with the next N shots")
+    rigid_turntable: bool = opt(True, "keep structure from motion's free poses instead of one turntable axis and one "
+                                      "angle per shot (for a turntable that wobbles)", flag="--free-poses")
+    fit_surfaces: bool = opt(True, "do not fit planes and boxes to the sparse points", flag="--no-fit")
+    force: bool = opt(False, "redo structure from motion and every surface")
 
 
 @dataclass

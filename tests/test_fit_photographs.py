@@ -130,7 +130,9 @@ def test_the_plan_picks_shots_whose_sigma_it_predicts(tmp_path):
     saved = json.loads(Workspace(root).plan.read_text())
     assert saved["shots"] == result.report["shots"] and len(saved["shots"]) == 1
     first = saved["shots"][0]
-    assert {"mirror.ns", "mirror.ks[0]"} <= set(first["determines"]), first
+    # It determines what the reference left undetermined (relative σ above 1: the mirror's lobe).
+    opened = {k for k in first["determines"] if (saved["relative_sigma_now"].get(k) or float("inf")) > 1}
+    assert any(k.startswith("mirror.ks") for k in opened), first
     _add(root, lab, photo, first["angle_deg"], first["lamps"])
     after = fit(FitOptions(root)).report
     predicted = saved["predicted_sigma_after"]
@@ -139,9 +141,16 @@ def test_the_plan_picks_shots_whose_sigma_it_predicts(tmp_path):
         for name, sig in s["sigma"].items():
             for c, v in enumerate(sig if isinstance(sig, list) else [sig]):
                 key = f"{s['name']}.{name}" + (f"[{c}]" if isinstance(sig, list) else "")
-                if key in first["determines"] and v is not None and predicted.get(key):
+                # The prediction holds where the lobe's shape was known; an unknown shininess is
+                # predicted at a plausible guess (docs/fit.md): the mirror's, checked below.
+                shape = (saved["relative_sigma_now"].get(f"{s['name']}.ns") or 0.0)
+                if key in first["determines"] and v is not None and predicted.get(key) and shape <= 1:
                     checked.append((key, v / predicted[key]))
-    assert len(checked) >= 4 and all(0.5 <= r <= 2.0 for _, r in checked), checked
+    assert len(checked) >= 4 and all(0.5 <= r <= 2.0 for _, r in checked), [c for c in checked if not 0.5 <= c[1] <= 2]
+    mirror = _surface(after, "mirror")
+    truth = {s.name: s.material for s in lab.scene}["mirror"]
+    assert "ks" not in mirror["undetermined"]
+    assert np.all(np.abs(np.array(mirror["material"]["ks"]) - truth["ks"]) <= 3 * np.array(mirror["sigma"]["ks"]) + 0.02 * truth["ks"])
     # A planned shot is not planned again.
     again = plan(PlanOptions(root, max_shots=3, turntable_centre=(0.0, 0.0)))
     assert all((s["angle_deg"], s["lamps"]) != (first["angle_deg"], first["lamps"]) for s in again.report["shots"])

@@ -29,8 +29,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise", type=nonneg_float, default=0.0,
                         help="--from-truth: standard deviation of Gaussian noise added to input.exr (linear units)")
     parser.add_argument("--seed", type=int, default=0, help="--from-truth: noise seed")
-    parser.add_argument("--depth", type=int, default=3, choices=range(1, 7), metavar="D",
-                        help="internal nodes per path for the photograph and the model (default 3)")
+    from reflab.core.options import default
+    from reflab.inverse.stages import RenderOptions
+
+    parser.add_argument("--depth", type=int, default=default(RenderOptions, "depth"), choices=range(1, 7), metavar="D",
+                        help="maximum internal nodes per path of the forward model, for the photograph and the model "
+                             f"(1 to 6; default {default(RenderOptions, 'depth')})")
     parser.add_argument("--truth-only", action="store_true",
                         help="write WORKSPACE/truth/ and stop (to score the stepwise commands of README by hand)")
 

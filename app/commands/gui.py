@@ -7,18 +7,17 @@ from __future__ import annotations
 
 import argparse
 
-from reflab.app.commands._args import image_size
-from reflab.app.devices import SIM_SIZE
-
 HELP = "the guided lab window: devices, calibration, sweep, reconstruction, input, fit, texture, results"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workspace", nargs="?", default="workspace", help="workspace folder (default ./workspace)")
     parser.add_argument("--port", default="sim", help="serial port of the GRBL board, or 'sim' (default)")
-    parser.add_argument("--camera", default="sim", help="sim (default) | opencv:N | folder:PATH")
-    parser.add_argument("--size", type=image_size, default=SIM_SIZE,
-                        help="simulated camera image size (480x360: at 320x240 the simulated sweep does not reconstruct)")
+    parser.add_argument("--camera", default="sim", help="the camera to photograph with: sim (default) | opencv:N | folder:PATH")
+    from reflab.app.devices import SimOptions
+    from reflab.core.options import add_arguments as table_arguments
+
+    table_arguments(parser, SimOptions, only=("size",))
 
 
 def run(args) -> int:

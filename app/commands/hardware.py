@@ -6,23 +6,33 @@ docs/hardware.md describes the wiring, the configuration file and the fault mess
 from __future__ import annotations
 
 import argparse
-import sys
+
+from reflab.app.console import LOG
 
 HELP = "turntable and lamps over serial (GRBL 1.1): status | rotate DEG | lamp N on|off | unlock"
 
 
+def _board_options(parser: argparse.ArgumentParser, default) -> None:
+    """--port and --config: on `hardware` and on each action, so they go before or after it."""
+    parser.add_argument("--port", default=default,
+                        help="serial port (/dev/ttyUSB0, COM3) or 'sim' for the simulated board (required)")
+    parser.add_argument("--config", default=default,
+                        help="hardware JSON (axis, steps per degree, lamp outputs, timeouts; docs/hardware.md)")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--port", required=True, help="serial port (/dev/ttyUSB0, COM3) or 'sim' for the simulated board")
-    parser.add_argument("--config", help="hardware JSON (axis, steps per degree, lamp outputs, timeouts; docs/hardware.md)")
+    _board_options(parser, None)
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    actions.add_parser("status", help="print state, turntable angle and lamp states")
+    status = actions.add_parser("status", help="print state, turntable angle and lamp states")
     rotate = actions.add_parser("rotate", help="turn the turntable to an absolute angle (degrees) and wait")
     rotate.add_argument("degrees", type=float)
     rotate.add_argument("--relative", action="store_true", help="turn by DEG from the current angle")
     lamp = actions.add_parser("lamp", help="switch lamp N (index in the configuration's lamps) on or off")
     lamp.add_argument("index", type=int)
     lamp.add_argument("state", choices=["on", "off"])
-    actions.add_parser("unlock", help="leave an ALARM state: soft reset, then $X")
+    unlock = actions.add_parser("unlock", help="leave an ALARM state: soft reset, then $X")
+    for action in (status, rotate, lamp, unlock):
+        _board_options(action, argparse.SUPPRESS)
 
 
 def describe(ctl) -> str:
@@ -35,9 +45,12 @@ def run(args) -> int:
     from reflab.app.devices import load_config, open_port
     from reflab.hardware.grbl import GrblAlarm, GrblController, GrblError
 
+    if args.port is None:
+        LOG.error("reflab hardware: error: --port is required (a serial port, or 'sim' for the simulated board)")
+        return 2
     config = load_config(args.config)
-    port, sim = open_port(args.port)
-    ctl = GrblController(port, config, log=print)
+    port, sim = open_port(args.port, log=LOG.info)
+    ctl = GrblController(port, config, log=LOG.info)
     try:
         try:
             ctl.connect()
@@ -46,20 +59,20 @@ def run(args) -> int:
                 raise
         if args.action == "unlock":
             for line in ctl.unlock():
-                print(line)
+                LOG.info(line)
         elif args.action == "rotate":
             target = ctl.angle + args.degrees if args.relative else args.degrees
             ctl.rotate_to(target)
         elif args.action == "lamp":
             if not 0 <= args.index < len(config.lamps):
-                print(f"reflab hardware: error: lamp {args.index} is not configured (lamps 0..{len(config.lamps) - 1}: "
-                      f"{config.lamps})", file=sys.stderr)
+                LOG.error(f"reflab hardware: error: lamp {args.index} is not configured (lamps 0..{len(config.lamps) - 1}: "
+                          f"{config.lamps})")
                 return 2
             ctl.set_lamp(args.index, args.state == "on")
-        print(describe(ctl))
+        LOG.info(describe(ctl))
         return 0
     except GrblError as exc:
-        print(f"reflab hardware: error: {exc}", file=sys.stderr)
+        LOG.error(f"reflab hardware: error: {exc}")
         return 1
     finally:
         ctl.close()

@@ -12,35 +12,37 @@ from __future__ import annotations
 import argparse
 import time
 
-from reflab.app.commands._args import positive_int
+from reflab.app.console import LOG
 
 HELP = "render the scene model (scene.json, or fit.json + textures/ when present) to an EXR image"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from reflab.core.options import add_arguments as table_arguments
+    from reflab.inverse.stages import RenderOptions
+
     parser.add_argument("workspace", help="workspace folder (camera.json, lights.json, scene.json)")
-    parser.add_argument("-o", "--output", help="output image (.exr, .png or .tif); default WORKSPACE/render.exr")
-    parser.add_argument("--camera", help="camera.json to render from (novel view); default the workspace's")
-    parser.add_argument("--lights", help="lights.json to light with (relighting); default the workspace's")
-    parser.add_argument("--aov", choices=["albedo"], help="write the kd of the surface seen at each pixel instead")
-    parser.add_argument("--depth", type=positive_int, default=3, help="maximum internal nodes per path (default 3)")
+    table_arguments(parser, RenderOptions)
 
 
 def run(args) -> int:
+    from reflab.app.console import running
+    from reflab.core.options import options_from_args
     from reflab.inverse.stages import RenderOptions, render
 
     start = time.perf_counter()
-    r = render(RenderOptions(args.workspace, args.output, args.camera, args.lights, args.aov, args.depth), log=print)
+    with running("render") as task:
+        r = render(options_from_args(RenderOptions, args, workspace=args.workspace), task, log=LOG.info)
     info = r.info
     h, w = r.image.shape[:2]
     texture = ("homogeneous kd" if info["texture_nodes"] is None else
                f"texture on {info['texture_nodes']} nodes ({info['unknown_albedo']} unknown)")
-    print(f"materials from {info['materials']}, {texture}")
-    print(f"trees {info['trees_s']:.2f} s ({len(info['trees'])} nodes, depth {args.depth}), render {info['render_s']:.2f} s")
-    print(f"wrote {r.path} ({w}x{h}{', albedo' if args.aov else ''}) and {r.preview} in {time.perf_counter() - start:.1f} s")
+    LOG.info(f"materials from {info['materials']}, {texture}")
+    LOG.info(f"trees {info['trees_s']:.2f} s ({len(info['trees'])} nodes, depth {args.depth}), render {info['render_s']:.2f} s")
+    LOG.info(f"wrote {r.path} ({w}x{h}{', albedo' if args.aov else ''}) and {r.preview} in {time.perf_counter() - start:.1f} s")
     if r.undetermined is not None:
         n = int(info["undetermined_pixels"].sum())
-        print(f"{n} pixels ({100 * n / (w * h):.1f} %) rest on parameters fit.json calls undetermined, on values its σ "
-              f"leaves loose (over 5 % of the light) or on texels the texture stage guessed: a guess, not a prediction "
-              f"(white in {r.undetermined})")
+        LOG.info(f"{n} pixels ({100 * n / (w * h):.1f} %) rest on parameters fit.json calls undetermined, on values its σ "
+                 f"leaves loose (over 5 % of the light) or on texels the texture stage guessed: a guess, not a prediction "
+                 f"(white in {r.undetermined})")
     return 0

@@ -6,7 +6,7 @@ With --bench it also times the forward model (tree building and re-rendering at 
 """
 from __future__ import annotations
 
-import sys
+from reflab.app.console import LOG
 
 HELP = "write report.html (images, residual plots, error against run time) and summarise each stage"
 
@@ -16,7 +16,11 @@ def add_arguments(p):
     p.add_argument("--no-render", action="store_true",
                    help="skip re-rendering the model and the novel and relit views (faster, fewer pictures)")
     p.add_argument("--bench", action="store_true", help="also time the forward model on this scene")
-    p.add_argument("--depth", type=int, default=3, help="tree depth for --bench (default 3)")
+    from reflab.core.options import add_arguments as table_arguments
+    from reflab.inverse.stages import RenderOptions
+
+    # --depth means what it means for render: the forward model's depth, here of the benchmark
+    table_arguments(p, RenderOptions, only=("depth",))
 
 
 def run(args) -> int:
@@ -31,16 +35,16 @@ def run(args) -> int:
         raise WorkspaceError(args.workspace, expected="a workspace folder", got="missing")
     html, summary = build_report(root, render=not args.no_render)
     for path, why in summary.get("unreadable", {}).items():
-        print(f"warning: {path} is unreadable, left out of the report ({why})", file=sys.stderr)
+        LOG.warning(f"warning: {path} is unreadable, left out of the report ({why})")
     text = summary_text(summary)
-    print(text or f"{root}: no stage output found (captures/, camera.json, lights.json, scene.json, fit.json, textures/)")
+    LOG.info(text or f"{root}: no stage output found (captures/, camera.json, lights.json, scene.json, fit.json, textures/)")
     if args.bench:
         from reflab.inverse.forward.benchmarks import load_scene, machine, run as bench, table
 
         scene, camera, lights = load_scene(root)
         rows = bench(scene, camera, lights, depth=args.depth)
         summary["benchmark"] = {"machine": machine(), "depth": args.depth, "rows": rows}
-        print(f"[benchmark] {machine()}\n{table(rows)}")
-    print(f"wrote {write_json(Workspace(root).report_json, summary)}")
-    print(f"wrote {html}")
+        LOG.info(f"[benchmark] {machine()}\n{table(rows)}")
+    LOG.info(f"wrote {write_json(Workspace(root).report_json, summary)}")
+    LOG.info(f"wrote {html}")
     return 0

@@ -19,6 +19,7 @@ from typing import Callable
 
 from reflab.app import steps as core
 from reflab.app.gui.worker import StepFailed
+from reflab.core.options import default, info
 from reflab.core.workspace import Workspace, read_json, write_json
 
 
@@ -64,6 +65,9 @@ class _Lines(io.TextIOBase):
 def run_command(ctx: Context, name: str, argv: list) -> None:
     """Run ``reflab NAME ARGV`` in this thread (for app-level commands without a step, the report),
     its output to the log; a non-zero exit raises StepFailed with its last error line."""
+    from reflab.app.console import setup
+
+    setup()  # the command's lines go through the reflab logger, to the streams redirected below
     module = importlib.import_module(f"reflab.app.commands.{name}")
     parser = argparse.ArgumentParser(prog=f"reflab {name}")
     module.add_arguments(parser)
@@ -146,8 +150,10 @@ def _devices(ctx, task) -> str:
 
 def _calibrate_camera(ctx, task) -> str:
     o = ctx.options
-    return _run(ctx, task, "calibrate_camera", grid=o.get("grid", "11x8"), spacing=float(o.get("spacing", 0.015)),
-                **_capture_options(o)).summary
+    from reflab.calibration.stages import CameraOptions as C
+
+    return _run(ctx, task, "calibrate_camera", grid=o.get("grid", default(C, "grid")),
+                spacing=float(o.get("spacing", default(C, "spacing"))), **_capture_options(o)).summary
 
 
 def _calibrate_lights(ctx, task) -> str:
@@ -155,10 +161,11 @@ def _calibrate_lights(ctx, task) -> str:
     stop naming the shots left to mark by hand, then locate the lamps from marks.json."""
     from reflab.calibration.lamps import Mark, read_marks, write_marks
     from reflab.calibration.rod import detect_marks
+    from reflab.calibration.stages import LightsOptions
     from reflab.core.images import read_image
 
     o = ctx.options
-    height = float(o.get("rod_height", 0.10))
+    height = float(o.get("rod_height", info(LightsOptions, "rod_height")["typical"]))
     card = {}
     if float(o.get("card_reflectance") or 0) > 0:
         card = {"sheet_reflectance": float(o["card_reflectance"]),
@@ -197,7 +204,9 @@ def _calibrate_lights(ctx, task) -> str:
 
 
 def _sweep(ctx, task) -> str:
-    return _run(ctx, task, "sweep", count=int(ctx.options.get("count", 36)),
+    from reflab.hardware.capture import CaptureOptions
+
+    return _run(ctx, task, "sweep", count=int(ctx.options.get("count", default(CaptureOptions, "count"))),
                 recapture=bool(ctx.options.get("recapture"))).summary
 
 
@@ -210,8 +219,11 @@ def _reconstruct(ctx, task) -> str:
 
 
 def _input(ctx, task) -> str:
+    from reflab.hardware.capture import CaptureOptions
+
     o = ctx.options
-    summary = _run(ctx, task, "input", start=float(o.get("angle", 0.0)), ambient=bool(o.get("ambient")),
+    summary = _run(ctx, task, "input", start=float(o.get("angle", default(CaptureOptions, "start"))),
+                   ambient=bool(o.get("ambient", default(CaptureOptions, "ambient"))),
                    recapture=bool(o.get("recapture"))).summary
     if not o.get("further"):
         return summary
@@ -223,9 +235,11 @@ def _input(ctx, task) -> str:
 
 
 def _fit(ctx, task) -> str:
+    from reflab.inverse.stages import FitOptions
+
     o = ctx.options
     result = _run(ctx, task, "fit", max_seconds=o.get("max_seconds") or None,
-                  texture_rounds=int(o.get("texture_rounds", 2)))
+                  texture_rounds=int(o.get("texture_rounds", default(FitOptions, "texture_rounds"))))
     if result.value.status == "poor fit":
         raise StepFailed(f"poor fit: {result.summary}; the fitted model does not explain the image (fit.json says why)")
     return result.summary
@@ -236,7 +250,9 @@ def _texture(ctx, task) -> str:
 
 
 def _results(ctx, task) -> str:
-    summary = _run(ctx, task, "results", depth=int(ctx.options.get("depth", 3))).summary
+    from reflab.inverse.stages import RenderOptions
+
+    summary = _run(ctx, task, "results", depth=int(ctx.options.get("depth", default(RenderOptions, "depth")))).summary
     task.check()
     try:
         run_command(ctx, "report", [ctx.workspace])

@@ -12,9 +12,8 @@ to correct a mark, then rerun with --marks) and uses every mark there.
 """
 from __future__ import annotations
 
-import sys
-
 from reflab.app.commands.calibrate import camera, lights
+from reflab.app.console import LOG
 
 HELP = "calibrate the camera (circle target, Tsai) or the lamps (rod shadows)"
 
@@ -35,5 +34,5 @@ def run(args) -> int:
             raise
         from reflab.app.commands._args import error_text
 
-        print(f"reflab calibrate {args.what}: error: {error_text(exc)}", file=sys.stderr)
+        LOG.error(f"reflab calibrate {args.what}: error: {error_text(exc, args)}")
         return 2

@@ -4,11 +4,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtWidgets import QCheckBox, QHBoxLayout, QLineEdit, QTableWidget, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QCheckBox, QHBoxLayout, QTableWidget, QVBoxLayout, QWidget
 
-from reflab.app.gui.pages.page import StepPage, draw_segments, read_image, spin, table
+from reflab.app.gui.pages.page import StepPage, draw_segments, from_table, read_image, table
 from reflab.app.gui.widgets import ImageView, text_label
+from reflab.calibration.stages import CameraOptions
 from reflab.core.workspace import read_json
+from reflab.hardware.capture import CaptureOptions
 
 
 class CameraPage(StepPage):
@@ -16,10 +18,9 @@ class CameraPage(StepPage):
     run_text = "Capture and calibrate"
 
     def build(self):
-        self.add_option("grid", "Target circles (COLSxROWS)", QLineEdit("11x8"))
-        self.add_option("spacing", "Circle spacing", spin(0.015, 0.001, 1.0, 0.001, 4, " m"))
-        self.add_option("angles", "Turntable angles (°)", QLineEdit(""),
-                        "target on its wedge at each angle (empty: 0, 45, 90, 135, 225, 270, 315)")
+        self.add_option("grid", "Target circles (COLSxROWS)", from_table(CameraOptions, "grid"))
+        self.add_option("spacing", "Circle spacing", from_table(CameraOptions, "spacing", 0.001, 1.0, 0.001, 4))
+        self.add_option("angles", "Turntable angles (°)", from_table(CaptureOptions, "angles"))
         self.add_option("recapture", "", QCheckBox("capture again"))
         self.summary = text_label("", "camera_summary")
         self.views = QWidget()

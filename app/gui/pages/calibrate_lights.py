@@ -9,8 +9,10 @@ from PySide6.QtWidgets import (QCheckBox, QHBoxLayout, QLabel, QLineEdit, QListW
                                QVBoxLayout, QWidget)
 
 from reflab.app.gui import stages
-from reflab.app.gui.pages.page import StepPage, fmt, mark_editor, read_image, spin, table
+from reflab.app.gui.pages.page import StepPage, fmt, from_table, mark_editor, read_image, table
+from reflab.calibration.stages import LightsOptions
 from reflab.core.workspace import read_json
+from reflab.hardware.capture import CaptureOptions
 
 
 class LightsPage(StepPage):
@@ -18,9 +20,10 @@ class LightsPage(StepPage):
     run_text = "Capture and locate lamps"
 
     def build(self):
-        self.add_option("rod_height", "Rod height", spin(0.10, 0.005, 2.0, 0.005, 3, " m"))
-        self.add_option("angles", "Turntable angles (°)", QLineEdit(""), "empty: 0, 90, 180, 270")
-        self.add_option("card_reflectance", "Grey card reflectance", spin(0.0, 0.0, 1.0, 0.01, 3),
+        self.add_option("rod_height", "Rod height", from_table(LightsOptions, "rod_height", 0.005, 2.0, 0.005, 3))
+        self.add_option("angles", "Turntable angles (°)", from_table(CaptureOptions, "angles"))
+        self.add_option("card_reflectance", "Grey card reflectance", from_table(LightsOptions, "sheet_reflectance",
+                                                                                0.0, 1.0, 0.01, 3),
                         "the card's Lambertian reflectance, for each lamp's power (0: no card)")
         region = self.add_option("card_region", "Card on the table x0, x1, y0, y1 (m)", QLineEdit(""))
         region.setMinimumWidth(220)

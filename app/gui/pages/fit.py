@@ -5,9 +5,10 @@ import numpy as np
 from PySide6.QtGui import QColor
 from PySide6.QtWidgets import QLabel, QVBoxLayout, QWidget
 
-from reflab.app.gui.pages.page import StepPage, fmt, spin, table
+from reflab.app.gui.pages.page import StepPage, fmt, from_table, table
 from reflab.app.gui.widgets import Curve, text_label
 from reflab.core.workspace import read_json
+from reflab.inverse.stages import FitOptions
 
 
 class FitPage(StepPage):
@@ -15,8 +16,8 @@ class FitPage(StepPage):
     run_text = "Fit"
 
     def build(self):
-        self.add_option("texture_rounds", "Texture rounds", spin(2, 0, 10))
-        self.add_option("max_seconds", "Time budget (s, 0 = none)", spin(0.0, 0.0, 36000, 10, 1))
+        self.add_option("texture_rounds", "Texture rounds", from_table(FitOptions, "texture_rounds", 0, 10))
+        self.add_option("max_seconds", "Time budget (0 = none)", from_table(FitOptions, "max_seconds", 0.0, 36000, 10, 1))
         self.materials = QWidget()
         self.materials_layout = QVBoxLayout(self.materials)
         self.tab(self.materials, "Materials (± σ)")

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QCheckBox, QVBoxLayout, QWidget
 
-from reflab.app.gui.pages.page import StepPage, fmt, read_image, refill, spin, table
+from reflab.app.gui.pages.page import StepPage, fmt, from_table, read_image, refill, table
 from reflab.app.gui.widgets import ImageView, text_label
+from reflab.hardware.capture import CaptureOptions
 
 
 class InputPage(StepPage):
@@ -15,7 +16,7 @@ class InputPage(StepPage):
     run_text = "Take the photograph"
 
     def build(self):
-        self.add_option("angle", "Turntable angle", spin(0.0, -360, 360, 1.0, 2, " °"))
+        self.add_option("angle", "Turntable angle", from_table(CaptureOptions, "start", -360, 360, 1.0, 2))
         self.add_option("ambient", "", QCheckBox("ambient frame (lamps off) subtracted"))
         self.add_option("recapture", "", QCheckBox("capture again"))
         self.add_option("further", "", QCheckBox("then plan and take the further photographs (after a fit)"),

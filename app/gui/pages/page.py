@@ -8,7 +8,7 @@ import numpy as np
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QColor, QFont
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGroupBox, QHBoxLayout, QHeaderView,
-                               QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QTabWidget,
+                               QLabel, QLineEdit, QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QTabWidget,
                                QVBoxLayout, QWidget)
 
 from reflab.app.gui import stages
@@ -163,7 +163,9 @@ class StepPage(QWidget):
         """The result tab's text before the step has run: what is missing and which button makes it."""
         return f"No {what} yet: press <b>{self.run_text}</b> above."
 
-    def add_option(self, key: str, label: str, widget: QWidget, tip: str = "") -> QWidget:
+    def add_option(self, key: str, label: str, widget, tip: str = "") -> QWidget:
+        if isinstance(widget, tuple):  # from_table's (widget, tip)
+            widget, tip = widget[0], tip or widget[1]
         widget.setObjectName(f"option_{self.step.name}_{key}")
         if tip:
             widget.setToolTip(tip)
@@ -199,6 +201,26 @@ def spin(value: float, lo: float, hi: float, step: float = 1.0, decimals: int = 
     if suffix:
         w.setSuffix(suffix)
     return w
+
+
+#: Units as a field's suffix.
+_SUFFIX = {"deg": " °"}
+
+
+def from_table(cls, name: str, lo: float | None = None, hi: float | None = None, step: float = 1.0,
+               decimals: int = 0):
+    """(widget, tip) for option ``name`` of the stage's options table ``cls`` (reflab.core.options): its
+    default (or typical value) as the starting value, its unit as the suffix, its help as the tip.
+    A spin box when ``lo`` and ``hi`` are given (an empty default reads 0), else a line edit."""
+    from reflab.core.options import describe, info, show
+
+    i = info(cls, name)
+    value = i["default"] if i["default"] is not None else i["typical"]
+    tip = describe(cls, name)
+    if lo is None:
+        return QLineEdit("" if value is None else show(value)), tip
+    unit = i["unit"] and _SUFFIX.get(i["unit"], f" {i['unit']}")
+    return spin(value if value is not None else 0, lo, hi, step, decimals, unit or ""), tip
 
 
 def mark_editor(page, left: QVBoxLayout, outer: QHBoxLayout, save_text: str, save_name: str, view_name: str,

@@ -12,7 +12,9 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QGroupBox, QHB
 from reflab.app.gui import stages
 from reflab.app.gui.pages.page import StepPage, draw_segments, read_image, spin
 from reflab.app.gui.widgets import ImageView, text_label
+from reflab.core.options import describe
 from reflab.core.workspace import read_json
+from reflab.reconstruction.stages import ReconstructOptions
 
 #: What a user can say about a surface (reconstruction/marks.py's plain words).
 POINT_KINDS = ["matte (paper, wood)", "glossy, textured", "glossy, one colour", "mirror", "transparent"]
@@ -26,8 +28,12 @@ class ReconstructPage(StepPage):
     run_text = "Reconstruct"
 
     def build(self):
-        self.add_option("turntable_centre", "Turntable axis x,y (m)", QLineEdit("0,0" if self.window.port == "sim" else ""),
-                        "where the turntable axis meets the ground, to fix the scale (empty: use a target)")
+        from reflab.app.devices import SimOptions  # the simulated lab's axis, where the CLI's --camera sim puts it
+        from reflab.core.options import default, show
+
+        centre = show(default(SimOptions, "centre")) if self.window.port == "sim" else ""
+        self.add_option("turntable_centre", "Turntable axis x,y (m)", QLineEdit(centre),
+                        describe(ReconstructOptions, "turntable_centre") + " (empty: use a target)")
         self.add_option("force", "", QCheckBox("redo from scratch"))
         w = QWidget()
         lay = QHBoxLayout(w)

@@ -6,8 +6,9 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QHBoxLayout, Q
                                QVBoxLayout, QWidget)
 
 from reflab.app.gui import stages
-from reflab.app.gui.pages.page import StepPage, mark_editor, read_image, spin
+from reflab.app.gui.pages.page import StepPage, from_table, mark_editor, read_image, spin
 from reflab.app.gui.widgets import text_label
+from reflab.hardware.capture import CaptureOptions
 
 
 CORNERS = [(x, y, z) for z in (1, -1) for y in (-1, 1) for x in (-1, 1)]
@@ -24,7 +25,7 @@ class SweepPage(StepPage):
     run_text = "Capture the sweep"
 
     def build(self):
-        self.add_option("count", "Shots over 360°", spin(36, 1, 720))
+        self.add_option("count", "Shots over 360°", from_table(CaptureOptions, "count", 1, 720))
         self.add_option("recapture", "", QCheckBox("capture again"))
         editor = QWidget()
         el = QHBoxLayout(editor)
