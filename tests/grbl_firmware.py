@@ -272,15 +272,16 @@ class Firmware:
         self.stop()
 
     # ------------------------------------------------------------------ set-up and truth
-    def configure(self, lines, timeout: float = 10.0) -> list[str]:
-        """Send lines (``$110=…``) over the port as a plain terminal would, one ``ok`` at a time."""
+    def configure(self, lines, timeout: float = 10.0, wait_banner: bool = True) -> list[str]:
+        """Send lines (``$110=…``) over the port as a plain terminal would, one ``ok`` at a time
+        (after the boot banner unless ``wait_banner`` is False)."""
         import serial
 
         answers = []
         with serial.Serial(self.port, 115200, timeout=0.05) as port:
             buf = b""
             deadline = time.monotonic() + timeout
-            while b"['$' for help]" not in buf:  # boot: a fresh EEPROM prints error:7 and the defaults first
+            while wait_banner and b"['$' for help]" not in buf:  # boot: a fresh EEPROM prints error:7 and the defaults first
                 buf += port.read(256)
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"no GRBL banner: {buf!r}")
