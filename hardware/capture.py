@@ -6,6 +6,10 @@ against a controller (:class:`reflab.hardware.grbl.GrblController`) and a camera
 ``captures/<folder>/manifest.json`` (also atomically), so a fault or Ctrl-C never leaves a
 half-written file and never loses a finished shot; ``resume=True`` takes exactly the shots the
 manifest does not list. docs/hardware.md describes the manifest.
+
+A shot is kept only when the board confirms (``?`` and ``$G``) the planned angle and lamps just
+before and just after the exposure; a reset or change in between discards it (it is taken again,
+at most ``retakes`` times). Whatever stops a session leaves the board stopped and the lamps off.
 """
 from __future__ import annotations
 
@@ -31,6 +35,10 @@ class CaptureError(RuntimeError):
 
 class CaptureCancelled(CaptureError, Cancelled):
     """The user cancelled; the finished shots are kept and ``resume`` continues."""
+
+
+class _Changed(Exception):
+    """The board's confirmed angle or lamps differ from the shot's: the shot is discarded."""
 
 
 @dataclass
@@ -158,11 +166,14 @@ class CaptureSession:
         The image size every shot must have; by default camera.json's when it exists (except for
         the calibration kind, which may calibrate a new size). A shot of another size stops the
         session before it is written.
+    retakes : int
+        How many times one shot is taken again after the board reset or changed during it, before
+        the session stops.
     """
 
     def __init__(self, workspace, kind: str, plan: list[Shot], controller, camera, *, exposure: float | None = None,
                  settle_s: float = 0.0, resume: bool = False, overwrite: bool = False, progress=None,
-                 control: Task | None = None, log=None, size: tuple[int, int] | None = None):
+                 control: Task | None = None, log=None, size: tuple[int, int] | None = None, retakes: int = 3):
         if kind not in FOLDERS:
             raise ValueError(f"capture kind must be one of {sorted(FOLDERS)}, got {kind!r}")
         if resume and overwrite:
@@ -184,6 +195,7 @@ class CaptureSession:
         self.log = log or (lambda msg: None)
         self.manifest: dict = {}
         self.size = tuple(size) if size is not None else None
+        self.retakes = int(retakes)
         if self.size is None and kind != "calibration":
             self.size = calibrated_size(self.workspace)
 
@@ -269,15 +281,21 @@ class CaptureSession:
             self._finish()
         except (Cancelled, KeyboardInterrupt):
             self._write_manifest("cancelled", "cancelled by the user")
+            self._stop_board()  # GRBL would finish a move it has: feed hold, reset, lamps off
             raise CaptureCancelled(self._stopped_message("cancelled by the user")) from None
         except (GrblError, CameraError, OSError) as exc:
             self._write_manifest("stopped", str(exc))
-            if isinstance(exc, CameraError):
-                with contextlib.suppress(GrblError, OSError):
-                    ctl.set_lamps([False] * len(ctl.config.lamps))
+            self._stop_board()
             raise CaptureError(self._stopped_message(str(exc))) from exc
+        self._stop_board()  # the lamps are not left on after the last shot
         self._write_manifest("complete")
         return self.manifest
+
+    def _stop_board(self) -> None:
+        stop = getattr(self.controller, "safe_stop", None)
+        if stop is not None:
+            with contextlib.suppress(Exception):
+                stop()
 
     def _stopped_message(self, why: str) -> str:
         n = len(self.manifest["shots"])
@@ -286,6 +304,29 @@ class CaptureSession:
                 "with --resume to take the others.")
 
     def _take(self, shot: Shot) -> dict:
+        """One shot, taken again while the board resets or changes during it (``retakes`` times)."""
+        from reflab.hardware.grbl import BoardReset, GrblError
+
+        for attempt in range(self.retakes + 1):
+            try:
+                return self._attempt(shot)
+            except (BoardReset, _Changed) as exc:
+                why = str(exc)
+                self.log(f"{shot.file}: {why}; the shot is discarded and taken again")
+        raise GrblError(f"{shot.file} was discarded {self.retakes + 1} times: {why}. The board keeps resetting or "
+                        "changing during shots: check its power supply and that no other program drives it")
+
+    def _confirm(self, shot: Shot, when: str) -> dict:
+        """The board's word on the angle and lamps; :class:`_Changed` unless they are the shot's."""
+        ctl = self.controller
+        now = ctl.confirm()
+        if (now.state != "Idle" or abs(now.angle - shot.angle) > ctl.config.angle_tolerance_deg
+                or list(now.lamps) != [bool(x) for x in shot.lamps]):
+            raise _Changed(f"{when} the exposure the board reported {now.state}, {now.angle:.3f} deg, lamps "
+                           f"{[bool(x) for x in now.lamps]} instead of {shot.angle:.3f} deg, lamps {list(shot.lamps)}")
+        return now.to_json()
+
+    def _attempt(self, shot: Shot) -> dict:
         from reflab.hardware.grbl import MoveCancelled
         from reflab.core.images import write_image
 
@@ -300,6 +341,7 @@ class CaptureSession:
         if changed and self.settle_s > 0:
             time.sleep(self.settle_s)
         self._wait()
+        before = self._confirm(shot, "before")
         prepare = getattr(self.camera, "prepare", None)
         if prepare is not None:  # a camera that shows what the shot is for (the simulated one's props)
             prepare(shot)
@@ -307,6 +349,8 @@ class CaptureSession:
             self.camera.cancelled = lambda: self.control.cancelled
         t0 = time.monotonic()
         image = self.camera.capture(self.exposure)
+        capture_s = time.monotonic() - t0
+        after = self._confirm(shot, "after")  # a reset during the exposure: the image is never written
         if not np.all(np.isfinite(image)):
             from reflab.hardware.cameras import CameraError
 
@@ -317,9 +361,10 @@ class CaptureSession:
             raise CameraError(f"the camera gives {image.shape[1]}x{image.shape[0]} images, camera.json is calibrated "
                               f"for {self.size[0]}x{self.size[1]}: set the camera to that size or calibrate again")
         write_image(self.folder / shot.file, image)
-        return {"file": shot.file, "role": shot.role, "angle": shot.angle, "angle_reported": ctl.angle,
+        return {"file": shot.file, "role": shot.role, "angle": shot.angle, "angle_reported": before["angle"],
                 "lamps": list(shot.lamps), "time": _now(), "exposure": self.exposure,
-                "capture_s": round(time.monotonic() - t0, 4), "size": [int(image.shape[1]), int(image.shape[0])]}
+                "capture_s": round(capture_s, 4), "size": [int(image.shape[1]), int(image.shape[0])],
+                "confirmed": {"before": before, "after": after}}
 
     def _finish(self) -> None:
         """For the input kind: WORKSPACE/input.<ext>, the lamps-on frame minus the ambient frame."""

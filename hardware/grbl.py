@@ -9,6 +9,13 @@ arrive unsolicited. docs/hardware.md describes the configuration and the fault h
 
 Every command this driver sends is idempotent (absolute moves ``G90 G1``, ``M3``/``M5``/``M7``/
 ``M8``/``M9``), so a line whose answer was lost to a disconnect is sent again after reconnecting.
+
+GRBL 1.1 facts the driver is built on (checked against 1.1h itself under grbl-sim): the status
+report carries the accessory field ``A:`` only with ``Ov:``, about one report in ten, so the lamps
+are read from ``$G`` (the modal ``M3``/``M5``, ``M7``/``M8``/``M9``); ``M9`` switches flood AND mist
+off, and stock builds refuse ``M7`` (``error:20``); in ``Hold`` no line is processed until ``~`` or a
+soft reset; a soft reset while moving gives ``ALARM:3``, while held or idle it keeps the position;
+every reset prints the banner, which is how a reset from elsewhere is noticed.
 """
 from __future__ import annotations
 
@@ -94,6 +101,14 @@ class GrblAlarm(GrblError):
             f"GRBL is in {what}{context}. Check the turntable moves freely and the limit wiring, "
             "then unlock it (`reflab hardware --port PORT unlock`, which soft-resets and sends $X)."
         )
+
+
+class BoardReset(GrblError):
+    """The board reset on its own (reset button, power dip, another program): its outputs are off."""
+
+
+class BoardHeld(GrblError):
+    """The board went into feed hold without this driver asking (hold button, another program)."""
 
 
 class MoveCancelled(GrblError):
@@ -198,6 +213,40 @@ class GrblConfig:
         """Lamp on/off states from the controller's output states (``{"spindle": bool, …}``)."""
         return [bool(outputs.get(o, False)) for o in self.lamps]
 
+    def check_firmware(self, options: str, settings: dict) -> None:
+        """Raise :class:`GrblError` when the board cannot switch these lamps independently.
+
+        ``options`` is the letter field of ``$I``'s ``[OPT:…]`` (``M``: built with ENABLE_M7),
+        ``settings`` the ``$$`` values (``$32``: laser mode).
+        """
+        where = {o: k for k, o in enumerate(self.lamps)}
+        if "flood" in where and "mist" in where:
+            raise GrblError(
+                f"lamps {where['flood']} (flood) and {where['mist']} (mist) cannot both be used: GRBL's only "
+                "coolant-off command, M9, switches flood AND mist off, so one lamp cannot be switched off alone. "
+                "Put one of them on the spindle output (hardware.json 'lamps').")
+        if "mist" in where and "M" not in options:
+            raise GrblError(
+                f"lamp {where['mist']} is on the mist output, but this GRBL build has no M7 (it answers error:20; "
+                "its $I options lack 'M'). Rebuild GRBL with ENABLE_M7 in config.h, or move the lamp to the "
+                "flood or spindle output (hardware.json 'lamps').")
+        if "spindle" in where and float(settings.get("$32", 0)) != 0:
+            raise GrblError(
+                f"lamp {where['spindle']} is on the spindle output, but the board is in laser mode ($32=1), which "
+                "keeps that output off while the axes stand still. Send $32=0 to the board.")
+
+
+@dataclass
+class Confirmed:
+    """The board's own word at one moment: state, turntable angle (degrees), lamp states."""
+
+    state: str
+    angle: float
+    lamps: list
+
+    def to_json(self) -> dict:
+        return {"state": self.state, "angle": round(float(self.angle), 6), "lamps": [bool(x) for x in self.lamps]}
+
 
 @dataclass
 class Status:
@@ -283,6 +332,8 @@ class GrblController:
         self._buffer = bytearray()
         self._last_poll = -np.inf
         self._pending_alarm: int | None = None
+        self.options = ""  # $I's [OPT:…] letters
+        self.resets_seen = 0  # banners seen outside a reset this driver asked for
 
     # ------------------------------------------------------------------ connection
     def __enter__(self) -> "GrblController":
@@ -300,15 +351,26 @@ class GrblController:
         except _PORT_ERRORS as exc:
             raise DeviceLost(f"{self.port} failed while connecting ({exc}); check the USB cable and the board's power") from None
         self.position = status.position
-        if status.state == "Alarm":
+        if status.state not in ("Idle", "Alarm"):  # left moving or held (no line is processed in Hold)
+            self.log(f"{self.port}: the board was in state {status.state}; stopping it (feed hold, soft reset)")
+            status = self.halt()
+        if status.state == "Alarm":  # after a critical alarm GRBL answers no line until reset: unlock()
             raise GrblAlarm(self._pending_alarm, f" on {self.port}")
-        if self.version is None:  # the banner went by before the port opened: ask
-            for line in self.send("$I"):
-                if line.startswith("[VER:"):
-                    self.version = line[5:-1].split(".20")[0].split(":")[0]
-        if self.config.steps_per_degree is not None:
-            self._ensure_steps_per_degree()
+        self._identify()
+        self.confirm()
         return self
+
+    def _identify(self) -> None:
+        """``$I`` and ``$$``: the version, the build options and settings the lamps depend on."""
+        for line in self.send("$I"):
+            if line.startswith("[VER:"):
+                self.version = line[5:-1].split(".20")[0].split(":")[0]
+            elif line.startswith("[OPT:"):
+                self.options = line[5:-1].split(",")[0]
+        settings = {k: v for k, _, v in (s.partition("=") for s in self.send("$$"))}
+        self.config.check_firmware(self.options, settings)
+        if self.config.steps_per_degree is not None:
+            self._ensure_steps_per_degree(settings)
 
     def close(self) -> None:
         if self.serial is not None:
@@ -342,6 +404,7 @@ class GrblController:
             kind = _classify(line)
             if kind == "banner":
                 self.version = _BANNER.match(line).group(1)
+                self.outputs = {o: False for o in OUTPUTS}
                 return self.status()
             if kind == "status":
                 status = Status.parse(line)
@@ -366,6 +429,9 @@ class GrblController:
             if kind == "banner":
                 self.version = _BANNER.match(line).group(1)
                 return
+            if kind == "alarm":  # ALARM:3 precedes the banner of a reset during motion
+                self._pending_alarm = int(line.split(":")[1])
+                continue
             self._note(line, kind, "the banner")
 
     def _reconnect(self, cause: Exception) -> None:
@@ -443,12 +509,18 @@ class GrblController:
         elif kind == "alarm":
             self._pending_alarm = int(line.split(":")[1])
             raise GrblAlarm(self._pending_alarm, f" while waiting for {waiting_for}")
+        elif kind == "banner":
+            self.resets_seen += 1
+            self.outputs = {o: False for o in OUTPUTS}
+            raise BoardReset(
+                f"{self.port} reset while waiting for {waiting_for} (reset button, power dip or another program): "
+                "its lamps are off and any move was abandoned")
         elif kind == "garbled":
             raise GrblProtocolError(
                 f"garbled reply from {self.port} while waiting for {waiting_for}: {line!r}. Check the baud rate "
                 f"({self.config.baudrate}), the cable (noise) and that the board runs GRBL 1.1; nothing further was sent."
             )
-        # A stray ok/error/status/banner outside a request (left from before a reconnect) is dropped.
+        # A stray ok/error/status outside a request (left from before a reconnect) is dropped.
 
     # ------------------------------------------------------------------ protocol
     def send(self, line: str) -> list[str]:
@@ -483,9 +555,7 @@ class GrblController:
             if kind in ("setting", "message"):
                 info.append(got)
                 continue
-            if kind in ("status", "banner"):
-                if kind == "banner":
-                    raise GrblError(f"{self.port} reset while waiting for the answer to {line!r}; check the board's power")
+            if kind == "status":
                 continue
             self._note(got, kind, f"the answer to {line!r}")
 
@@ -532,18 +602,85 @@ class GrblController:
         self._wait_banner()
         self.outputs = {o: False for o in OUTPUTS}
 
+    def halt(self) -> Status:
+        """Stop the turntable and switch every output off, keeping the position where possible.
+
+        A feed hold ``!`` first, then, once the axes stand still (``Hold:0``, ``Idle``), a soft reset:
+        GRBL keeps the position after a reset in a completed hold, and gives ``ALARM:3`` (position
+        probably lost) only when reset while still moving, which happens here only after
+        ``move_timeout_s``.
+        """
+        self.realtime(b"!")
+        deadline = time.monotonic() + self.config.move_timeout_s
+        status = None
+        while time.monotonic() < deadline:
+            try:
+                status = self.status()
+            except (BoardReset, GrblAlarm):
+                break  # it already reset: outputs off, motion discarded
+            if status.state in ("Idle", "Hold:0", "Alarm") or status.state.startswith("Door"):
+                break
+        self._pending_alarm = None
+        self.soft_reset()
+        return self.status()
+
+    def safe_stop(self) -> None:
+        """Best effort after a fault: the board stopped and the lamps off; never raises ``GrblError``."""
+        try:
+            status = self.status()
+            if status.state == "Idle":
+                self._pending_alarm = None
+                self.send("M5")
+                self.send("M9")
+                self.outputs = {o: False for o in OUTPUTS}
+            elif status.state != "Alarm":  # an alarm's reset already switched every output off
+                self.halt()
+        except (GrblError, *_PORT_ERRORS):
+            try:
+                self.halt()
+            except (GrblError, *_PORT_ERRORS):
+                pass
+
+    def confirm(self) -> "Confirmed":
+        """What the board itself says now: its state and angle (``?``) and the lamps (``$G``).
+
+        Raises :class:`BoardHeld` in a hold this driver did not ask for (no line is answered
+        there), :class:`GrblAlarm` in Alarm, :class:`BoardReset` when a banner arrives.
+        """
+        status = self.status()
+        if status.state == "Alarm":
+            raise GrblAlarm(self._pending_alarm, f" on {self.port}")
+        if status.state.startswith(("Hold", "Door")):
+            self._stop_held(status)
+        modes = [line for line in self.send("$G") if line.startswith("[GC:")]
+        if not modes:
+            raise GrblProtocolError(f"{self.port} answered $G without its [GC:…] line")
+        words = modes[-1][4:-1].split()
+        self.outputs = {"spindle": bool({"M3", "M4"} & set(words)),
+                        "flood": "M8" in words, "mist": "M7" in words}
+        # A reset or alarm after the report shows as its banner or ALARM line before $G's ok.
+        return Confirmed(status.state, self.angle, self.lamps)
+
+    def _stop_held(self, status: Status) -> None:
+        """A hold this driver did not ask for: stop for good (reset keeps the position), then raise."""
+        self.halt()
+        raise BoardHeld(
+            f"{self.port} went into {status.state} without reflab asking (the hold button or another program). "
+            f"It was stopped at {self.angle:.3f} deg with a soft reset, lamps off; run again (with --resume) "
+            "to go on.")
+
     def unlock(self) -> list[str]:
         """Leave the Alarm state: soft reset (critical alarms need it), then ``$X``."""
         self._pending_alarm = None
         self.soft_reset()
         info = self.send("$X")
-        self.status()
+        self._identify()
+        self.confirm()
         return info
 
-    def _ensure_steps_per_degree(self) -> None:
+    def _ensure_steps_per_degree(self, current: dict) -> None:
         """Write ``$10N`` only when it differs: GRBL stores settings in EEPROM."""
         key = f"$10{'XYZ'.index(self.config.axis)}"
-        current = {k: v for k, _, v in (s.partition("=") for s in self.send("$$"))}
         want = float(self.config.steps_per_degree)
         if key not in current or abs(float(current[key]) - want) > 1e-3:
             self.send(f"{key}={want:.3f}")
@@ -559,9 +696,9 @@ class GrblController:
         return float(self.position[self.axis_index])
 
     @property
-    def lamps(self) -> list[bool]:
-        """Lamp states as last commanded or reported (unknown counts as off)."""
-        return self.config.lamp_states(self.outputs)
+    def lamps(self) -> list:
+        """Lamp states as last confirmed (``$G``, an ``A:`` field) or commanded; None where unknown."""
+        return [None if self.outputs.get(o) is None else bool(self.outputs[o]) for o in self.config.lamps]
 
     def rotate_to(self, degrees: float, hold=None, cancelled=None) -> Status:
         """Turn the turntable to an absolute angle and wait for ``Idle`` there.
@@ -586,6 +723,7 @@ class GrblController:
         budget = self.config.move_timeout_s
         held = False
         last = time.monotonic()
+        stale = 1  # one Idle report at the old place is let through: the cycle may not have started yet
         while True:
             status = self.status()
             now = time.monotonic()
@@ -594,6 +732,12 @@ class GrblController:
             last = now
             if status.state == "Alarm":
                 raise GrblAlarm(self._pending_alarm, " during a turntable move")
+            if not held and status.state.startswith(("Hold", "Door")):
+                self._stop_held(status)
+            if (status.idle and not held and stale and degrees is not None
+                    and abs(self.angle - degrees) > self.config.angle_tolerance_deg):
+                stale -= 1
+                continue
             want_hold = bool(hold and hold())
             if want_hold and not held:
                 self.realtime(b"!")
@@ -631,20 +775,16 @@ class GrblController:
         if len(states) != len(self.config.lamps):
             raise ValueError(f"{len(states)} lamp states for {len(self.config.lamps)} configured lamps")
         for k, on in enumerate(states):
-            if self.outputs[self.config.lamps[k]] != on:
+            if self.outputs[self.config.lamps[k]] is not on:
                 self.set_lamp(k, on)
 
     def _set_output(self, output: str, on: bool) -> None:
+        # check_firmware refused flood and mist together: M9 here switches only this lamp's output.
         if output == "spindle":
             self.send(f"M3 S{self.config.spindle_power:g}" if on else "M5")
         elif on:
             self.send("M8" if output == "flood" else "M7")
         else:
-            # M9 switches off both coolant outputs: switch the other one back on if it was on.
             self.send("M9")
-            other = "mist" if output == "flood" else "flood"
-            if self.outputs[other]:
-                self.send("M7" if other == "mist" else "M8")
-            else:
-                self.outputs[other] = False
+            self.outputs["mist" if output == "flood" else "flood"] = False
         self.outputs[output] = on

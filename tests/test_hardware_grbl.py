@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import serial
 
-from reflab.hardware.grbl import (DeviceLost, GrblAlarm, GrblCommandError, GrblConfig, GrblController, GrblProtocolError,
-                           GrblTimeout, Status)
+from reflab.hardware.grbl import (DeviceLost, GrblAlarm, GrblCommandError, GrblConfig, GrblController, GrblError,
+                                  GrblProtocolError, GrblTimeout, Status)
 from reflab.hardware.sim.device import SimulatedGrbl
 from reflab.core.workspace import WorkspaceError
 
@@ -50,20 +50,42 @@ def test_board_detects_a_host_that_does_not_wait_for_ok(sim):
     assert sim.max_in_flight == 2
 
 
-def test_lamps_map_to_spindle_and_coolant_outputs(sim):
-    cfg = GrblConfig(**FAST, lamps=["mist", "spindle", "flood"], spindle_power=750.0)
-    with GrblController(sim.port, cfg) as ctl:
-        ctl.set_lamps([True, False, True])
-        assert sim.lamp_outputs() == {"spindle": False, "flood": True, "mist": True}
-        ctl.set_lamp(2, False)  # M9 clears mist too: the driver must switch mist back on
-        assert sim.lamp_outputs() == {"spindle": False, "flood": False, "mist": True}
-        ctl.set_lamp(1, True)
-        assert sim.spindle_speed == 750.0
-        status = ctl.status()
-        assert status.outputs == {"spindle": True, "flood": False, "mist": True}
-        assert ctl.lamps == [True, True, False] == cfg.lamp_states(sim.lamp_outputs())
-        with pytest.raises(ValueError, match="lamp 3 is not configured"):
-            ctl.set_lamp(3, True)
+def test_lamps_map_to_spindle_and_coolant_outputs():
+    with SimulatedGrbl(time_scale=20.0, m7=True) as sim:
+        cfg = GrblConfig(**FAST, lamps=["mist", "spindle"], spindle_power=750.0)
+        with GrblController(sim.port, cfg) as ctl:
+            ctl.set_lamps([True, False])
+            assert sim.lamp_outputs() == {"spindle": False, "flood": False, "mist": True}
+            ctl.set_lamp(1, True)
+            assert sim.spindle_speed == 750.0
+            ctl.set_lamp(0, False)
+            assert sim.lamp_outputs() == {"spindle": True, "flood": False, "mist": False}
+            assert ctl.confirm().lamps == [False, True] == cfg.lamp_states(sim.lamp_outputs())
+            with pytest.raises(ValueError, match="lamp 2 is not configured"):
+                ctl.set_lamp(2, True)
+
+
+@pytest.mark.parametrize("m7, lamps, message", [
+    (True, ["flood", "mist"], r"lamps 0 \(flood\) and 1 \(mist\) cannot both be used: .*M9, switches flood AND mist off"),
+    (False, ["spindle", "mist"], r"lamp 1 is on the mist output, but this GRBL build has no M7 .*ENABLE_M7"),
+])
+def test_lamps_the_firmware_cannot_drive_alone_are_refused_at_connect(m7, lamps, message):
+    with SimulatedGrbl(time_scale=20.0, m7=m7) as sim:
+        with pytest.raises(GrblError, match=message):
+            GrblController(sim.port, GrblConfig(**FAST, lamps=lamps)).connect()
+        assert not [line for _, line in sim.lines if line.startswith("M")]  # refused before any lamp command
+
+
+def test_lamp_states_come_from_the_board_not_the_rare_accessory_field(sim):
+    # GRBL sends A: only with Ov:, one report in ten: an absent field is not "off".
+    with GrblController(sim.port, GrblConfig(**FAST)) as ctl:
+        ctl.set_lamps([True, True])
+    reports = []
+    with GrblController(sim.port, GrblConfig(**FAST)) as ctl:
+        for _ in range(3):
+            reports.append(ctl.status().outputs)
+        assert None in reports  # most reports carry no accessory field
+        assert ctl.confirm().lamps == [True, True] == ctl.lamps
 
 
 def test_status_report_parsing():

@@ -36,9 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def describe(ctl) -> str:
-    lamps = ", ".join(f"{k} {'on' if on else 'off'}" for k, on in enumerate(ctl.lamps))
-    state = ctl.status().state
-    return f"{state}  angle {ctl.angle:.3f} deg  lamps: {lamps}  (GRBL {ctl.version} on {ctl.port})"
+    """State, angle and lamps as the board confirms them (``?`` and ``$G``, not the rare ``A:`` field)."""
+    now = ctl.confirm()
+    lamps = ", ".join(f"{k} {'on' if on else 'off'}" for k, on in enumerate(now.lamps))
+    return f"{now.state}  angle {now.angle:.3f} deg  lamps: {lamps}  (GRBL {ctl.version} on {ctl.port})"
 
 
 def run(args) -> int:
@@ -71,6 +72,14 @@ def run(args) -> int:
             ctl.set_lamp(args.index, args.state == "on")
         LOG.info(describe(ctl))
         return 0
+    except KeyboardInterrupt:  # GRBL finishes a move it has unless told: feed hold, then reset
+        if ctl.serial is not None:
+            try:
+                ctl.halt()
+            except GrblError as exc:
+                print(f"reflab hardware: could not stop the board: {exc}", file=sys.stderr)
+        print("reflab hardware: interrupted; the board was stopped (feed hold, soft reset: lamps off)", file=sys.stderr)
+        return 130
     except GrblError as exc:
         LOG.error(f"reflab hardware: error: {exc}")
         return 1

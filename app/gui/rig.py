@@ -75,8 +75,9 @@ class Rig:
     def status(self) -> str:
         with self.lock:
             ctl = self.require()
-            lamps = ", ".join(f"lamp {k} {'on' if on else 'off'}" for k, on in enumerate(ctl.lamps))
-            return f"{ctl.status().state}, turntable {ctl.angle:.1f}°, {lamps} (GRBL {ctl.version} on {ctl.port})"
+            now = ctl.confirm()  # the lamps from $G: a status report's A: field is usually absent
+            lamps = ", ".join(f"lamp {k} {'on' if on else 'off'}" for k, on in enumerate(now.lamps))
+            return f"{now.state}, turntable {now.angle:.1f}°, {lamps} (GRBL {ctl.version} on {ctl.port})"
 
     def rotate(self, degrees: float, relative: bool = True) -> str:
         with self.lock:

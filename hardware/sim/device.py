@@ -9,6 +9,12 @@ The board keeps what a test needs to check the host's manners: the arrival time 
 and of every ``?`` (status polled at most 5 Hz), and how many lines were unacknowledged when
 each line arrived (send-response flow control keeps it at 1). Answers leave after ``latency_s``,
 so a host that does not wait for ``ok`` is caught.
+
+Where it matters to a driver it behaves as GRBL 1.1h does (checked against the firmware itself
+under grbl-sim): ``Ov:`` and the accessory field ``A:`` come on about one status report in ten
+(and on the next one after an output changes); ``M9`` clears flood and mist; ``M7`` is
+``error:20`` unless built with ``m7=True``; in ``Hold`` lines wait unanswered until ``~`` or a
+reset; a reset while moving gives ``ALARM:3``; ``power_up_alarm`` boots locked as ``$22=1`` does.
 """
 from __future__ import annotations
 
@@ -76,9 +82,14 @@ class SimulatedGrbl:
         Moves run this many times faster than their feed rate says (tests use 20–100).
     latency_s : float
         Delay before each answer leaves the board.
+    m7 : bool
+        Built with ENABLE_M7 (the mist output); stock GRBL answers ``M7`` with ``error:20``.
+    power_up_alarm : bool
+        Boot in Alarm, as GRBL does with homing enabled (``$22=1``).
     """
 
-    def __init__(self, folder=None, *, time_scale: float = 1.0, latency_s: float = 0.005):
+    def __init__(self, folder=None, *, time_scale: float = 1.0, latency_s: float = 0.005, m7: bool = False,
+                 power_up_alarm: bool = False):
         self._tmp = None if folder else tempfile.TemporaryDirectory(prefix="simgrbl-")
         self.port = str(Path(folder or self._tmp.name) / "ttyGRBL")
         self.time_scale, self.latency_s = float(time_scale), float(latency_s)
@@ -87,8 +98,11 @@ class SimulatedGrbl:
         self.position = np.zeros(3)
         self.outputs = {"spindle": False, "flood": False, "mist": False}
         self.spindle_speed = 0.0
-        self.state = "Idle"
+        self.m7 = bool(m7)
+        self.state = "Alarm" if power_up_alarm else "Idle"
         self.alarm_code: int | None = None
+        self._ovr_counter = 0  # reports until the next Ov:/A: (GRBL: 10 idle, 20 busy)
+        self._held_lines: list[str] = []  # lines received in Hold: GRBL answers them after ~
         self.critical = False
         self.faults: list[Fault] = []
         # What the host did, for conformance tests.
@@ -184,6 +198,12 @@ class SimulatedGrbl:
             self._advance(time.monotonic())
             return float(self.position["XYZ".index(axis)])
 
+    def press(self, byte: bytes) -> None:
+        """A button on the board: ``b"!"`` feed hold, ``b"~"`` cycle start, ``b"\\x18"`` reset."""
+        with self._lock:
+            now = time.monotonic()
+            {b"!": self._feed_hold, b"~": self._cycle_start, b"\x18": self._reset}[byte](now)
+
     def lamp_outputs(self) -> dict:
         """The true state of each output (``spindle``, ``flood``, ``mist``)."""
         with self._lock:
@@ -261,6 +281,9 @@ class SimulatedGrbl:
             self._line(line, now)
 
     def _line(self, line: str, now: float) -> None:
+        if self.state.startswith("Hold"):
+            self._held_lines.append(line)  # GRBL's main loop runs no line while held
+            return
         if self.critical:
             self._unacked -= 1  # ignored until reset, as GRBL does after a critical alarm
             return
@@ -328,11 +351,14 @@ class SimulatedGrbl:
                 else:
                     return "error:20\r\n"
             elif letter == "M":
+                self._ovr_counter = 0  # GRBL reports an output change on the next status report
                 if v in (3, 4):
                     self.outputs["spindle"] = True
                 elif v == 5:
                     self.outputs["spindle"] = False
                 elif v == 7:
+                    if not self.m7:
+                        return "error:20\r\n"
                     self.outputs["mist"] = True
                 elif v == 8:
                     self.outputs["flood"] = True
@@ -373,7 +399,14 @@ class SimulatedGrbl:
                 return "[MSG:Caution: Unlocked]\r\nok\r\n"
             return "ok\r\n"
         if line == "$I":
-            return f"[VER:{VERSION}.20190830:]\r\n[OPT:V,15,128]\r\nok\r\n"
+            return f"[VER:{VERSION}.20190830:]\r\n[OPT:V{'M' if self.m7 else ''},15,128]\r\nok\r\n"
+        if line == "$G":
+            o = self.outputs
+            spindle = "M3" if o["spindle"] else "M5"
+            coolant = " ".join(m for m, on in (("M7", o["mist"]), ("M8", o["flood"])) if on) or "M9"
+            dist = "G90" if self._modal["absolute"] else "G91"
+            return (f"[GC:G1 G54 G17 G21 {dist} G94 {spindle} {coolant} T0 F{self._modal['feed'] or 0:g} "
+                    f"S{self.spindle_speed:g}]\r\nok\r\n")
         m = re.fullmatch(r"\$(\d+)=([-+]?[0-9.]+)", line)
         if m:
             if self.state != "Idle":
@@ -447,6 +480,9 @@ class SimulatedGrbl:
         if self.state.startswith("Hold"):
             self.state = "Idle"
             self._advance(now)
+            held, self._held_lines = self._held_lines, []
+            for line in held:
+                self._line(line, now)
 
     def _reset(self, now: float) -> None:
         """0x18: stop, outputs off, answer pending lines no more, print the banner."""
@@ -455,6 +491,7 @@ class SimulatedGrbl:
             self.state, self.alarm_code = "Alarm", 3
             self._send("ALARM:3\r\n", delay=0)
         self._motion, self._moves, self._alarm_at = None, [], None
+        self._held_lines = []
         if self.state.startswith("Hold"):
             self.state = "Idle"
         self.critical = False
@@ -472,5 +509,9 @@ class SimulatedGrbl:
         x, y, z = self.position
         acc = ("S" if self.outputs["spindle"] else "") + ("F" if self.outputs["flood"] else "") + ("M" if self.outputs["mist"] else "")
         feed = self._motion[4] if self._motion else 0
-        text = f"<{self.state}|MPos:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:g},{self.spindle_speed:g}|Ov:100,100,100"
-        return text + (f"|A:{acc}" if acc else "") + ">\r\n"
+        text = f"<{self.state}|MPos:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:g},{self.spindle_speed:g}"
+        if self._ovr_counter > 0:  # GRBL 1.1: overrides and accessories only every 10th (idle) report
+            self._ovr_counter -= 1
+            return text + ">\r\n"
+        self._ovr_counter = 19 if self.state in ("Run", "Hold:0") else 9
+        return text + "|Ov:100,100,100" + (f"|A:{acc}" if acc else "") + ">\r\n"

@@ -59,7 +59,7 @@ class DevicesPage(StepPage):
             w.setEnabled(rig.connected)
         if rig.connected:
             for box, on in zip(self.lamp_boxes, rig.controller.lamps):
-                box.setChecked(on)
+                box.setChecked(bool(on))
 
     def refresh(self):
         self.show_connection(self.window.rig.status() if self.window.rig.connected else None)
