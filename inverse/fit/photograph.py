@@ -121,4 +121,12 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
     saturated = np.ones(stack.width * stack.height, dtype=bool)  # padding counts as unusable
     for i, sat in enumerate(masks):
         saturated[stack.pixels(i)] = sat
+    # A further photograph's pixels where the model sees no surface (the table top beyond the
+    # reconstructed ground, the room) say nothing about the materials: left out. The reference
+    # keeps them, as the single-photograph fit always has (its diagnosis counts them).
+    seen = np.zeros_like(saturated)
+    seen[stack.trees.pixel] = True
+    further = np.ones_like(saturated)
+    further[stack.pixels(0)] = False
+    saturated |= further & ~seen
     return stack, image, saturated, photos

@@ -229,7 +229,9 @@ def stack_trees(trees_list, lights_list, names=None) -> Stack:
     key = hashlib.sha256("|".join(t.key for t in trees_list).encode()).hexdigest()[:16]
     stats = {"cache": ",".join(str(t.stats.get("cache", "built")) for t in trees_list),
              "build_s": float(sum(t.stats.get("build_s", 0.0) or 0.0 for t in trees_list)),
-             "photographs": len(trees_list)}
+             "photographs": len(trees_list),
+             # the reference photograph's pixels are the stacked image's first ones
+             "reference_pixels": int(trees_list[0].height) * width}
     trees = Trees(width, row0, depth, paths=paths, stats=stats, key=key, **arrays)
     valid = np.zeros(width * row0, dtype=bool)
     for b in blocks:

@@ -204,7 +204,14 @@ def build_maps(scene, trees, options: SolverOptions, crop: bool = False) -> dict
             continue
         size = options.texel_size
         if size is None:
-            fp = pixel_footprint(trees.pixel[sel], trees.path[sel], trees.point[sel], trees.width)
+            # Several photographs: texels as fine as the reference photograph sees the surface
+            # (further views, farther or more oblique, would coarsen them for every view).
+            ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
+            if ref and np.any(trees.pixel[sel] < ref):
+                sel_fp = sel[trees.pixel[sel] < ref]
+            else:
+                sel_fp = sel
+            fp = pixel_footprint(trees.pixel[sel_fp], trees.path[sel_fp], trees.point[sel_fp], trees.width)
             size = choose_texel_size(fp, options.texel_scale, options.texel_quantile)
         if size is None:  # isolated single-pixel sightings only: one texel per pixel-ish
             size = float(np.ptp(surf.mesh.vertices, axis=0).max()) / max(trees.width, trees.height)
