@@ -114,7 +114,7 @@ def relative_sigma(H, labels, p, theta_log) -> dict:
 
 def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, centre, direction: float = 1.0,
                angles=ANGLES, taken=(), max_shots: int = 3, reduce: int = 4, depth: int = 3, held=None,
-               task=None, log=None) -> PlanResult:
+               reported=None, task=None, log=None) -> PlanResult:
     """Choose up to ``max_shots`` further shots (see the module's description).
 
     Parameters
@@ -133,6 +133,11 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
         Per surface, names the user gave (not planned for).
     reduce : int
         Candidate views are ray-cast at 1/reduce of the camera's size.
+    reported : dict, optional
+        Name (``surface.param[band]``) -> the fit's reported relative σ (inf: reported undetermined).
+        The fit reports the larger of the model-based σ and the tile sandwich: where it is larger
+        than the model-based one here (misfit), every prediction for that parameter is scaled by
+        the same factor, and a parameter the fit calls undetermined stays a target.
     """
     from reflab.core.task import ensure
     from reflab.inverse.fit.determined import hold
@@ -163,6 +168,14 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
     H_now, labels = information(stack.trees, models, mats, stack.intensities, noise, free)
     index = _labels_index(labels)
     now = relative_sigma(H_now, labels, p, theta_log)
+    names = parameter_names(fac, scene)
+    inflate = {}
+    for lab in labels:  # the fit's reported σ over this model-based one (>= 1)
+        rep = (reported or {}).get(names[lab])
+        if rep is not None and np.isfinite(now[lab]) and now[lab] > 0:
+            inflate[lab] = max(1.0, rep / now[lab]) if np.isfinite(rep) else max(1.0, 1.01 * LOOSE / now[lab])
+    _inflated = lambda rel: {k: v * inflate.get(k, 1.0) for k, v in rel.items()}  # noqa: E731
+    now = _inflated(now)
     # Targets: parameters of surfaces the photographs show, loose or undetermined now.
     seen = np.zeros(len(scene), dtype=bool)
     seen[np.unique(stack.trees.surface)] = True
@@ -170,7 +183,9 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
     surf_of = {("x", i): lay.x_names[i][0] for i in range(lay.n_x)}
     surf_of.update({("s", f): f // 2 for f in range(lay.n_factors)})
     surf_of.update({("theta", q): lay.theta_names[q][0] for q in range(lay.n_theta)})
-    targets = [lab for lab in labels if now[lab] > LOOSE and seen[surf_of[lab[:2]]]]
+    # A textured surface's kd is the texture stage's (its mean only scales the texels): no target.
+    texture_kd = {("x", i) for i, (s, name) in enumerate(lay.x_names) if name == "kd" and scene[s].textured}
+    targets = [lab for lab in labels if now[lab] > LOOSE and seen[surf_of[lab[:2]]] and lab[:2] not in texture_kd]
 
     w = min(camera.width, max(camera.width // reduce, MIN_WIDTH))
     small = camera.scaled(w, max(round(camera.height * w / camera.width), 1))
@@ -196,7 +211,7 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
         for i, H in enumerate(H_shot):
             if H is None or any(c["index"] == i for c in chosen):
                 continue
-            rel = relative_sigma(H_acc + H, labels, p, theta_log)
+            rel = _inflated(relative_sigma(H_acc + H, labels, p, theta_log))
             gain = score(rel) - base
             if best is None or gain > best[0]:
                 best = (gain, i, rel)
@@ -208,7 +223,6 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
         base, best_rel = base + gain, rel
         log(f"plan: {cands[i].name} (turntable {cands[i].angle:g}°, lamps {list(cands[i].lamps)}): gain {gain:.2f}")
 
-    names = parameter_names(fac, scene)
     sigma_now = _sigmas(H_now, labels, p, names)
     shots = []
     for c in chosen:
