@@ -1,0 +1,95 @@
+"""Time of `reflab fit` (trees included) against the number of photographs (docs/fit.md, "Several
+photographs and the plan": the fit should grow at most linearly, about 5 s per 640x480 photograph).
+
+The simulated lab (the demo's textured set, or ``--homogeneous``) with only what a user knows in
+scene.json; the reference photograph and the further ones (``L0``, ``L1``: one lamp alone;
+``T35`` ...: the turntable turned) made by the forward model from the true materials, 0.5 % noise.
+Each fit is `python -m reflab.app.cli fit WORKSPACE` in a fresh process with the trees cache
+emptied; ``--repeat`` runs, the fastest kept (the others waited on the rest of the machine).
+
+    .venv/bin/python docs/figures/fit_photographs_speed.py [--size 640x480] [--counts 1,3,7] [--homogeneous] [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SHOTS = ["L0", "L1", "T35", "T-35", "T70", "T-70"]
+
+
+def workspace(root: Path, width: int, height: int, count: int, textured: bool) -> Path:
+    from reflab.core.images import write_image
+    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.inverse.forward.photographs import turned_view, write_input
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+
+    ws = root / f"n{count}"
+    shutil.rmtree(ws, ignore_errors=True)
+    lab = build_lab(width, height, textured=textured)
+    write_lab(ws, lab, materials=False)
+    if not textured:
+        scene = json.loads((ws / "scene.json").read_text())
+        for s in scene["surfaces"]:
+            s["textured"] = False
+        (ws / "scene.json").write_text(json.dumps(scene))
+    truth = [s.material for s in lab.scene]
+    rng = np.random.default_rng(0)
+
+    def photo(camera, lights):
+        trees = build_trees(lab.scene, camera, lights, depth=3)
+        img = render(trees, truth, lights.intensities,
+                     kd_nodes=lab.albedo_at(trees.surface, trees.point) if textured else None)
+        return img + rng.normal(0.0, 0.005 * img.max(), img.shape)
+
+    write_image(ws / "input.exr", photo(lab.camera, lab.lights))
+    for shot in SHOTS[:count - 1]:
+        lit = [int(shot[1:])] if shot[0] == "L" else None
+        cam, lights = turned_view(lab.camera, lab.lights, 0.0 if lit else float(shot[1:]), (0.0, 0.0), lit=lit)
+        write_input(ws, shot.replace("-", "m"), photo(cam, lights), cam, lights)
+    return ws
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", default="640x480")
+    ap.add_argument("--counts", default="1,3,7")
+    ap.add_argument("--homogeneous", action="store_true")
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--root", default="/tmp/fit-photographs-speed")
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+    width, height = (int(v) for v in args.size.split("x"))
+    rows = []
+    for count in (int(c) for c in args.counts.split(",")):
+        ws = workspace(Path(args.root), width, height, count, not args.homogeneous)
+        walls = []
+        for _ in range(args.repeat):
+            shutil.rmtree(ws / "cache", ignore_errors=True)
+            t0 = time.perf_counter()
+            out = subprocess.run([sys.executable, "-m", "reflab.app.cli", "-q", "fit", str(ws)],
+                                 capture_output=True, text=True, env=dict(os.environ))
+            walls.append(time.perf_counter() - t0)
+            if out.returncode not in (0, 3):
+                raise SystemExit(out.stderr)
+        fit = json.loads((ws / "fit.json").read_text())
+        row = {"photographs": count, "wall_s": round(min(walls), 2), "walls": [round(w, 2) for w in walls],
+               "per_photograph_s": round(min(walls) / count, 2), "trees_s": fit["setup_s"]["trees"],
+               "fit_s": fit["time_s"], "status": fit["status"],
+               "undetermined": {s["name"]: s["undetermined"] for s in fit["surfaces"] if s["undetermined"]}}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"args": vars(args), "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
