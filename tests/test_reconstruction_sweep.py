@@ -271,8 +271,9 @@ def test_bad_options_name_their_flag_on_the_command_line_and_their_field_in_the_
     from reflab.core.workspace import OptionError
     from reflab.reconstruction.stages import ReconstructOptions, reconstruct
 
+    # --target is the old spelling of --grid (hidden alias): the message names the flag by its one name.
     assert main(["reconstruct", str(tmp_path), "--target", "1x8"]) == 2
-    assert "--target: need at least 2 circles" in capsys.readouterr().err
+    assert "--grid: need at least 2 circles" in capsys.readouterr().err
     with pytest.raises(OptionError, match="^ior: no imported mesh named 'pane'"):
         reconstruct(ReconstructOptions(tmp_path, iors={"pane": 1.5}))
 
