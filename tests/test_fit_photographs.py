@@ -20,28 +20,9 @@ W, H = 80, 60
 
 def _lab_workspace(root, *, textured=False, noise=0.0, seed=0):
     """The lab with only what a user knows in scene.json; returns (lab, photo(camera, lights))."""
-    from reflab.hardware.sim.lab import build_lab, write_lab
-    from reflab.inverse.forward.rendering import render
-    from reflab.inverse.forward.trees import build_trees
+    from reflab.hardware.sim.lab import user_workspace
 
-    lab = build_lab(W, H, textured=textured)
-    write_lab(root, lab, materials=False)
-    if not textured:
-        scene = json.loads((root / "scene.json").read_text())
-        for s in scene["surfaces"]:
-            s["textured"] = False
-        (root / "scene.json").write_text(json.dumps(scene))
-    truth = [s.material for s in lab.scene]
-    rng = np.random.default_rng(seed)
-
-    def photo(camera, lights):
-        trees = build_trees(lab.scene, camera, lights, depth=3)
-        kd = lab.albedo_at(trees.surface, trees.point) if textured else None
-        img = render(trees, truth, lights.intensities, kd_nodes=kd)
-        return img + rng.normal(0.0, noise * img.max(), img.shape) if noise else img
-
-    write_image(root / "input.exr", photo(lab.camera, lab.lights))
-    return lab, photo
+    return user_workspace(root, W, H, textured=textured, noise=noise, seed=seed)
 
 
 def _add(root, lab, photo, angle, lamps=None):

@@ -20,37 +20,17 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 SHOTS = ["L0", "L1", "T35", "T-35", "T70", "T-70"]
 
 
 def workspace(root: Path, width: int, height: int, count: int, textured: bool) -> Path:
-    from reflab.core.images import write_image
-    from reflab.hardware.sim.lab import build_lab, write_lab
+    from reflab.hardware.sim.lab import user_workspace
     from reflab.inverse.forward.photographs import turned_view, write_input
-    from reflab.inverse.forward.rendering import render
-    from reflab.inverse.forward.trees import build_trees
 
     ws = root / f"n{count}"
     shutil.rmtree(ws, ignore_errors=True)
-    lab = build_lab(width, height, textured=textured)
-    write_lab(ws, lab, materials=False)
-    if not textured:
-        scene = json.loads((ws / "scene.json").read_text())
-        for s in scene["surfaces"]:
-            s["textured"] = False
-        (ws / "scene.json").write_text(json.dumps(scene))
-    truth = [s.material for s in lab.scene]
-    rng = np.random.default_rng(0)
-
-    def photo(camera, lights):
-        trees = build_trees(lab.scene, camera, lights, depth=3)
-        img = render(trees, truth, lights.intensities,
-                     kd_nodes=lab.albedo_at(trees.surface, trees.point) if textured else None)
-        return img + rng.normal(0.0, 0.005 * img.max(), img.shape)
-
-    write_image(ws / "input.exr", photo(lab.camera, lab.lights))
+    lab, photo = user_workspace(ws, width, height, textured=textured, noise=0.005)
     for shot in SHOTS[:count - 1]:
         lit = [int(shot[1:])] if shot[0] == "L" else None
         cam, lights = turned_view(lab.camera, lab.lights, 0.0 if lit else float(shot[1:]), (0.0, 0.0), lit=lit)

@@ -292,3 +292,35 @@ def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Pa
             {"name": s.name, "textured": s.textured, "material": s.material.to_json()} for s in lab.scene]})
     written.update({s.name: root / s.mesh_path for s in scene})
     return written
+
+
+def user_workspace(root, width: int, height: int, *, textured: bool = True, noise: float = 0.0, seed: int = 0):
+    """The lab written as a user's workspace (scene.json: only what a user knows, the truth in
+    truth.json; untextured, no surface declared textured) with its input photograph made by the
+    forward model from the true materials (``noise``: Gaussian σ as a fraction of each photograph's
+    peak). Returns ``(lab, photo)``: ``photo(camera, lights)`` makes further photographs the same way."""
+    import json
+
+    from reflab.core.images import write_image
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+
+    root = Path(root)
+    lab = build_lab(width, height, textured=textured)
+    write_lab(root, lab, materials=False)
+    if not textured:
+        scene = json.loads((root / "scene.json").read_text())
+        for s in scene["surfaces"]:
+            s["textured"] = False
+        (root / "scene.json").write_text(json.dumps(scene))
+    truth = [s.material for s in lab.scene]
+    rng = np.random.default_rng(seed)
+
+    def photo(camera, lights):
+        trees = build_trees(lab.scene, camera, lights, depth=3)
+        kd = lab.albedo_at(trees.surface, trees.point) if textured else None
+        img = render(trees, truth, lights.intensities, kd_nodes=kd)
+        return img + rng.normal(0.0, noise * img.max(), img.shape) if noise else img
+
+    write_image(root / "input.exr", photo(lab.camera, lab.lights))
+    return lab, photo
