@@ -20,7 +20,6 @@ import sys
 import time
 from pathlib import Path
 
-
 SHOTS = ["L0", "L1", "T35", "T-35", "T70", "T-70"]
 
 
