@@ -247,7 +247,8 @@ def _walk(obj: _Objective, grid: np.ndarray, i: int) -> tuple[int, float]:
         i = j
 
 
-def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
+def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height: int,
+            blocks=None) -> tuple[float, float, float, float]:
     """(ks, σ ks, σ θ, misfit per dof) at the estimate: Gauss–Newton in (μ, r, ks, log2 θ), robust."""
     val, _, ks, f, g = obj.solve(theta)
     h = 0.01
@@ -262,7 +263,7 @@ def _sigmas(obj: _Objective, theta: float, rows: np.ndarray, width: int, height:
     tile, n_tiles = tile_index(rows, width, height)
     scores = np.zeros((n, n_tiles))
     np.add.at(scores.T, tile, per_pixel.T)
-    sd = robust_sd(H, scores, rows, width, height)
+    sd = robust_sd(H, scores, rows, width, height, blocks)
     return ks, float(sd[-2]), float(sd[-1] * theta * np.log(2.0)), float(misfit)
 
 
@@ -330,7 +331,8 @@ def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=
                 break
         else:
             continue
-        ks, sk, st, misfit = _sigmas(obj, theta, px[keep], trees.width, trees.height)
+        ks, sk, st, misfit = _sigmas(obj, theta, px[keep], trees.width, trees.height,
+                                     trees.stats.get("block_row0") if isinstance(trees.stats, dict) else None)
         out[int(s)] = ColourLobe(int(s), shape, ks, theta, sk, st, obj.Q.shape[2], int(keep.sum()),
                                  int(lit.sum() - keep.sum()), misfit)
     return out

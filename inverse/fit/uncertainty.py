@@ -100,16 +100,29 @@ def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndar
     return model, robust
 
 
-def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height: int) -> np.ndarray:
+def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height: int, blocks=None) -> np.ndarray:
     """(n,) the larger, per parameter, of the model-based σ and the sandwich over the fine tiles
     (``scores`` (n, T) summed per :func:`tile_index` of the used pixels ``rows``; None: the model's
-    alone) and over tiles :data:`COARSE_FACTOR` times larger; inf where unconstrained, never NaN."""
+    alone) and over tiles :data:`COARSE_FACTOR` times larger; inf where unconstrained, never NaN.
+
+    ``blocks``: the first pixel row of each photograph of a stacked image (several photographs,
+    :mod:`reflab.inverse.forward.photographs`): the sandwich is also taken over whole photographs.
+    A misfit that one photograph's pixels share (a highlight a slightly wrong geometry shows in
+    the wrong place, in the only photograph that shows it) is one cluster there, and the tiles'
+    sandwich, where it spans one or two tiles, would not see it."""
     model, sandwich = covariance(H, scores)
     if scores is not None:
         group, n_big = coarser(rows, width, height, COARSE_FACTOR)
         big = np.zeros((scores.shape[0], n_big))
         np.add.at(big.T, group, scores.T)
         sandwich = np.fmax(sandwich, covariance(H, big)[1])
+        if blocks is not None and len(blocks) > 1:
+            fine, n_fine = tile_index(rows, width, height)
+            photo_of_tile = np.zeros(n_fine, dtype=np.int64)
+            photo_of_tile[fine] = np.searchsorted(np.asarray(blocks), np.asarray(rows) // width, side="right") - 1
+            per_photo = np.zeros((scores.shape[0], len(blocks)))
+            np.add.at(per_photo.T, photo_of_tile, scores.T)
+            sandwich = np.fmax(sandwich, covariance(H, per_photo)[1])
     sd = np.fmax(model, sandwich)
     return np.where(np.isnan(sd), np.inf, sd)
 
@@ -265,7 +278,9 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     if more is not None:
         H = H + more[0]
         scores = None if scores is None else scores + more[1]
-    sd = robust_sd(H, scores, pb.fac.rows, pb.fac.width, pb.fac.height)
+    stats = getattr(pb.fac.trees, "stats", None)
+    blocks = stats.get("block_row0") if isinstance(stats, dict) else None
+    sd = robust_sd(H, scores, pb.fac.rows, pb.fac.width, pb.fac.height, blocks)
     for (kind, i, c), v in zip(labels, sd):
         if kind == "x":
             sig.x[i, c] = v

@@ -231,7 +231,8 @@ def stack_trees(trees_list, lights_list, names=None) -> Stack:
              "build_s": float(sum(t.stats.get("build_s", 0.0) or 0.0 for t in trees_list)),
              "photographs": len(trees_list),
              # the reference photograph's pixels are the stacked image's first ones
-             "reference_pixels": int(trees_list[0].height) * width}
+             "reference_pixels": int(trees_list[0].height) * width,
+             "block_row0": [b.row0 for b in blocks]}  # σ's sandwich over whole photographs
     trees = Trees(width, row0, depth, paths=paths, stats=stats, key=key, **arrays)
     valid = np.zeros(width * row0, dtype=bool)
     for b in blocks:
