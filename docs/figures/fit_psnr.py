@@ -12,7 +12,10 @@ The textured scenes of our own (:mod:`reflab.hardware.sim.scenes`) are measured 
 (``--scene``): their novel view turns the input camera 40° about its target and rises 8 cm.
 
 Usage: ``python docs/figures/fit_psnr.py [WIDTH HEIGHT] [--scene lab|shiny_box|floor_mirror|curved|glass_block|all]
-[--noise 0.01] [--texture-seed K]``; ``--scene more`` measures :data:`reflab.hardware.sim.scenes.MORE`.
+[--noise 0.01] [--texture-seed K] [--photographs L0,L1,T35,T-35,T70,T-70]``; ``--scene more`` measures
+:data:`reflab.hardware.sim.scenes.MORE`. ``--photographs``: further photographs in inputs/ of both
+workspaces (``Lk`` lamp k alone, ``TA`` the turntable turned by A degrees about the vertical axis
+through the origin), by the reference renderer with the same noise; fit and texture use them all.
 (default 320 240, the lab).
 """
 import argparse
@@ -34,6 +37,7 @@ from reflab.core.images import write_image  # noqa: E402
 from reflab.hardware.sim.lab import build_lab, write_lab  # noqa: E402
 from reflab.hardware.sim.reference import render_reference  # noqa: E402
 from reflab.hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
+from reflab.inverse.forward.photographs import turned_view, write_input  # noqa: E402
 from reflab.inverse.stages import render_workspace  # noqa: E402
 
 
@@ -55,16 +59,28 @@ def views(root: Path, width: int, height: int, lab, scene: str):
 
 
 def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float = 0.0, seed: int = 0,
-            texture_seed: int | None = None) -> list[dict]:
+            texture_seed: int | None = None, photographs: str = "") -> list[dict]:
     lab = build_lab(width, height) if scene == "lab" else build(scene, width, height, texture_seed=texture_seed)
     photo = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)
     if noise:  # Gaussian, sigma = noise x the image's peak, the same photograph for both models
         photo = photo + np.random.default_rng(seed).normal(0.0, noise * photo.max(), photo.shape)
+    further = []
+    for shot in filter(None, photographs.split(",")):
+        if shot[0] == "L" and int(shot[1:]) >= len(lab.lights):
+            continue
+        cam, li = turned_view(lab.camera, lab.lights, 0.0 if shot[0] == "L" else float(shot[1:]), (0.0, 0.0),
+                              lit=[int(shot[1:])] if shot[0] == "L" else None)
+        img = render_reference(lab.scene, cam, li, albedo=lab.albedo)
+        if noise:
+            img = img + np.random.default_rng(seed + 1 + len(further)).normal(0.0, noise * img.max(), img.shape)
+        further.append((shot.replace("-", "m"), img, cam, li))
     out = {}
     for kind in ("true", "fitted"):
         root = tmp / kind
         write_lab(root, lab, materials=kind == "true")
         write_image(root / "input.exr", photo)
+        for name, img, cam, li in further:
+            write_input(root, name, img, cam, li)
         if kind == "fitted":
             assert main(["fit", str(root)]) in (0, 3)
         assert main(["texture", str(root)]) == 0
@@ -95,14 +111,16 @@ if __name__ == "__main__":
                     help="lab, one of " + ", ".join(NAMES + MORE) + ", all (the lab and " + ", ".join(NAMES) + ") or more (" + ", ".join(MORE) + ")")
     ap.add_argument("--noise", type=float, default=0.0, help="Gaussian noise on the photograph, fraction of its peak")
     ap.add_argument("--texture-seed", type=int, help="another realisation of our scenes' textures (reflab.hardware.sim.scenes.build)")
+    ap.add_argument("--photographs", default="", help="further photographs: Lk (lamp k alone), TA (turntable A degrees)")
     args = ap.parse_args()
     w, h = args.size
     for scene in {"all": ("lab",) + NAMES, "more": MORE}.get(args.scene, (args.scene,)):
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
             rows = measure(w, h, Path(tmp), scene, args.noise,
-                           texture_seed=None if scene == "lab" else args.texture_seed)
-        print(f"\n{scene} {w}x{h}, noise {args.noise:g} (total {time.perf_counter() - start:.1f} s)")
+                           texture_seed=None if scene == "lab" else args.texture_seed, photographs=args.photographs)
+        print(f"\n{scene} {w}x{h}, noise {args.noise:g}, further photographs [{args.photographs}] "
+              f"(total {time.perf_counter() - start:.1f} s)")
         print("| view | true materials + texture | fitted materials + texture | difference | pixels compared "
               "| over determined pixels: true | fitted | difference | pixels |")
         print("|---|---|---|---|---|---|---|---|---|")
