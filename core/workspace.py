@@ -91,6 +91,7 @@ class Workspace:
     marks = property(lambda self: self.root / "marks.json")
     sfm = property(lambda self: self.root / "sfm.json")
     sparse = property(lambda self: self.root / "sparse.ply")
+    colmap_model = property(lambda self: self.root / "sparse" / "0")  # COLMAP's own model (COLMAP's GUI opens it)
     hardware = property(lambda self: self.root / "hardware.json")
     truth = property(lambda self: self.root / "truth")
     report = property(lambda self: self.root / "report.html")
