@@ -45,8 +45,10 @@ class WorkspaceError(ValueError):
         super().__init__(msg)
 
 
+#: Camera RAW files, read as linear values through LibRaw (reflab.core.images.read_raw).
+RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
 #: Linear image files (the input photograph, captures), in order of preference.
-IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff") + RAW_SUFFIXES
 
 #: The file in each capture folder that lists its shots (docs/hardware.md).
 MANIFEST = "manifest.json"
