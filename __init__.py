@@ -18,7 +18,7 @@ import importlib
 __all__ = ["__version__", "Task", "Cancelled", "Workspace", "WorkspaceError", "OptionError",
            "CaptureOptions", "run_capture", "CameraOptions", "calibrate_camera", "LightsOptions",
            "calibrate_lights", "ReconstructOptions", "reconstruct", "FitOptions", "fit",
-           "TextureOptions", "texture", "RenderOptions", "render"]
+           "TextureOptions", "texture", "RenderOptions", "render", "ExportOptions", "export"]
 
 #: Public name -> module that defines it.
 _API = {
@@ -32,6 +32,7 @@ _API = {
     "FitOptions": "reflab.inverse.stages", "fit": "reflab.inverse.stages",
     "TextureOptions": "reflab.inverse.stages", "texture": "reflab.inverse.stages",
     "RenderOptions": "reflab.inverse.stages", "render": "reflab.inverse.stages",
+    "ExportOptions": "reflab.inverse.export.stage", "export": "reflab.inverse.export.stage",
 }
 
 

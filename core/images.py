@@ -6,7 +6,9 @@ variant starts Dr.Jit's LLVM back end, 0.15 s that a command reading an image do
 
 Two kinds of reader (docs/formats.md, Images): photometric stages need linear radiance
 (:func:`read_image`, then :func:`check_radiance`); geometric stages take any image a camera
-writes (``read_image(path, linear=False)``: 8-bit JPEG/PNG too, sRGB-decoded).
+writes (``read_image(path, linear=False)``: 8-bit JPEG/PNG too, sRGB-decoded). Camera RAW files
+(DNG, CR2, NEF, ARW, ...) are linear captures: :func:`read_raw` develops them through LibRaw
+(rawpy) with no gamma curve.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reflab.core.workspace import IMAGE_SUFFIXES, WorkspaceError, atomic_path
+from reflab.core.workspace import IMAGE_SUFFIXES, RAW_SUFFIXES, WorkspaceError, atomic_path
 
 
 def _cv2():
@@ -85,10 +87,36 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
+def read_raw(path) -> np.ndarray:
+    """A camera RAW file as linear RGB, float32 (H, W, 3), in the sensor's orientation.
+
+    LibRaw (rawpy) subtracts the black level, scales by the white level, applies the camera's
+    as-shot white balance (green's multiplier 1) and its colour matrix to linear sRGB primaries,
+    demosaics (AHD) and applies no gamma curve and no automatic brightening: a value of 1 is the
+    white level in the green channel. Clipped highlights stay at their plateau (clip_level finds
+    it). A per-band gain (another white balance, a grey card's) is absorbed by the lamps'
+    intensities, which the lamp calibration measures from the same camera's photographs.
+    """
+    try:
+        import rawpy
+    except ImportError:  # pragma: no cover - a dependency since 0.2
+        raise WorkspaceError(path, expected="rawpy installed to read camera RAW files (pip install rawpy)") from None
+    try:
+        with rawpy.imread(str(path)) as raw:
+            rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=True,
+                                  output_color=rawpy.ColorSpace.sRGB, user_flip=0, highlight_mode=rawpy.HighlightMode.Clip,
+                                  demosaic_algorithm=rawpy.DemosaicAlgorithm.AHD)
+    except (rawpy.LibRawError, OSError, ValueError) as exc:
+        raise WorkspaceError(path, expected="a camera RAW file LibRaw can read", got=type(exc).__name__) from None
+    return rgb.astype(np.float32) / 65535.0
+
+
 def read_image(path, *, linear: bool = True) -> np.ndarray:
     """Read an RGB image as float32 (H, W, 3).
 
-    EXR is taken as is; 16-bit PNG/TIFF are divided by 65535. 8-bit images (JPEG, PNG) are
+    EXR is taken as is; 16-bit PNG/TIFF are divided by 65535; camera RAW (:data:`RAW_SUFFIXES`)
+    is developed linearly by :func:`read_raw` (clipped to [0, 1] with ``linear=False``, the range
+    of a decoded 8-bit file). 8-bit images (JPEG, PNG) are
     refused with ``linear=True`` (they are not linear captures) and sRGB-decoded to [0, 1] with
     ``linear=False`` (geometric stages: detection needs shapes, not radiance). NaN or inf in the
     file, a file that cannot be decoded or a cut-off JPEG is an error naming the file.
@@ -107,6 +135,9 @@ def read_image(path, *, linear: bool = True) -> np.ndarray:
         if img.shape[2] >= 3:
             img = img[:, :, :3]
         return _checked(path, np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img)
+    if path.suffix.lower() in RAW_SUFFIXES:
+        img = read_raw(path)
+        return _checked(path, img if linear else np.clip(img, 0.0, 1.0))
     cv2 = _cv2()
     kinds = "EXR, 16-bit PNG or TIFF" if linear else "EXR, PNG, TIFF or JPEG"
     cut = _cut_off(path)

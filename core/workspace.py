@@ -45,8 +45,10 @@ class WorkspaceError(ValueError):
         super().__init__(msg)
 
 
+#: Camera RAW files, read as linear values through LibRaw (reflab.core.images.read_raw).
+RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
 #: Linear image files (the input photograph, captures), in order of preference.
-IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff") + RAW_SUFFIXES
 
 #: The file in each capture folder that lists its shots (docs/hardware.md).
 MANIFEST = "manifest.json"
@@ -91,6 +93,7 @@ class Workspace:
     marks = property(lambda self: self.root / "marks.json")
     sfm = property(lambda self: self.root / "sfm.json")
     sparse = property(lambda self: self.root / "sparse.ply")
+    colmap_model = property(lambda self: self.root / "sparse" / "0")  # COLMAP's own model (COLMAP's GUI opens it)
     hardware = property(lambda self: self.root / "hardware.json")
     truth = property(lambda self: self.root / "truth")
     report = property(lambda self: self.root / "report.html")

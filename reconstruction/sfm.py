@@ -66,6 +66,9 @@ class SfMResult:
     tracks: list
     observations: object = None
     report: dict = field(default_factory=dict)
+    #: COLMAP's reconstruction (``pycolmap.Reconstruction``) in the SfM frame, its images named as ``names``;
+    #: None when nothing registered.
+    model: object = None
 
     @property
     def registered(self) -> np.ndarray:
@@ -309,6 +312,35 @@ def run_sfm(images: list, names: list, camera: Camera, *, masks=None, auto_mask:
                 Path(workdir), seed, commanded, log_file, progress, ensure(task))
 
 
+def write_colmap_model(model, folder, similarity=None) -> Path:
+    """Write COLMAP's reconstruction (binary: cameras, images, points3D, ...) to ``folder``, moved by
+    ``similarity`` (``X' = scale R X + T``) when given, replacing what was there all at once.
+
+    COLMAP's GUI opens it (File > Import model) with the workspace as the image folder."""
+    import shutil
+
+    import pycolmap
+
+    folder = Path(folder)
+    if similarity is not None:
+        model = pycolmap.Reconstruction(model)  # a copy: the caller's stays in the SfM frame
+        model.transform(pycolmap.Sim3d(float(similarity.scale), pycolmap.Rotation3d(np.asarray(similarity.R, float)),
+                                       np.asarray(similarity.T, float).reshape(3, 1)))
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    old = folder.parent / f".{folder.name}.old"
+    try:
+        model.write(str(tmp))
+        if folder.exists():
+            shutil.rmtree(old, ignore_errors=True)
+            folder.rename(old)
+        tmp.rename(folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
 @contextlib.contextmanager
 def _colmap_token(task: Task):
     """A pycolmap CancellationToken cancelled (by a watcher thread) once ``task`` is; the task is
@@ -507,7 +539,10 @@ def _result(models, names, files, camera, min_registered, times) -> SfMResult:
                      "consecutive shots overlap: smaller turntable steps)",
             got=f"{int(registered.sum())} registered; not registered: {', '.join(missing[:8])}"
                 + (" ..." if len(missing) > 8 else ""))
-    return SfMResult(list(names), R, t, points, errors, tracks, observations, report)
+    if rec is not None:  # the captures' names, so that COLMAP's GUI finds them from the workspace
+        for image in rec.images.values():
+            image.name = names[index[image.name]]
+    return SfMResult(list(names), R, t, points, errors, tracks, observations, report, rec)
 
 
 def _observations(rec, image_index: dict, point_ids: list, camera: Camera):

@@ -117,7 +117,7 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     from reflab.core.images import read_image
     from reflab.core.workspace import atomic_path, write_json
     from reflab.reconstruction.registration import reference_check, register_axis, register_target, turntable_check
-    from reflab.reconstruction.sfm import load_sweep, run_sfm, turntable_poses
+    from reflab.reconstruction.sfm import load_sweep, run_sfm, turntable_poses, write_colmap_model
 
     task = ensure(task)
     o = options
@@ -192,7 +192,9 @@ def reconstruct_sweep(ws, camera: Camera, options: ReconstructOptions, task: Tas
     report["time_s"] = round(time.perf_counter() - t0, 3)
     poses = {n: {"R": Rw[i], "t": tw[i]} for i, n in enumerate(names) if sfm.registered[i]}
     task.check()
-    # sparse.ply first: sfm.json is what says structure from motion is done.
+    # COLMAP's model and sparse.ply first: sfm.json is what says structure from motion is done.
+    if sfm.model is not None:
+        write_colmap_model(sfm.model, ws.colmap_model, sim)
     with atomic_path(ws.sparse) as tmp:
         o3d.io.write_point_cloud(str(tmp), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
     write_json(ws.sfm, dict(report, images=names, poses=poses))
