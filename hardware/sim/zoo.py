@@ -20,6 +20,7 @@ a novel view and a relit view rendered by the same renderer). Everything is dete
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +39,12 @@ ALBEDO = (0.05, 0.9)
 SPREAD = 0.14
 #: Degrees the novel view's camera turns about the vertical axis through the origin.
 NOVEL_TURN = 35.0
+
+
+#: A determined value is confidently wrong beyond this many σ plus :data:`SLACK` of its true value.
+SIGMAS, SLACK = 3.0, 0.02
+#: Recall: within this share of the true value (or :data:`ATTENUATION_FLOOR` for r and t).
+RECALL, ATTENUATION_FLOOR = 0.10, 0.01
 
 
 def sphere_mesh(radius: float, center, rings: int = 16, segments: int = 32) -> Mesh:
@@ -336,3 +343,50 @@ def write_zoo_workspace(root, seed: int, width: int = 160, height: int = 120, *,
             (cam if which == "novel" else lights).save(pose)
             write_image(image, render_reference(zoo.scene, cam, lights, depth=depth, albedo=zoo.albedo))
     return zoo
+
+
+# ---------------------------------------------------------------- scoring a fit
+def seen_surfaces(report: dict) -> set:
+    """Indices of the surfaces with a column in the fit (seen by the camera and lit)."""
+    return {int(m) for name in report["columns"]["names"] for m in re.findall(r"[a-z]+(\d+)", name)}
+
+
+def compare(report: dict, truth: dict, textured: list) -> list:
+    """One row per visible parameter value: (surface, name, fitted, true, σ or None, determined).
+
+    ``report``: fit.json, ``truth``: truth.json, ``textured``: per surface. Values the user gave
+    (held: a lambert surface's r) and t of opaque surfaces are not fitted and not listed.
+    """
+    rows = []
+    seen = seen_surfaces(report)
+    for i, (item, true) in enumerate(zip(report["surfaces"], truth["surfaces"])):
+        if i not in seen:
+            continue
+        fitted, sig, und = item["material"], item["sigma"], set(item["undetermined"])
+        tm = true["material"]
+        for name, value in fitted.items():
+            if name in ("brdf", "ior") or (name == "kd" and textured[i]):
+                continue
+            if name == "t" and tm.get("ior") is None or (name == "r" and tm["brdf"] == "lambert"):
+                continue
+            vals, tvals = np.atleast_1d(value), np.atleast_1d(tm[name])
+            sigs = np.atleast_1d(sig.get(name, [None] * len(vals)))
+            for c, (v, t, s) in enumerate(zip(vals, tvals, sigs)):
+                label = f"{name}[{c}]" if len(vals) > 1 else name
+                det = name not in und and label not in und and s is not None and np.isfinite(s) and s > 0
+                rows.append((item["name"], label, float(v), float(t), None if s is None else float(s), bool(det)))
+    return rows
+
+
+def score(rows: list) -> dict:
+    det = [r for r in rows if r[5]]
+    z = np.array([abs(v - t) / s for _, _, v, t, s, _ in det])
+    wrong = [f"{a} {b} fit {v:.4g} true {t:.4g} σ {s:.3g}" for a, b, v, t, s, _ in det
+             if abs(v - t) > SIGMAS * s + SLACK * abs(t)]
+
+    def close(r):
+        floor = ATTENUATION_FLOOR if r[1][0] in "rt" else 0.0
+        return r[5] and abs(r[2] - r[3]) <= max(RECALL * abs(r[3]), floor)
+
+    return {"visible": len(rows), "determined": len(det), "recovered": int(sum(close(r) for r in rows)),
+            "within_3sigma": int(np.sum(z <= SIGMAS)), "worst": float(z.max()) if len(z) else 0.0, "wrong": wrong}
