@@ -107,3 +107,81 @@ def test_no_confident_wrong_value(tmp_path, seed):
     assert s["determined"] >= 10, s  # the photograph determines something: the check below has teeth
     assert s["wrong"] == [], "; ".join(zoo.description)
     assert s["recovered"] >= 0.5 * s["determined"], s
+    assert _lobe_on_bound(result.report) == []  # undetermined means plausible, not a range bound
+
+
+def _lobe_on_bound(report) -> list:
+    """Undetermined lobe values (ks bands, ns, alpha) that fit.json reports on a range bound."""
+    from reflab.inverse.fit.ranges import FIT_RANGE, phong_lobe_albedo
+
+    out = []
+    for item in report["surfaces"]:
+        m, und = item["material"], item["undetermined"]
+        upper = 1.0 / float(phong_lobe_albedo(m["ns"])) if m["brdf"] == "phong" else 1.0
+        for c, v in enumerate(m.get("ks", [])):
+            if ("ks" in und or f"ks[{c}]" in und) and not 1e-6 * upper < v < (1 - 1e-6) * upper:
+                out.append((item["name"], f"ks[{c}]", v))
+        if "ns" in und and not FIT_RANGE["ns"][0] < m["ns"] < FIT_RANGE["ns"][1]:
+            out.append((item["name"], "ns", m["ns"]))
+        if "alpha" in und and not 1e-4 < m["alpha"] < 1.0:
+            out.append((item["name"], "alpha", m["alpha"]))
+    return out
+
+
+def test_undetermined_lobe_is_held_at_a_plausible_value(tmp_path):
+    """Seed 4's textured wall hides its highlight (true ks 6.2 at ns 97): its lobe is undetermined.
+    Left where the fit put it, ks was 0, the range's lower bound; it must be reported (and so
+    rendered) at the plausible value (the fit's start, INITIAL), with its σ still saying undetermined."""
+    from reflab.core.workspace import read_json
+    from reflab.inverse.stages import FitOptions, fit
+    from reflab.reconstruction.scene import INITIAL
+
+    zoo = write_zoo_workspace(tmp_path, 4, 80, 60, truth_views=False)
+    report = fit(FitOptions(tmp_path)).report
+    assert _lobe_on_bound(report) == []
+    wall = report["surfaces"][zoo.scene.names.index("wall")]
+    assert {"ks", "ns"} <= set(wall["undetermined"])
+    np.testing.assert_allclose(wall["material"]["ks"], INITIAL["ks"])
+    assert all(s is None or s > INITIAL["ks"] for s in wall["sigma"]["ks"])  # σ spans its scale: honest
+    assert not any(k.startswith("ks") for k in wall["at_bound"])
+    s = score(compare(report, read_json(tmp_path / "truth.json"), [x.textured for x in zoo.scene]))
+    assert s["wrong"] == []
+
+
+def test_plausible_moves_only_undetermined_values_on_a_bound():
+    """ranges.plausible on a zoo scene's parameters: an undetermined ks at its upper bound (a lobe
+    reflecting all the light: the issue's 4x too bright novel view) and an undetermined ns on its
+    bound go to INITIAL; an undetermined ks inside its range and a determined ks on a bound stay."""
+    from reflab.inverse.fit.problem import Free, params_of
+    from reflab.inverse.fit.ranges import linear_upper, plausible
+    from reflab.inverse.forward.factorization import Factorization
+    from reflab.inverse.forward.models import get_model
+    from reflab.inverse.forward.trees import build_trees
+    from reflab.reconstruction.scene import INITIAL
+
+    zoo = random_scene(8, 40, 30)  # five phong surfaces
+    trees = build_trees(zoo.scene, zoo.camera, zoo.lights, depth=2)
+    fac = Factorization(trees, [get_model(s.material.brdf) for s in zoo.scene], zoo.lights.intensities)
+    p = params_of(fac, [s.material for s in zoo.scene])
+    lay = fac.layout
+    ks = [k for k, (_, n) in enumerate(lay.x_names) if n == "ks"]
+    ns = [q for q, (_, n) in enumerate(lay.theta_names) if n == "ns"]
+    assert len(ks) >= 4 and len(ns) >= 4
+    ub = linear_upper(fac, p.theta)
+    p.x[ks[0]] = [ub[ks[0]], 0.3, ub[ks[0]]]  # loose, two bands on the upper bound
+    p.x[ks[1]] = 0.3  # loose, inside
+    p.x[ks[2]] = ub[ks[2]]  # determined, on its bound
+    th = ns[[lay.theta_names[q][0] for q in ns].index(lay.x_names[ks[3]][0])]  # a fourth surface's ns
+    p.theta[th] = 2.0  # loose, on ns's lower bound
+    loose = Free(np.zeros_like(p.x, dtype=bool), np.zeros_like(p.s, dtype=bool), np.zeros_like(p.theta, dtype=bool))
+    loose.x[ks[0]] = loose.x[ks[1]] = True
+    loose.theta[th] = True
+    before = p.copy()
+    moved = plausible(fac, p, loose)
+    s0 = lay.x_names[ks[0]][0]
+    assert (s0, "ks[1]") in moved and (lay.theta_names[th][0], "ns") in moved and len(moved) == 4
+    assert p.theta[th] == INITIAL["ns"]
+    np.testing.assert_array_equal(p.x[ks[0]], INITIAL["ks"])  # a grey lobe at the prior's centre
+    np.testing.assert_array_equal(p.x[ks[1]], before.x[ks[1]])
+    np.testing.assert_array_equal(p.x[ks[2]], before.x[ks[2]])
+    np.testing.assert_array_equal(p.x[ks[3]], before.x[ks[3]])  # its bound rose with ns: still inside
