@@ -17,7 +17,9 @@ compared with truth.json. Reported over the seeds:
 - PSNR of the fitted model's novel and relit views (fit.json + textures/, the project's renderer)
   against the reference renderer's truth, and its gap to the oracle's: the true materials with
   the texture recovered from the same photograph (:func:`oracle_workspace`); over the pixels
-  whose albedo both know (the oracle's counted at most :data:`PSNR_CAP`, the gap at least 0).
+  whose albedo both know (the oracle's counted at most :data:`PSNR_CAP`, the gap at least 0),
+  and over those of them whose light the render says rests on no undetermined value (its
+  ``undetermined_pixels``, docs/fit.md "Renders that say where they guess").
 
     python docs/figures/zoo.py --seeds 0-11 --size 160x120 [--noise 0.0] [--json out.json] [--keep DIR]
 """
@@ -88,8 +90,14 @@ def view_scores(root: Path, depth: int) -> dict:
             image, info = render_workspace(ws, depth=depth, **view)
             known &= np.all(np.isfinite(albedo), axis=2) & ~info["unknown_pixels"]
             images.append(image)
+            if ws == root:
+                guessed = info["undetermined_pixels"]
+        determined = known & ~guessed  # the pixels whose light the model says it knows
         out[which] = {"psnr": psnr(images[0], true_image, known), "true_materials": psnr(images[1], true_image, known),
-                      "known_pct": float(100 * known.mean())}
+                      "known_pct": float(100 * known.mean()),
+                      "psnr_determined": psnr(images[0], true_image, determined) if determined.any() else float("nan"),
+                      "true_determined": psnr(images[1], true_image, determined) if determined.any() else float("nan"),
+                      "determined_pct": float(100 * determined.mean())}
     return out
 
 
@@ -117,7 +125,10 @@ def summary(results: list) -> dict:
     det = sum(r["determined"] for r in results)
     gaps = [max(0.0, min(r["views"][w]["true_materials"], PSNR_CAP) - r["views"][w]["psnr"]) for r in results
             if "views" in r for w in r["views"] if np.isfinite(r["views"][w]["psnr"])]
-    return {"scenes": len(results), "fit_median_s": float(np.median(t)), "fit_p90_s": float(np.percentile(t, 90)),
+    gaps_det = [max(0.0, min(r["views"][w]["true_determined"], PSNR_CAP) - r["views"][w]["psnr_determined"]) for r in results
+                if "views" in r for w in r["views"] if np.isfinite(r["views"][w]["psnr_determined"])]
+    return {"scenes": len(results), "psnr_gap_determined_max_db": float(np.max(gaps_det)) if gaps_det else None,
+            "psnr_gap_determined_median_db": float(np.median(gaps_det)) if gaps_det else None, "fit_median_s": float(np.median(t)), "fit_p90_s": float(np.percentile(t, 90)),
             "fit_max_s": float(t.max()), "determined": det,
             "within_3sigma": sum(r["within_3sigma"] for r in results) / max(det, 1),
             "worst": max(r["worst"] for r in results), "confident_wrong": sum(len(r["wrong"]) for r in results),
@@ -128,19 +139,25 @@ def summary(results: list) -> dict:
 
 def table(results: list, s: dict) -> str:
     lines = ["| seed | surfaces | lamps | fit s | determined | within 3σ | worst \\|err\\|/σ | confident wrong | "
-             "recovered / visible | novel dB (true) | relit dB (true) |", "|" + "---|" * 11]
+             "recovered / visible | novel dB (true) | relit dB (true) | novel, determined px | relit, determined px |",
+             "|" + "---|" * 13]
     for r in results:
         v = r.get("views", {})
         dbs = [f"{v[w]['psnr']:.1f} ({v[w]['true_materials']:.1f})" if w in v else "–" for w in ("novel", "relit")]
+        dbs += [f"{v[w]['psnr_determined']:.1f} ({v[w]['true_determined']:.1f}) on {v[w]['determined_pct']:.0f} %"
+                if w in v else "–" for w in ("novel", "relit")]
         lines.append(f"| {r['seed']} | {r['surfaces']} | {r['lamps']} | {r['fit_s']:.1f} | {r['determined']} | "
                      f"{r['within_3sigma']} | {r['worst']:.2f} | {len(r['wrong'])} | {r['recovered']} / {r['visible']} | "
-                     f"{dbs[0]} | {dbs[1]} |")
+                     f"{dbs[0]} | {dbs[1]} | {dbs[2]} | {dbs[3]} |")
     gap = "–" if s["psnr_gap_median_db"] is None else f"{s['psnr_gap_median_db']:.1f} dB median, {s['psnr_gap_max_db']:.1f} max"
     lines += ["", f"{s['scenes']} scenes: fit {s['fit_median_s']:.1f} s median, {s['fit_p90_s']:.1f} s 90th percentile, "
               f"{s['fit_max_s']:.1f} s max; {s['determined']} determined values, {100 * s['within_3sigma']:.0f} % within 3σ, "
               f"worst |err|/σ {s['worst']:.2f}; {s['confident_wrong']} confident wrong (beyond 3σ + 2 %); "
               f"recall {s['recovered']} / {s['visible']} ({100 * s['recovered'] / max(s['visible'], 1):.0f} %) "
-              f"within 10 %; PSNR gap to the true materials {gap}"]
+              f"within 10 %; PSNR gap to the true materials {gap}"
+              + ("" if s["psnr_gap_determined_max_db"] is None else
+                 f"; over the pixels the render calls determined {s['psnr_gap_determined_median_db']:.1f} dB median, "
+                 f"{s['psnr_gap_determined_max_db']:.1f} max")]
     return "\n".join(lines)
 
 
