@@ -151,7 +151,7 @@ def table(results: list, s: dict) -> str:
                      f"{dbs[0]} | {dbs[1]} | {dbs[2]} | {dbs[3]} |")
     gap = "–" if s["psnr_gap_median_db"] is None else f"{s['psnr_gap_median_db']:.1f} dB median, {s['psnr_gap_max_db']:.1f} max"
     lines += ["", f"{s['scenes']} scenes: fit {s['fit_median_s']:.1f} s median, {s['fit_p90_s']:.1f} s 90th percentile, "
-              f"{s['fit_max_s']:.1f} s max; {s['determined']} determined values, {100 * s['within_3sigma']:.0f} % within 3σ, "
+              f"{s['fit_max_s']:.1f} s max; {s['determined']} determined values, {100 * s['within_3sigma']:.1f} % within 3σ, "
               f"worst |err|/σ {s['worst']:.2f}; {s['confident_wrong']} confident wrong (beyond 3σ + 2 %); "
               f"recall {s['recovered']} / {s['visible']} ({100 * s['recovered'] / max(s['visible'], 1):.0f} %) "
               f"within 10 %; PSNR gap to the true materials {gap}"
