@@ -300,12 +300,14 @@ def views(zoo: ZooScene) -> dict:
 
 
 def photograph(zoo: ZooScene, depth: int = 3) -> np.ndarray:
-    """The scene's photograph by the reference renderer, with its seeded noise (clipped at 0)."""
+    """The scene's photograph by the reference renderer, with its seeded Gaussian noise, not clipped
+    at 0 (a dark-frame-subtracted photograph: clipping would lift dark pixels, a bias the fit's
+    noise model does not hold, and it reads noise-level negative values as data)."""
     from reflab.hardware.sim.reference import render_reference
 
     img = render_reference(zoo.scene, zoo.camera, zoo.lights, depth=depth, albedo=zoo.albedo)
     if zoo.noise > 0:
-        img = np.maximum(img + np.random.default_rng([35, zoo.seed, 1]).normal(0.0, zoo.noise * img.max(), img.shape), 0.0)
+        img = img + np.random.default_rng([35, zoo.seed, 1]).normal(0.0, zoo.noise * img.max(), img.shape)
     return img
 
 
