@@ -20,13 +20,14 @@ it receives, so each term alone is at most 1:
 
 F-TBO keeps every value inside these ranges (its inner bounded least squares takes the θ-
 dependent upper bound of ks); :func:`clip` projects the result of a method that does not
-(NF-TBO's unbounded reparametrisation); :func:`at_bound` names values sitting on a bound.
+(NF-TBO's unbounded reparametrisation); :func:`at_bound` names values sitting on a bound;
+:func:`plausible` moves an undetermined lobe off a bound to the field's plausible value.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from reflab.reconstruction.scene import SCALAR_RANGE
+from reflab.reconstruction.scene import INITIAL, SCALAR_RANGE
 
 #: Upper bound of kd, Ward ks, r and t.
 UNIT = 1.0
@@ -148,3 +149,41 @@ def at_bound(fac, p, free) -> list:
             if side:
                 out[s][name] = side
     return out
+
+
+def plausible(fac, p, loose) -> list:
+    """Move every undetermined lobe value that sits on a bound to the plausible one, in place.
+
+    A lobe the photograph leaves open (``loose``: fitted, but its σ spans its scale) may end on
+    either bound of its range: ks = 0, or ks at 1 / L(ns), a lobe reflecting all the light, which
+    a novel view renders as a highlight brighter than anything in the scene. Any value within
+    its σ explains the photograph as well; the one reported and rendered is the prior's centre
+    over the field's materials, :data:`reflab.reconstruction.scene.INITIAL` (the start of every
+    fit): a shininess or roughness on a bound takes its initial value, and a ks with a band on a
+    bound takes the initial ks in every loose band (a grey lobe), kept under the θ's bound. σ is
+    not touched: the value stays reported undetermined.
+
+    Returns
+    -------
+    list
+        ``(surface, name)`` of the values moved ("ks[0]" for a band).
+    """
+    lay, moved = fac.layout, []
+    lo, hi = theta_bounds(fac)
+    for q, (s, name) in enumerate(lay.theta_names):
+        if loose.theta[q] and name in INITIAL:
+            log = name in ("ns", "alpha")
+            v, a, b = ((np.log2(max(p.theta[q], 1e-300)), np.log2(lo[q]), np.log2(hi[q])) if log
+                       else (p.theta[q], lo[q], hi[q]))
+            if _side(v, a, b):
+                p.theta[q] = float(np.clip(INITIAL[name], lo[q], hi[q]))
+                moved.append((s, name))
+    ub = linear_upper(fac, p.theta)
+    for k, (s, name) in enumerate(lay.x_names):
+        if name == "kd" or not loose.x[k].any():
+            continue
+        if any(loose.x[k, c] and _side(p.x[k, c], 0.0, ub[k]) for c in range(p.x.shape[1])):
+            p.x[k, loose.x[k]] = min(INITIAL.get(name, INITIAL["ks"]), ub[k])
+            moved += [(s, f"{name}[{c}]") for c in np.flatnonzero(loose.x[k])]
+        p.x[k] = np.minimum(p.x[k], ub[k])  # a moved θ may lower the bound of a determined band
+    return moved

@@ -38,7 +38,7 @@ from reflab.inverse.fit.ftbo import SEED_STOP_GAIN, STOP_GAIN, ftbo
 from reflab.inverse.fit.nftbo import nftbo
 from reflab.inverse.fit.photograph import check_image, saturated_pixels
 from reflab.inverse.fit.problem import Free, Params, Problem, materials_of, params_of, trace_point
-from reflab.inverse.fit.ranges import at_bound, clip
+from reflab.inverse.fit.ranges import at_bound, clip, plausible
 from reflab.inverse.fit.uncertainty import sigmas
 
 __all__ = ["METHODS", "fit", "FitSolution", "fit_json", "check_image", "saturated_pixels", "Params", "Free", "Problem",
@@ -313,6 +313,10 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         if name != "kd" and (np.any(~fitted_free.theta[th]) or np.any(loose.theta[th])):
             loose.x[k] |= fitted_free.x[k]
     status, warnings = diagnose(pb, p, A, res, textured, names)
+    # An undetermined lobe is reported and rendered at the plausible value, not at a range bound.
+    p = p.copy()
+    if plausible(fac, p, loose):
+        stats = {**stats, "at_bound": at_bound(fac, p, free)}
     spent = time.perf_counter() - t0
     elapsed = fitted + spent
     phases = dict(pb.phases, uncertainty=pb.phases["uncertainty"] + spent)  # with the holding rounds and the diagnosis
