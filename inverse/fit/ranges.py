@@ -148,3 +148,21 @@ def at_bound(fac, p, free) -> list:
             if side:
                 out[s][name] = side
     return out
+
+
+def plausible_range(brdf: str, name: str, material: dict | None = None) -> tuple[float, float] | None:
+    """The plausible range (lo, hi) of fit.json's parameter ``name`` of a ``brdf`` surface, None when
+    it has none (``ior``); ``material`` (fit.json's material) gives Phong ks its ns-dependent bound.
+
+    The same ranges the fit keeps its values in (module docstring), for the report and the GUI to
+    show an undetermined value as its range rather than as a σ wider than it.
+    """
+    if name in ("kd", "r", "t"):
+        return 0.0, UNIT
+    if name == "ks":
+        ns = (material or {}).get("ns")
+        if brdf == "phong" and isinstance(ns, (int, float)) and np.isfinite(ns) and ns > 0:
+            return 0.0, 1.0 / float(phong_lobe_albedo(max(float(ns), FIT_RANGE["ns"][0])))
+        return 0.0, UNIT
+    rng = {**SCALAR_RANGE, **FIT_RANGE}
+    return tuple(float(v) for v in rng[name]) if name in rng else None
