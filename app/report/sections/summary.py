@@ -31,7 +31,7 @@ def summary_section(src: Sources, model: dict | None, views: dict) -> Section | 
                      f"holding {100 * m['share']:.0f} % of the squared residual; re-rendered "
                      + ("with the recovered texture" if m["textured"] else "with homogeneous albedo")))
     photos = [p for p in as_list(fit.get("photographs")) if isinstance(p, dict)]
-    if photos:
+    if len(photos) > 1:  # one photograph: fit.json's own RMS below says it
         rows.append((f"photographs fitted ({len(photos)})",
                      "; ".join(f"{p.get('name')}: RMS per band {num(p.get('rms'), 3)} (linear radiance, homogeneous "
                                f"albedo) over {num(p.get('pixels_used'))} pixels" for p in photos)))
