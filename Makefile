@@ -3,7 +3,12 @@ PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
-SYSLIBS := libllvm19 libusb-1.0-0
+# Qt's xcb platform plugin (the window on an X server) and what its libqxcb.so links (ldd); Xvfb
+# for the test that opens the window on a real X server (tests/test_gui_xvfb.py).
+QTXCB   := libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1 libxcb-image0 libxcb-randr0 libxcb-render-util0 \
+           libxcb-render0 libxcb-shape0 libxcb-shm0 libxcb-sync1 libxcb-util1 libxcb-xfixes0 libxcb-xkb1 \
+           libxkbcommon-x11-0 libxkbcommon0 libx11-xcb1 libx11-6 libxcb1
+SYSLIBS := libllvm19 libusb-1.0-0 $(QTXCB) xvfb
 
 .PHONY: demo test setup syslibs clean
 
@@ -16,7 +21,7 @@ test: setup
 setup: syslibs $(STAMP)
 
 # Mitsuba's LLVM back end needs libllvm19 (Dr.Jit crashes with bookworm's LLVM 15);
-# Open3D needs libusb. Installed with apt where it is there.
+# Open3D needs libusb; `reflab gui` the xcb libraries. Installed with apt where it is there.
 syslibs:
 	@./.ci/syslibs.sh $(SYSLIBS)
 

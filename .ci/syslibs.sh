@@ -21,5 +21,10 @@ warning: no apt-get here; install these by hand before running reflab:
   - LLVM >= 16 shared library (libLLVM.so; Debian/Ubuntu package libllvm19), for Mitsuba's llvm variant.
     Point DRJIT_LIBLLVM_PATH at it if it is not found by itself.
   - libusb-1.0 (Debian/Ubuntu package libusb-1.0-0), which Open3D loads.
+  - for the window (reflab gui) on an X server, the xcb libraries Qt's xcb plugin links: xcb-cursor,
+    xcb-icccm, xcb-keysyms, xcb-image, xcb-randr, xcb-render-util, xcb-shape, xcb-xkb, xkbcommon-x11
+    (Fedora: xcb-util-cursor xcb-util-wm xcb-util-keysyms xcb-util-image xcb-util-renderutil
+    libxkbcommon-x11; Arch: xcb-util-cursor xcb-util-wm xcb-util-keysyms ...). QT_DEBUG_PLUGINS=1
+    reflab gui names the one missing. Xvfb (xorg-x11-server-Xvfb) for the test that opens the window.
 MSG
 exit 0

@@ -20,7 +20,8 @@ from reflab.app.console import LOG, setup
 EXIT_CODES = (
     (0, "done"),
     (1, "the stage ran but failed: a device or camera fault, a calibration that found no solution"),
-    (2, "bad input: a usage error, a bad option (named by its flag) or a bad workspace file (named with its field)"),
+    (2, "bad input: a usage error, a bad option (named by its flag), a bad workspace file (named with its field), "
+        "a serial port that cannot be opened or lamp wiring the board cannot follow"),
     (3, "reflab fit: fit.json written with status 'poor fit' (the model does not explain the image)"),
     (130, "cancelled (Ctrl-C): nothing half-written; a capture keeps its finished shots for --resume"),
 )

@@ -105,10 +105,29 @@ def geometry_error(scene, true_scene) -> dict:
     return out
 
 
-def psnr(image, truth, known) -> float:
-    err = (np.asarray(image, float) - truth)[known]
+def psnr(image, truth, known=None) -> float:
+    """PSNR (dB) of ``image`` against ``truth`` over the pixels ``known`` (all by default), the peak
+    being the truth's maximum; NaN over no pixel."""
+    err = np.asarray(image, float) - truth
+    err = err if known is None else err[known]
     mse = float(np.mean(err**2)) if err.size else float("nan")
-    return float(10 * np.log10(truth.max() ** 2 / max(mse, 1e-300)))
+    return float(10 * np.log10(float(np.max(truth)) ** 2 / max(mse, 1e-300))) if np.isfinite(mse) else float("nan")
+
+
+def view_scores(image, true, albedo, unknown, undetermined) -> dict:
+    """The one PSNR computation of a novel or relit view against its truth, for the demo's console
+    line and the report alike (:func:`view_psnr`'s keys).
+
+    ``albedo``: the model's albedo AOV at that view (NaN where the seen surface's is unknown);
+    ``unknown``: the render's ``unknown_pixels``; ``undetermined``: its ``undetermined_pixels``.
+    """
+    primary = np.all(np.isfinite(albedo), axis=2)
+    known = primary & ~np.asarray(unknown, bool)
+    determined = known & ~np.asarray(undetermined, bool)
+    return {"psnr_db": psnr(image, true, known), "known_pct": float(100 * known.mean()),
+            "psnr_primary_db": psnr(image, true, primary), "primary_known_pct": float(100 * primary.mean()),
+            "psnr_all_db": psnr(image, true),
+            "psnr_determined_db": psnr(image, true, determined), "determined_pct": float(100 * determined.mean())}
 
 
 def view_psnr(root, truth: dict, which: str) -> dict:
@@ -131,14 +150,9 @@ def view_psnr(root, truth: dict, which: str) -> dict:
     pose = Workspace(ws.truth).view(which)[0]
     view = {"camera": pose} if which == "novel" else {"lights": pose}
     albedo, info = render_workspace(ws.root, aov="albedo", depth=truth["depth"], **view)
-    primary = np.all(np.isfinite(albedo), axis=2)
-    known = primary & ~info["unknown_pixels"]
-    determined = known & ~render_workspace(ws.root, depth=truth["depth"], **view)[1]["undetermined_pixels"]
+    undetermined = render_workspace(ws.root, depth=truth["depth"], **view)[1]["undetermined_pixels"]
     image, true = read_image(ws.view(which)[1]), truth["images"][which]
-    return {"psnr_db": psnr(image, true, known), "known_pct": float(100 * known.mean()),
-            "psnr_primary_db": psnr(image, true, primary), "primary_known_pct": float(100 * primary.mean()),
-            "psnr_all_db": psnr(image, true, np.ones_like(known)),
-            "psnr_determined_db": psnr(image, true, determined), "determined_pct": float(100 * determined.mean())}
+    return view_scores(image, true, albedo, info["unknown_pixels"], undetermined)
 
 
 def score_stage(stage: str, root, truth: dict) -> str:

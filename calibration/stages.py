@@ -128,6 +128,14 @@ class LightsResult:
     unreadable: list = field(default_factory=list)  # (image name, message) of rod shots skipped: cannot be read
 
 
+def _rows_run_down(centres, cols: int, rows: int) -> bool:
+    """Whether a detected grid's rows (``cols`` circles each) run closer to the image's vertical than
+    to its horizontal: what a COLSxROWS given swapped (``--grid 7x9`` for a 9x7 target) looks like."""
+    grid = np.asarray(centres).reshape(rows, cols, 2)
+    along_row = grid[:, -1] - grid[:, 0]
+    return bool(np.sum(np.abs(along_row[:, 1])) > np.sum(np.abs(along_row[:, 0])))
+
+
 def calibrate_camera(options: CameraOptions, task: Task | None = None) -> CameraResult:
     """Calibrate the camera from views of the circle target and write camera.json."""
     from reflab.calibration.circles import detect_grid, parse_grid
@@ -183,6 +191,12 @@ def calibrate_camera(options: CameraOptions, task: Task | None = None) -> Camera
     if o.reference not in used:
         raise ValueError(f"the reference image {paths[o.reference]} has no detectable grid; "
                          "its pose is the one camera.json needs")
+    # The reference view (the target laid square to the camera) fixes the world frame: rows running
+    # down it is a grid given swapped, which would turn that frame 90° without a word.
+    if cols != rows and _rows_run_down(obs[used.index(o.reference)], cols, rows):
+        raise OptionError("grid", f"{cols}x{rows}: in the reference view the rows of {cols} circles run down the image, so "
+                                  f"the target is most likely {rows}x{cols} (COLSxROWS: circles along a row first; a "
+                                  f"camera rolled 90° is the other reading); camera.json was not written")
     task.step(len(paths), len(paths) + 1, "calibrating")
     try:
         res = calibrate(obs, target_points(cols, rows, o.spacing), size, radius=o.radius,

@@ -40,6 +40,9 @@ class Task:
         self._run = threading.Event()
         self._run.set()
         self._cancel = threading.Event()
+        #: Set while the stage is held in :meth:`check` by a pause (the GUI and tests can tell
+        #: "asked to pause" from "holding").
+        self.holding = threading.Event()
         self.start = time.perf_counter()
         self.deadline = None if max_seconds is None else self.start + float(max_seconds)
         self.done, self.total, self.message = 0.0, 0.0, ""
@@ -77,8 +80,11 @@ class Task:
 
     def check(self) -> None:
         """Block while paused; raise :class:`Cancelled` once cancelled."""
-        while not self._run.wait(0.05):
-            pass
+        if not self._run.is_set():
+            self.holding.set()
+            while not self._run.wait(0.05):
+                pass
+            self.holding.clear()
         if self._cancel.is_set():
             raise Cancelled("cancelled")
 

@@ -291,6 +291,14 @@ class CaptureSession:
         self._write_manifest("complete")
         return self.manifest
 
+    def _hold(self) -> bool:
+        """Whether a turntable move is to hold (paused); a Task's ``holding`` says it is held."""
+        paused = bool(self.control.paused)
+        holding = getattr(self.control, "holding", None)
+        if holding is not None:
+            holding.set() if paused else holding.clear()
+        return paused
+
     def _stop_board(self) -> None:
         stop = getattr(self.controller, "safe_stop", None)
         if stop is not None:
@@ -333,7 +341,7 @@ class CaptureSession:
         ctl = self.controller
         if ctl.position is None or abs(ctl.angle - shot.angle) > ctl.config.angle_tolerance_deg:
             try:
-                ctl.rotate_to(shot.angle, hold=lambda: self.control.paused, cancelled=lambda: self.control.cancelled)
+                ctl.rotate_to(shot.angle, hold=self._hold, cancelled=lambda: self.control.cancelled)
             except MoveCancelled:
                 raise CaptureCancelled("cancelled") from None
         changed = ctl.lamps != list(shot.lamps)
@@ -351,6 +359,9 @@ class CaptureSession:
         image = self.camera.capture(self.exposure)
         capture_s = time.monotonic() - t0
         after = self._confirm(shot, "after")  # a reset during the exposure: the image is never written
+        if getattr(self.control, "paused", False):  # paused during the exposure: no shot is written while paused
+            self._wait()
+            after = self._confirm(shot, "after the pause")
         if not np.all(np.isfinite(image)):
             from reflab.hardware.cameras import CameraError
 

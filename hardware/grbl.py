@@ -72,7 +72,13 @@ _BANNER = re.compile(r"^Grbl (\S+) \[.*\]$")
 
 
 class GrblError(RuntimeError):
-    """The controller refused, stopped or could not be reached; the message says what to check."""
+    """The controller refused, stopped or could not be reached; the message says what to check.
+
+    ``bad_input``: the error is the user's input (a port that cannot be opened, a configuration the
+    board cannot follow), exit status 2 as for every other bad input; else a device fault (1).
+    """
+
+    bad_input = False
 
 
 class GrblTimeout(GrblError):
@@ -117,6 +123,18 @@ class MoveCancelled(GrblError):
 
 class DeviceLost(GrblError):
     """The serial port vanished and reconnecting failed."""
+
+
+class PortUnavailable(DeviceLost):
+    """The port named cannot be opened (no such device, held by another program, no permission)."""
+
+    bad_input = True
+
+
+class WiringError(GrblError):
+    """The configuration's lamp outputs cannot work on this board (hardware.json or the firmware)."""
+
+    bad_input = True
 
 
 @dataclass
@@ -214,24 +232,24 @@ class GrblConfig:
         return [bool(outputs.get(o, False)) for o in self.lamps]
 
     def check_firmware(self, options: str, settings: dict) -> None:
-        """Raise :class:`GrblError` when the board cannot switch these lamps independently.
+        """Raise :class:`WiringError` when the board cannot switch these lamps independently.
 
         ``options`` is the letter field of ``$I``'s ``[OPT:…]`` (``M``: built with ENABLE_M7),
         ``settings`` the ``$$`` values (``$32``: laser mode).
         """
         where = {o: k for k, o in enumerate(self.lamps)}
         if "flood" in where and "mist" in where:
-            raise GrblError(
+            raise WiringError(
                 f"lamps {where['flood']} (flood) and {where['mist']} (mist) cannot both be used: GRBL's only "
                 "coolant-off command, M9, switches flood AND mist off, so one lamp cannot be switched off alone. "
                 "Put one of them on the spindle output (hardware.json 'lamps').")
         if "mist" in where and "M" not in options:
-            raise GrblError(
+            raise WiringError(
                 f"lamp {where['mist']} is on the mist output, but this GRBL build has no M7 (it answers error:20; "
                 "its $I options lack 'M'). Rebuild GRBL with ENABLE_M7 in config.h, or move the lamp to the "
                 "flood or spindle output (hardware.json 'lamps').")
         if "spindle" in where and float(settings.get("$32", 0)) != 0:
-            raise GrblError(
+            raise WiringError(
                 f"lamp {where['spindle']} is on the spindle output, but the board is in laser mode ($32=1), which "
                 "keeps that output off while the axes stand still. Send $32=0 to the board.")
 
@@ -387,7 +405,7 @@ class GrblController:
                 self.port, baudrate=self.config.baudrate, timeout=0.05, write_timeout=self.config.timeout_s
             )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceLost(
+            raise PortUnavailable(
                 f"cannot open {self.port} ({exc}). Check the USB cable and the board's power, that the port "
                 "name is right and that no other program (a G-code sender) holds it."
             ) from None

@@ -96,4 +96,4 @@ def run(args) -> int:
         from reflab.app.commands._args import error_text
 
         LOG.error(f"reflab capture: error: {error_text(exc, args)}")
-        return 1
+        return 2 if getattr(exc, "bad_input", False) else 1

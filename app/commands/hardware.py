@@ -80,9 +80,9 @@ def run(args) -> int:
                 print(f"reflab hardware: could not stop the board: {exc}", file=sys.stderr)
         print("reflab hardware: interrupted; the board was stopped (feed hold, soft reset: lamps off)", file=sys.stderr)
         return 130
-    except GrblError as exc:
+    except GrblError as exc:  # a port or wiring the board cannot use is bad input (2), a fault 1
         LOG.error(f"reflab hardware: error: {exc}")
-        return 1
+        return 2 if exc.bad_input else 1
     finally:
         ctl.close()
         if sim is not None:

@@ -4,7 +4,8 @@ Materials come from fit.json when it exists (the fitted model), else from scene.
 diffuse albedo comes from textures/ when it exists (the texture stage's ``albedo_nodes``). A
 different camera (--camera) gives a novel view, different lights (--lights) a relighting.
 Writes a float32 EXR (default WORKSPACE/render.exr, or albedo.exr for --aov albedo) and an
-8-bit PNG preview beside it; where some pixels' values rest on parameters fit.json calls
+8-bit PNG preview beside it (without -o, an earlier render.exr there is replaced, and the command says
+so in one line: the render is made from the workspace's files and can be made again; -o keeps it); where some pixels' values rest on parameters fit.json calls
 undetermined (or on texels made from such pixels), a mask OUT_undetermined.png of them.
 """
 from __future__ import annotations
@@ -30,7 +31,11 @@ def run(args) -> int:
     from reflab.core.options import options_from_args
     from reflab.inverse.stages import RenderOptions, render
 
+    from reflab.core.workspace import Workspace
+
     start = time.perf_counter()
+    default = None if args.output else Workspace(args.workspace).render(args.aov)
+    earlier = default.stat().st_mtime if default is not None and default.is_file() else None
     with running("render") as task:
         r = render(options_from_args(RenderOptions, args, workspace=args.workspace), task, log=LOG.info)
     info = r.info
@@ -39,6 +44,9 @@ def run(args) -> int:
                f"texture on {info['texture_nodes']} nodes ({info['unknown_albedo']} unknown)")
     LOG.info(f"materials from {info['materials']}, {texture}")
     LOG.info(f"trees {info['trees_s']:.2f} s ({len(info['trees'])} nodes, depth {args.depth}), render {info['render_s']:.2f} s")
+    if earlier is not None:
+        LOG.warning(f"reflab render: replaced the earlier {r.path} (written "
+                    f"{time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(earlier))}); -o FILE writes elsewhere")
     LOG.info(f"wrote {r.path} ({w}x{h}{', albedo' if args.aov else ''}) and {r.preview} in {time.perf_counter() - start:.1f} s")
     if r.undetermined is not None:
         n = int(info["undetermined_pixels"].sum())

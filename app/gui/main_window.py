@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer, Signal, Slot
-from PySide6.QtGui import QColor, QFont
+from PySide6.QtGui import QColor, QFont, QKeySequence, QShortcut
 from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem, QMainWindow, QMessageBox,
                                QPlainTextEdit, QProgressBar, QPushButton, QSplitter, QStackedWidget, QVBoxLayout,
                                QWidget)
@@ -39,6 +39,17 @@ PAGES = {"devices": DevicesPage, "calibrate_camera": CameraPage, "calibrate_ligh
          "reconstruct": ReconstructPage, "input": InputPage, "fit": FitPage, "texture": TexturePage,
          "results": ResultsPage}
 RMS_IN_MESSAGE = re.compile(r"RMS per band \[([^\]]+)\]")
+
+
+def progress_text(done: float, total: float, message: str) -> str:
+    """The progress bar's text: a capture's "<kind>: <file>" as "<kind>: shot 3 of 36 (<file>)", another
+    stage's message with its count."""
+    from reflab.hardware.capture import FOLDERS
+
+    kind, _, file = (message or "").partition(": ")
+    if kind in FOLDERS and file and " " not in file and total > 0:
+        return f"{kind}: shot {done:.0f} of {total:.0f} ({file})"
+    return f"{message} ({done:.0f} of {total:.0f})" if message and total > 0 else message or "%p%"
 
 
 class MainWindow(QMainWindow):
@@ -147,6 +158,10 @@ class MainWindow(QMainWindow):
             page.refresh()
         self.step_list.setCurrentRow(stages.resume_index(self.workspace))
 
+        # Standard shortcuts: Ctrl+Q quits (asking first while a step runs), Esc cancels the running step.
+        self.quit_shortcut = QShortcut(QKeySequence("Ctrl+Q"), self, self.close)
+        self.cancel_shortcut = QShortcut(QKeySequence(Qt.Key.Key_Escape), self, self.cancel)
+
         self.preview_timer = QTimer(self)
         self.preview_timer.timeout.connect(self._tick_preview)
         if live_preview_ms:
@@ -209,6 +224,11 @@ class MainWindow(QMainWindow):
         self.worker, self.running = worker, name
         self._started = time.monotonic()
         page.set_status("running…")
+        if not step.done(self.workspace):  # "press <button>" becomes "<button> is running…"
+            try:
+                page.refresh()
+            except Exception as exc:  # noqa: BLE001 -- a page that cannot be shown is logged, not raised
+                self.log(f"could not refresh {name}: {exc}")
         self.progress.setValue(0)
         self.progress.setFormat(f"{step.title}: starting")
         self.progress.setRange(0, 0)  # busy until the stage reports progress
@@ -225,12 +245,16 @@ class MainWindow(QMainWindow):
         """Hold the running step at its next check (a turntable move holds at once), or let it go on."""
         if self.worker is None:
             return
+        title = stages.STEPS[stages.NAMES.index(self.running)].title
         if paused:
             self.worker.task.pause()
-            self.log(f"{self.running} paused: Pause again to go on")
+            self.log(f"{title} paused (no further shot or iteration until then): press Resume to go on")
+            self.pages[self.running].set_status("paused: press Resume to go on, Cancel to stop")
         else:
             self.worker.task.resume()
-            self.log(f"{self.running} goes on")
+            self.log(f"{title} goes on")
+            self.pages[self.running].set_status("running…")
+        self.progress.setFormat(("paused — " if paused else "") + self.progress.format().removeprefix("paused — "))
         self.pause_button.setText("Resume" if paused else "Pause")
 
     def cancel(self) -> None:
@@ -243,7 +267,8 @@ class MainWindow(QMainWindow):
         if total > 0:
             self.progress.setRange(0, 1000)
             self.progress.setValue(int(1000 * min(done / total, 1.0)))
-        self.progress.setFormat(f"{message} ({done:.0f} of {total:.0f})" if message and total > 0 else message or "%p%")
+        self.progress.setFormat(("paused — " if self.worker is not None and self.worker.task.paused else "")
+                                + progress_text(done, total, message))
         self._show_shot(message)
         rms = RMS_IN_MESSAGE.search(message or "")
         if rms and hasattr(self.pages[self.running], "live_point"):  # the fit's error as it falls
@@ -251,6 +276,18 @@ class MainWindow(QMainWindow):
         if message and message.split(",")[0] != self._last_message.split(",")[0]:  # one log line per phase
             self.log(message)
         self._last_message = message
+
+    def show_rig_state(self) -> None:
+        """What the rig is doing, on every page: the live views say when every lamp is off (drawn on
+        the view) and, connected, that the camera's frame is coming; the devices page's lines follow the board."""
+        connected = self.rig.connected
+        lamps = list(getattr(self.rig.controller, "lamps", []) or []) if connected else []
+        banner = "all lamps off" if connected and lamps and not any(lamps) else ""
+        for page in self.pages.values():
+            page.preview.set_banner(banner)
+            page.preview.set_placeholder("connected: waiting for the camera's first frame" if connected else
+                                         "live view" if page.preview_stretch == 0 else
+                                         "the camera shows here\nonce the rig is connected\n(Devices)")
 
     def _show_shot(self, message: str) -> None:
         """A capture steps its task with "<kind>: <file>": show that shot in the running page's live view."""
@@ -264,6 +301,7 @@ class MainWindow(QMainWindow):
                 from reflab.core.images import read_image
 
                 self.pages[self.running].preview.set_image(read_image(path))
+                self.show_rig_state()
 
     def _ended(self, name: str, outcome: str, text: str) -> None:
         self.pages[name].set_status(f"{outcome}: {text}")
@@ -292,6 +330,7 @@ class MainWindow(QMainWindow):
             self.pages[name].refresh()
             if name == "devices" or not self.rig.connected:
                 self.pages["devices"].refresh()
+            self.show_rig_state()
         except Exception as exc:  # noqa: BLE001 -- a result that cannot be shown is logged, not raised
             self.log(f"could not show the result of {name}: {exc}")
         self.step_finished.emit(name, outcome)
@@ -307,6 +346,9 @@ class MainWindow(QMainWindow):
 
     def _hardware_done(self, ok: bool, result) -> None:
         self.pages["devices"].show_connection(str(result) if ok else f"failed: {result}")
+        if ok:  # the step's status line follows the board too, not the state it was connected in
+            self.pages["devices"].set_status(f"done: connected — {result}")
+        self.show_rig_state()
         self.hardware_done.emit(ok, str(result))
 
     def disconnect_rig(self) -> None:
@@ -315,6 +357,8 @@ class MainWindow(QMainWindow):
             return
         self.rig.disconnect()
         self.pages["devices"].show_connection("disconnected")
+        self.pages["devices"].set_status("disconnected: Connect to use the rig again")
+        self.show_rig_state()
         self.log("rig disconnected")
 
     def background(self, fn, done, name: str = "background") -> Worker:
@@ -347,6 +391,7 @@ class MainWindow(QMainWindow):
             self._preview_next = time.monotonic() + (time.monotonic() - start)
             if ok and img is not None:
                 page.preview.set_image(img)
+                self.show_rig_state()
 
         self._preview = self.background(lambda task: self.rig.preview(), done, "preview")
 

@@ -70,7 +70,34 @@ class ImageView(QGraphicsView):
         self.marks: dict = {}
         self.array = None
         self._zoomed = False
+        self.banner = ""  # drawn over the view's top-left corner (the rig's state: "all lamps off")
         self.setMinimumSize(160, 120)
+
+    #: The banner's colours: black on amber, readable over any image.
+    BANNER_BACK = QColor(255, 190, 0)
+
+    def set_banner(self, text: str) -> None:
+        """Draw ``text`` over the view (fixed to its corner whatever the zoom); '' removes it."""
+        if text != self.banner:
+            self.banner = text
+            self.viewport().update()
+
+    def set_placeholder(self, text: str) -> None:
+        """The text shown while there is no image."""
+        self.placeholder.setText(text)
+
+    def drawForeground(self, painter, rect):
+        super().drawForeground(painter, rect)
+        if not self.banner:
+            return
+        painter.save()
+        painter.resetTransform()
+        metrics = painter.fontMetrics()
+        box = QRectF(6, 6, metrics.horizontalAdvance(self.banner) + 16, metrics.height() + 8)
+        painter.fillRect(box, self.BANNER_BACK)
+        painter.setPen(QColor(0, 0, 0))
+        painter.drawText(box, Qt.AlignmentFlag.AlignCenter, self.banner)
+        painter.restore()
 
     # -- image --------------------------------------------------------------------------
     def set_image(self, img, exposure: float | None = None) -> None:

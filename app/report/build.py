@@ -109,12 +109,13 @@ def render_views(src: Sources, depth: int) -> dict:
                         how, truth_file = "lamps turned 90° about the vertical", None
                 image, info = render_workspace(src.root, cam, lights, depth=depth)
                 # Which pixels the recovered model knows the albedo of (same trees, from the cache).
-                albedo, _ = render_workspace(src.root, cam, lights, aov="albedo", depth=depth)
+                albedo, ainfo = render_workspace(src.root, cam, lights, aov="albedo", depth=depth)
             except Exception as err:  # noqa: BLE001 - the report shows what failed and goes on
                 out[key] = {"error": f"could not render ({type(err).__name__}: {err})"}
                 continue
             truth = src.image(truth_file) if truth_file else None
-            out[key] = {"image": np.asarray(image), "known": np.all(np.isfinite(albedo), axis=2), "truth": truth,
+            out[key] = {"image": np.asarray(image), "albedo": np.asarray(albedo), "unknown": ainfo.get("unknown_pixels"),
+                        "known": np.all(np.isfinite(albedo), axis=2), "truth": truth,
                         "truth_file": truth_file, "how": how, "undetermined": info["undetermined_pixels"]}
     return out
 
@@ -137,6 +138,7 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     from reflab.app.report.sections.geometry import geometry_section
     from reflab.app.report.sections.lights import lights_section
     from reflab.app.report.sections.section import Section
+    from reflab.app.report.sections.summary import summary_section
     from reflab.app.report.sections.texture import texture_section
     from reflab.app.report.sections.views import views_section
     from reflab.core.workspace import atomic_write
@@ -147,7 +149,7 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     model = render_model(src, depth) if render and src.fit is not None else None
     views = render_views(src, depth) if render else {}
     albedo = render_albedo(src, depth) if render else None
-    parts = [("captures", "Captures", captures_section, ()), ("camera", "Camera", camera_section, ()),
+    parts = [("summary", "Summary", summary_section, (model, views)), ("captures", "Captures", captures_section, ()), ("camera", "Camera", camera_section, ()),
              ("lights", "Lights", lights_section, ()), ("geometry", "Geometry", geometry_section, ()),
              ("fit", "Fit", fit_section, (model,)), ("texture", "Texture", texture_section, (model, albedo)),
              ("views", "Novel and relit views", views_section, (views,)),

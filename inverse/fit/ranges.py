@@ -187,3 +187,21 @@ def plausible(fac, p, loose) -> list:
             moved += [(s, f"{name}[{c}]") for c in np.flatnonzero(loose.x[k])]
         p.x[k] = np.minimum(p.x[k], ub[k])  # a moved θ may lower the bound of a determined band
     return moved
+
+
+def plausible_range(brdf: str, name: str, material: dict | None = None) -> tuple[float, float] | None:
+    """The plausible range (lo, hi) of fit.json's parameter ``name`` of a ``brdf`` surface, None when
+    it has none (``ior``); ``material`` (fit.json's material) gives Phong ks its ns-dependent bound.
+
+    The same ranges the fit keeps its values in (module docstring), for the report and the GUI to
+    show an undetermined value as its range rather than as a σ wider than it.
+    """
+    if name in ("kd", "r", "t"):
+        return 0.0, UNIT
+    if name == "ks":
+        ns = (material or {}).get("ns")
+        if brdf == "phong" and isinstance(ns, (int, float)) and np.isfinite(ns) and ns > 0:
+            return 0.0, 1.0 / float(phong_lobe_albedo(max(float(ns), FIT_RANGE["ns"][0])))
+        return 0.0, UNIT
+    rng = {**SCALAR_RANGE, **FIT_RANGE}
+    return tuple(float(v) for v in rng[name]) if name in rng else None

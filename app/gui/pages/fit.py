@@ -48,21 +48,29 @@ class FitPage(StepPage):
         if not self.ws.fit.exists():
             self.materials_layout.addWidget(QLabel(self.nothing_yet("fit.json")))
             return
+        from reflab.app.report.sections.fit import status_text, value_text
+
         fit = read_json(self.ws.fit)
         rows, bad = [], set()
         for item in fit.get("surfaces", []):
-            sigma, und = item.get("sigma", {}), set(item.get("undetermined", []))
-            for key, value in item.get("material", {}).items():
+            mat, sigma, und = item.get("material", {}), item.get("sigma", {}), list(item.get("undetermined", []))
+            for key, value in mat.items():
                 if key in ("brdf", "ior") or value is None:
                     continue
-                if key in und:
+                # As the report shows it: undetermined with its plausible range, never a σ wider than it.
+                text = value_text(mat.get("brdf", ""), key, mat, sigma.get(key),
+                                  [u for u in und if u == key or u.startswith(key + "[")])
+                if "undetermined" in text:
                     bad.add((len(rows), 3))
-                rows.append([item["name"], key, fmt(value), "undetermined" if key in und else fmt(sigma.get(key, "–"), 2)])
-        head = text_label(f"status <b>{fit.get('status', 'ok')}</b>, RMS per band {fmt(fit.get('rms'))}, "
+                rows.append([item["name"], key, fmt(value), text if "undetermined" in text else fmt(sigma.get(key, "–"), 2)])
+        status = fit.get("status", "ok")
+        if status == "texture pending" and self.ws.texture_index.exists():
+            status = status_text(fit, True).removeprefix("status at fit time: ")
+        head = text_label(f"status <b>{status}</b>, RMS per band {fmt(fit.get('rms'))}, "
                           f"{fit.get('method')} in {fit.get('time_s', 0):.1f} s")
         self.materials_layout.addWidget(head)
         for text in fit.get("warnings", []):
-            self.materials_layout.addWidget(text_label(f"⚠ {text}"))
+            self.materials_layout.addWidget(text_label(f"⚠ at fit time: {text}"))
         self.materials_layout.addWidget(table("fit_table", ["surface", "parameter", "value", "σ"], rows, bad))
         colours = ("#d02020", "#20a020", "#2040d0")
         series = [(f"{band} band", colour, trace) for band, colour, trace in zip("RGB", colours, fit_trace(fit))]

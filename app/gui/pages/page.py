@@ -82,7 +82,7 @@ class StepPage(QWidget):
         f.setBold(True)
         title.setFont(f)
         head.addWidget(title)
-        head.addWidget(text_label(step.instructions, f"instructions_{step.name}"))
+        head.addWidget(text_label(self.instructions(), f"instructions_{step.name}"))
         row = QHBoxLayout()
         self.form = QFormLayout()
         row.addLayout(self.form)
@@ -128,6 +128,9 @@ class StepPage(QWidget):
         split.setStretchFactor(1, 3 - self.preview_stretch if self.preview_stretch < 3 else 1)
         outer.addWidget(split, 1)
         self.build()
+        if self.preview_stretch:  # a capture page's live view keeps its share whatever the result tabs ask for
+            box.setMinimumWidth(320)
+            split.setSizes([1000 * self.preview_stretch, 1000 * (3 - self.preview_stretch if self.preview_stretch < 3 else 1)])
         self.set_status("done (earlier run)" if step.done(window.workspace) else "not run yet")
 
     # -- to override ------------------------------------------------------------------
@@ -159,8 +162,15 @@ class StepPage(QWidget):
         while layout.count():
             layout.takeAt(0).widget().deleteLater()
 
+    def instructions(self) -> str:
+        """The step's instructions, naming this page's button (“Capture and calibrate”, not “Run”)."""
+        return self.step.instructions.replace("Run ", f"“{self.run_text}” ")
+
     def nothing_yet(self, what: str) -> str:
-        """The result tab's text before the step has run: what is missing and which button makes it."""
+        """The result tab's text before the step has run: what is missing and which button makes it
+        (while the step runs, that it is being made)."""
+        if getattr(self.window, "running", None) == self.step.name:
+            return f"No {what} yet: <b>{self.run_text}</b> is running…"
         return f"No {what} yet: press <b>{self.run_text}</b> above."
 
     def add_option(self, key: str, label: str, widget, tip: str = "") -> QWidget:

@@ -26,8 +26,12 @@ def parameter_rows(fit: dict) -> list:
         for key, value in mat.items():
             if key in ("brdf", "ior") or value is None:
                 continue
-            if key in und:
-                text = f"undetermined (held at {fmt(value)})"
+            from reflab.app.report.sections.fit import value_text
+
+            shown = value_text(mat.get("brdf", ""), key, mat, sig.get(key),
+                               [u for u in und if u == key or u.startswith(key + "[")])
+            if "undetermined" in shown:  # its plausible range, as the report shows it, never a σ wider than it
+                text = f"{shown}; {'held' if sig.get(key) is None else 'fitted'} at {fmt(value)}"
             else:
                 sd = sig.get(key)
                 text = f"{fmt(value)} ± {fmt(sd, 2)}" if sd is not None else f"{fmt(value)} (given)"

@@ -6,7 +6,7 @@ import numpy as np
 
 from reflab.app.report import figures as F
 from reflab.app.report.data import Sources, as_dict, as_list
-from reflab.app.report.sections.section import Section, floats, num, pm
+from reflab.app.report.sections.section import Section, floats, num, pm, pm_range
 
 
 #: fit.json's method, as the docs name it.
@@ -23,15 +23,17 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
                                 "uncertainties, and how well the model explains the image.")
     status = fit.get("status")
     if status:
-        sec.note(f"status: {status}" + (f" — {fit['message']}" if fit.get("message") else ""),
-                 "good" if status == "ok" else "bad" if status == "poor fit" else "warn")
+        sec.note(status_text(fit, src.textures is not None),
+                 "good" if status == "ok" else "bad" if status == "poor fit" else
+                 "info" if status == "texture pending" and src.textures is not None else "warn")
     for w in as_list(fit.get("warnings")):
-        sec.note(str(w), "warn")
+        sec.note(f"at fit time: {w}", "warn")
     image = as_dict(fit.get("image"))
     sec.kv([("method", method_name(fit)), ("depth", fit.get("depth")),
             ("image", f"{image.get('file')} {image.get('width')} × {image.get('height')}, {image.get('saturated_pixels')} saturated pixels masked"
              if image else None),
-            ("RMS residual per band", num(fit.get("rms"))), ("image noise σ per band", num(fit.get("noise"))),
+            ("RMS residual per band (linear radiance)", num(fit.get("rms"))),
+            ("image noise σ per band (linear radiance)", num(fit.get("noise"))),
             ("outlier pixels left out of the fit", _rejected_text(fit.get("rejected"))),
             ("iterations / evaluations", f"{fit.get('iterations')} / {fit.get('evaluations')}" if "iterations" in fit else None),
             ("fit time", f"{num(fit.get('time_s'), 3)} s" if fit.get("time_s") is not None else None),
@@ -57,10 +59,11 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
             if mat.get(key) is None:
                 row.append("")
                 continue
-            lines = [pm(mat[key], sig.get(key), 4)]
             held = [u for u in und if u == key or u.startswith(key + "[")]
-            if held:
-                lines.append("undetermined" + ("" if held == [key] else " " + ", ".join(held)))
+            lines = [value_text(mat.get("brdf", ""), key, mat, sig.get(key), held)]
+            if held or "undetermined" in lines[0]:
+                lines.append(("held at " if sig.get(key) is None else "fitted at ") + num(mat[key], 4)
+                             + ("" if held == [key] else " (undetermined: " + ", ".join(held) + ")"))
             on = [f"{k} {side}" for k, side in bounds.items() if k == key or str(k).startswith(key + "[")]
             if on:
                 lines.append("at its bound: " + ", ".join(on))
@@ -74,9 +77,10 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
             row.append("\n".join(lines))
         rows.append(row)
     sec.table(["surface", "BRDF"] + list(keys), rows,
-              "value ± σ (one standard deviation, per band R, G, B where there are three); undetermined: the image "
-              "does not fix it: either held at its initial or user-given value (no σ), or fitted with a σ that spans "
-              "its plausible range (value and σ shown, docs/fit.md)" + (f"; truth: {truth_file}." if truth else "."))
+              "value ± σ (one standard deviation, per band R, G, B where there are three; kd, ks, r, t relative to "
+              "white, ns and α dimensionless, Oren–Nayar σ in radians); undetermined: the image does not fix it, shown "
+              "as its plausible range (docs/fit.md, \"Plausible ranges\"), never with a σ wider than that range: either "
+              "held at its initial or user-given value, or fitted with a σ that spans the range (the value used below)" + (f"; truth: {truth_file}." if truth else "."))
     _colour_lobes(sec, fit)
     _photographs(sec, fit)
     if model and model.get("image") is not None:
@@ -84,6 +88,30 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
     elif model and model.get("error"):
         sec.note(f"re-render of the model failed: {model['error']}", "bad")
     return sec
+
+
+def value_text(brdf: str, key: str, material: dict, sigma, held: list) -> str:
+    """One fitted value as the report and its summary show it: 'value ± σ', or 'undetermined
+    (plausible range lo–hi)' where fit.json calls it undetermined (``held``: its names, ``key`` or
+    ``key[band]``) or its σ is wider than its plausible range (:func:`reflab.inverse.fit.ranges.plausible_range`)."""
+    from reflab.inverse.fit.ranges import plausible_range
+
+    value = material.get(key)
+    rng = plausible_range(str(brdf), key, material)
+    flags = key in held
+    if isinstance(value, list):
+        flags = [key in held or f"{key}[{c}]" in held for c in range(len(value))]
+    return pm_range(value, sigma, rng, flags, 4, log=key in ("ns", "alpha"))
+
+
+def status_text(fit: dict, textured: bool) -> str:
+    """fit.json's status in words; "texture pending" once textures/ exists says that the texture ran."""
+    status = fit.get("status")
+    text = f"status: {status}" + (f" — {fit['message']}" if fit.get("message") else "")
+    if status == "texture pending" and textured:
+        text = ("status at fit time: texture pending; the texture stage has run since (textures/index.json): "
+                "the re-render below includes the recovered texture and shows what it explains")
+    return text
 
 
 def _determined_by(surface: dict, key: str) -> str:
@@ -115,7 +143,9 @@ def _colour_lobes(sec: Section, fit: dict) -> None:
     rows = []
     for name, lobe in lobes.items():
         shape = "alpha" if "alpha" in lobe else "ns"
-        rows.append([name, pm(lobe.get("ks"), lobe.get("sigma_ks")), f"{shape} {pm(lobe.get(shape), lobe.get('sigma_' + shape))}",
+        brdf = "ward" if shape == "alpha" else "phong"
+        rows.append([name, value_text(brdf, "ks", lobe, lobe.get("sigma_ks"), []),
+                     f"{shape} {value_text(brdf, shape, lobe, lobe.get('sigma_' + shape), [])}",
                      lobe.get("colour_set", "–"), f"{num(lobe.get('pixels'))} ({num(lobe.get('rejected'))} outliers)",
                      num(lobe.get("misfit"), 3)])
     sec.table(["surface", "ks", "shape", "texture's colours", "pixels", "misfit"], rows,
@@ -151,6 +181,31 @@ def _rejected_text(rejected) -> str | None:
             if rejected.get("threshold_sigmas") is not None else str(rejected["count"]))
 
 
+def rerender_misfit(fit: dict, model: dict | None) -> dict | None:
+    """How well the re-rendered model explains the input photograph: the one computation the fit
+    section's maps and the summary both show. None without a re-render of the photograph's size.
+
+    Returns ``bad`` (H, W) unexplained pixels (residual above DIAG_SIGMAS σ + DIAG_FLOOR × peak in
+    some band, σ fit.json's image noise), ``count``, ``total`` (all image pixels), ``share`` of the
+    squared residual they hold, ``rms`` per band and ``relative_pct`` (RMS over the photograph's RMS).
+    """
+    if not model or model.get("image") is None or model.get("photo") is None or model["photo"].shape != model["image"].shape:
+        return None
+    from reflab.inverse.fit.rounds import DIAG_FLOOR, DIAG_SIGMAS
+
+    img, photo = model["image"], model["photo"]
+    res = img - photo
+    noise = floats(fit.get("noise"))
+    noise = noise if noise is not None and noise.shape == (3,) else None
+    tol = DIAG_SIGMAS * (noise if noise is not None else np.zeros(3)) + DIAG_FLOOR * float(photo.max())
+    bad = np.any(np.abs(res) > tol, axis=2)
+    return {"bad": bad, "count": int(bad.sum()), "total": int(bad.size), "noise": noise,
+            "share": float(np.sum(res[bad] ** 2) / max(np.sum(res ** 2), 1e-300)),
+            "rms": np.sqrt(np.mean(res ** 2, axis=(0, 1))).tolist(),
+            "relative_pct": 100 * float(np.sqrt(np.mean(res ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300)),
+            "textured": bool(model.get("textured"))}
+
+
 def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     photo, img = model["photo"], model["image"]
     if photo is None or photo.shape != img.shape:
@@ -160,10 +215,8 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
 
     exposure = 1.0 / max(float(np.percentile(photo, 99.5)), 1e-12)
     diff = np.abs(img - photo).max(axis=2)
-    noise = floats(fit.get("noise"))
-    peak = float(photo.max())
-    tol = DIAG_SIGMAS * (noise if noise is not None and noise.shape == (3,) else np.zeros(3)) + DIAG_FLOOR * peak
-    bad = np.any(np.abs(img - photo) > tol, axis=2)
+    m = rerender_misfit(fit, model)
+    noise, bad, share = m["noise"], m["bad"], m["share"]
     overlay = F.display(photo, exposure).copy()
     overlay[bad] = [255, 0, 255]
     rejected = floats(as_dict(fit.get("rejected")).get("pixels"))
@@ -175,15 +228,15 @@ def _model_images(sec: Section, src: Sources, fit: dict, model: dict) -> None:
     sec.images([(F.thumb(F.display(photo, exposure), 480, 360), "input photograph"),
                 (F.thumb(F.display(img, exposure), 480, 360), f"re-rendered model ({what}), same exposure")])
     sec.images([(F.heat_with_bar(diff, "|model − input|, largest band", "linear radiance"), "difference", True),
-                (F.thumb(overlay, 480, 360), f"unexplained pixels (magenta): {int(bad.sum())} of {bad.size}, residual "
+                (F.thumb(overlay, 480, 360), f"unexplained pixels of this re-render (magenta): {int(bad.sum())} of all {bad.size} image pixels, residual "
                                              f"above {DIAG_SIGMAS:g} σ + {DIAG_FLOOR:g} × peak in some band"
                                              + ("; outliers the fit left out in cyan" if rejected is not None else ""))])
-    share = float(np.sum((img - photo)[bad] ** 2) / max(np.sum((img - photo) ** 2), 1e-300))
-    sec.note(f"Unexplained pixels: the fit's test (docs/fit.md) on this re-render, with σ = fit.json's image noise "
-             f"{num(noise.tolist() if noise is not None else None, 3)}; they hold {100 * share:.0f}% of the squared "
-             "residual. Unlike the fit's own diagnosis, no allowance is made for texture: the re-render "
-             + ("includes the recovered texture." if model.get("textured") else "uses homogeneous albedo, so texture shows."))
-    rms = np.sqrt(np.mean((img - photo) ** 2, axis=(0, 1)))
-    sec.kv([("model vs input RMS per band", num(rms.tolist())),
-            ("relative RMS", f"{num(100 * float(np.sqrt(np.mean((img - photo) ** 2)) / max(np.sqrt(np.mean(photo ** 2)), 1e-300)), 3)} %"),
+    sec.note(f"Unexplained pixels of this re-render: {int(bad.sum())} of all {bad.size} image pixels, holding "
+             f"{100 * share:.0f}% of its squared residual (the fit's test, docs/fit.md, with σ = fit.json's image noise "
+             f"{num(noise.tolist() if noise is not None else None, 3)}, no allowance for texture: the re-render "
+             + ("includes the recovered texture" if model.get("textured") else "uses homogeneous albedo, so texture shows")
+             + "). The warning \"at fit time\" above counts another thing: the pixels the fit used (saturated and "
+             "outlier pixels left out), the model with homogeneous albedo, with an allowance on textured surfaces.")
+    sec.kv([("model vs input RMS per band (linear radiance)", num(m["rms"])),
+            ("relative RMS", f"{num(m['relative_pct'], 3)} %"),
             ("render time", f"trees {num(model.get('trees_s'), 2)} s, render {num(model.get('render_s'), 2)} s")])

@@ -64,7 +64,7 @@ def geometry_section(src: Sources) -> Section | None:
                 ("turntable axis tilt from +z", f"{num(tt.get('axis_tilt_deg'), 3)}°" if "axis_tilt_deg" in tt else None),
                 ("shot angle error vs commanded", f"max {num(tt.get('max_angle_error_deg'), 3)}°, RMS {num(tt.get('rms_angle_error_deg'), 3)}°"
                  if "max_angle_error_deg" in tt else None),
-                ("registration", f"{reg.get('method')}, scale {num(reg.get('scale'), 5)}" if reg else None),
+                ("registration", f"{reg.get('method')}, scale {num(reg.get('scale'), 5)} m per structure-from-motion unit" if reg else None),
                 ("input shot vs camera.json", f"{mm(ref.get('centre_mm'))} mm, {num(ref.get('rotation_deg'), 3)}°" if ref else None),
                 ("time", f"{num(sfm.get('time_s'), 3)} s" + (f" (structure from motion {num(times.get('total_s'), 3)} s)" if "total_s" in times else "")
                  if sfm.get("time_s") is not None else None)])
@@ -102,9 +102,10 @@ def geometry_section(src: Sources) -> Section | None:
             row += [mm(d[0]), mm(d[1])] if d else ["–", "–"]
         rows.append(row)
     head = ["surface", "source", "BRDF", "ior", "textured"]
-    head += ["sparse points on it", "point → surface RMS (mm)", "90th percentile (mm)"] if points is not None else []
+    head += ["sparse points within 10 mm (nearest surface)", "point → surface RMS (mm)", "90th percentile (mm)"] if points is not None else []
     head += ["distance to the true surface, mean (mm)", "max (mm)"] if true_meshes else []
-    sec.table(head, rows, "Points are assigned to the nearest surface within 10 mm." if points is not None else "")
+    sec.table(head, rows, "Points of sparse.ply are assigned to the nearest final surface within 10 mm; the source column's count "
+              "is the points the surface was fitted to (the plane fit's inliers), fewer than those near it." if points is not None else "")
     if meshes or points is not None:
         sec.figure(_top_view(src, meshes, true_meshes, points, sfm), "Top view (world x, y in metres): surfaces "
                    "(outlines), sparse points (grey), the registered shots' camera centres (triangles), the input "

@@ -36,7 +36,7 @@ def lights_section(src: Sources) -> Section | None:
                     num(err / float(np.linalg.norm(sd)), 2) if err is not None and sd is not None and np.linalg.norm(sd) > 0 else "–",
                     f"{ierr:.1f}" if ierr is not None else "–"]
         rows.append(row)
-    head = ["lamp", "position (m)", "σ x, y, z (mm)", "intensity", "mark σ (px)", "outlier marks"]
+    head = ["lamp", "position (m)", "σ x, y, z (mm)", "intensity (R, G, B; radiance × m²)", "mark σ (px)", "outlier marks"]
     sec.table(head + (["truth (m)", "error (mm)", "error / |σ|", "intensity error (%, worst band)"] if true_items else []), rows)
     if not any(isinstance(l.get("calibration"), dict) for l in items):
         sec.note("lights.json has no calibration blocks (written by hand or by another tool): no mark residuals.")

@@ -70,6 +70,33 @@ def pm(value, sigma, digits: int = 4) -> str:
     return num(value, digits)
 
 
+def span(lo, hi) -> str:
+    """A plausible range as 'lo–hi' (3 significant digits)."""
+    return f"{num(lo, 3)}–{num(hi, 3)}"
+
+
+def pm_range(value, sigma, rng, undetermined=False, digits: int = 4, log: bool = False) -> str:
+    """``pm`` for a value with a plausible range ``rng`` = (lo, hi) or None: a value the fit calls
+    ``undetermined`` (a bool, or one per band), or whose σ is wider than its range, reads
+    'undetermined (plausible range lo–hi)' (per band for lists), never 'value ± σ' with a σ that
+    says nothing. ``log``: a parameter searched in log2 (ns, α), whose σ is compared in log2 too
+    (σ / (value ln 2) against log2(hi / lo))."""
+    if rng is None:
+        return pm(value, sigma, digits)
+    lo, hi = rng
+    if isinstance(value, list):
+        sig = sigma if isinstance(sigma, list) and len(sigma) == len(value) else [sigma] * len(value)
+        und = undetermined if isinstance(undetermined, list) and len(undetermined) == len(value) else [undetermined] * len(value)
+        parts = [pm_range(v, s, rng, u, digits, log) for v, s, u in zip(value, sig, und)]
+        return parts[0] if len(set(parts)) == 1 and parts[0].startswith("undetermined") else "[" + ", ".join(parts) + "]"
+    wide = isinstance(sigma, (int, float)) and (not math.isfinite(sigma) or sigma > hi - lo)
+    if log and isinstance(sigma, (int, float)) and isinstance(value, (int, float)) and value > 0 and lo > 0:
+        wide = wide or sigma / (value * math.log(2)) > math.log2(hi / lo)
+    if (any(undetermined) if isinstance(undetermined, list) else bool(undetermined)) or wide:
+        return f"undetermined (plausible range {span(lo, hi)})"
+    return pm(value, sigma, digits)
+
+
 def floats(x) -> np.ndarray | None:
     try:
         a = np.asarray(x, dtype=np.float64)

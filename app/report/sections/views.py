@@ -12,12 +12,25 @@ from reflab.app.report.sections.section import Section, num
 
 
 def psnr(image: np.ndarray, truth: np.ndarray, known: np.ndarray | None = None) -> float:
-    """PSNR (dB) of ``image`` against ``truth`` over the pixels ``known`` (all by default), the peak
-    being the truth's maximum (as the demo scores it)."""
-    err = np.asarray(image, dtype=np.float64) - truth
-    err = err if known is None else err[known]
-    mse = float(np.mean(err ** 2)) if err.size else float("nan")
-    return float("inf") if mse == 0 else 10 * math.log10(max(float(np.max(truth)), 1e-300) ** 2 / mse)
+    """PSNR (dB) over the pixels ``known``: :func:`reflab.app.demo_score.psnr`, the one the console uses."""
+    from reflab.app.demo_score import psnr as _psnr
+
+    return _psnr(image, truth, known)
+
+
+def scores(v: dict) -> dict | None:
+    """The view's PSNR against its truth by :func:`reflab.app.demo_score.view_scores` (the demo's
+    console line computes the same numbers); None without a truth of the same shape."""
+    from reflab.app.demo_score import view_scores
+
+    img, truth = v.get("image"), v.get("truth")
+    if img is None or truth is None or truth.shape != img.shape or v.get("albedo") is None:
+        return None
+    unknown = v.get("unknown")
+    unknown = np.zeros(img.shape[:2], bool) if unknown is None else unknown
+    guess = v.get("undetermined")
+    guess = np.zeros(img.shape[:2], bool) if guess is None else guess
+    return view_scores(img, truth, v["albedo"], unknown, guess)
 
 
 def views_section(src: Sources, views: dict) -> Section | None:
@@ -44,13 +57,12 @@ def views_section(src: Sources, views: dict) -> Section | None:
             items.append((F.thumb(F.display(truth, exposure), 480, 360), f"{label}: truth ({v['truth_file']})"))
             items.append((F.heat_with_bar(np.abs(img - truth).max(axis=2), "|model − truth|", "linear radiance"), "difference", True))
             sec.images(items)
-            known = v.get("known")
-            share = f"{100 * float(np.mean(known)):.0f}" if known is not None else "100"
-            sure = known if guess is None or known is None else known & ~guess
-            sure_text = (f", {num(psnr(img, truth, sure), 4)} dB over the {100 * float(np.mean(sure)):.0f} % of those "
-                         f"that are determined" if guess is not None and guess.any() and known is not None else "")
-            sec.kv([(f"{label} PSNR against truth", f"{num(psnr(img, truth, known), 4)} dB over the {share} % of pixels of "
-                                                     f"known albedo{sure_text}, {num(psnr(img, truth), 4)} dB over all"),
+            e = scores(v) or {}
+            sure_text = (f", {num(e['psnr_determined_db'], 4)} dB over the {e['determined_pct']:.0f} % of pixels that "
+                         "are determined" if guess is not None and guess.any() and e else "")
+            sec.kv([(f"{label} PSNR against truth", f"{num(e.get('psnr_db'), 4)} dB over the {e.get('known_pct', 100):.0f} % of "
+                                                     f"pixels of known albedo{sure_text}, {num(e.get('psnr_all_db'), 4)} dB over all"
+                                                     if e else None),
                     (f"{label} RMS per band", num(np.sqrt(np.mean((img - truth) ** 2, axis=(0, 1))).tolist()))])
         else:
             sec.images(items)
