@@ -101,7 +101,7 @@ def test_status_moves_and_each_lamp(board, tmp_path, capsys):
     (["flood", "mist"], "M9, switches flood AND mist off"),
 ])
 def test_lamps_the_firmware_cannot_drive_alone_are_refused(board, tmp_path, capsys, lamps, message):
-    assert _hw(board, _config(tmp_path, lamps=lamps), "lamp", "0", "on") == 1
+    assert _hw(board, _config(tmp_path, lamps=lamps), "lamp", "0", "on") == 2  # a wiring the board cannot drive is bad input (exit 2)
     assert message in capsys.readouterr().err
     assert not any(m in bytes(board.received) for m in (b"M3", b"M7", b"M8", b"M9"))  # none reached the board
     t = board.truth()
