@@ -15,8 +15,12 @@ SYSLIBS := libllvm19 libusb-1.0-0 $(QTXCB) xvfb
 demo: setup
 	$(BIN)/reflab demo demo-workspace
 
+# The suite on PYTEST_JOBS processes (pytest-xdist), each test file on one of them (its module
+# fixtures built once): 7.5 min on two cores against 12.9 min on one (408 tests, 2026-11-27).
+PYTEST_JOBS ?= 2
+
 test: setup
-	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest $(PYTEST_ARGS)
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -n $(PYTEST_JOBS) --dist loadfile $(PYTEST_ARGS)
 
 setup: syslibs $(STAMP)
 
