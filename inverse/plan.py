@@ -112,6 +112,32 @@ def relative_sigma(H, labels, p, theta_log) -> dict:
     return out
 
 
+def reported_relative_sigma(fit_report: dict) -> dict:
+    """fit.json's relative σ per ``surface.param[band]`` (as :mod:`reflab.inverse.plan` names them):
+    σ over max(|value|, PLAUSIBLE) for linear parameters (as :func:`relative_sigma`), σ for r and t,
+    σ of log2 for ns and alpha;
+    inf where fit.json calls it undetermined."""
+    out = {}
+    for s in fit_report.get("surfaces", []):
+        mat, sig, und = s.get("material") or {}, s.get("sigma") or {}, set(s.get("undetermined") or [])
+        for key, value in mat.items():
+            if key in ("brdf", "ior") or value is None:
+                continue
+            values = value if isinstance(value, list) else [value]
+            sigmas = sig.get(key) if isinstance(sig.get(key), list) else [sig.get(key)] * len(values)
+            for c, (v, e) in enumerate(zip(values, sigmas)):
+                name = f"{s.get('name')}.{key}" + (f"[{c}]" if isinstance(value, list) else "")
+                if key in und or f"{key}[{c}]" in und or e is None:
+                    out[name] = float("inf")
+                elif key in ("ns", "alpha"):
+                    out[name] = e / max(abs(v) * np.log(2.0), 1e-300)
+                elif key in ("r", "t"):
+                    out[name] = e
+                else:
+                    out[name] = e / max(abs(v), PLAUSIBLE)
+    return out
+
+
 def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, centre, direction: float = 1.0,
                angles=ANGLES, taken=(), max_shots: int = 3, reduce: int = 4, depth: int = 3, held=None,
                reported=None, task=None, log=None) -> PlanResult:

@@ -212,8 +212,8 @@ def plan(options: PlanOptions, task: Task | None = None, *, log=None) -> PlanRes
     undetermined or loose (:mod:`reflab.inverse.plan`) and write plan.json."""
     from reflab.core.workspace import OptionError, Workspace, check_folder, read_json, write_json
     from reflab.inverse.fit.photograph import stack_photographs
-    from reflab.inverse.forward.photographs import load_photographs, taken_shots
-    from reflab.inverse.plan import plan_shots
+    from reflab.inverse.forward.photographs import taken_shots
+    from reflab.inverse.plan import plan_shots, reported_relative_sigma
     from reflab.inverse.texture import solve as tex
     from reflab.reconstruction.scene import Scene
 
@@ -228,7 +228,6 @@ def plan(options: PlanOptions, task: Task | None = None, *, log=None) -> PlanRes
     fit_report = read_json(ws.require(ws.fit, "reflab fit"))
     depth = int(fit_report.get("depth", 3))
     materials, _ = tex.load_materials(ws, scene)
-    photos = load_photographs(ws)
     if o.turntable_centre is not None:
         centre = np.asarray(o.turntable_centre, dtype=float).ravel()
         if centre.shape != (2,) or not np.all(np.isfinite(centre)):
@@ -238,44 +237,19 @@ def plan(options: PlanOptions, task: Task | None = None, *, log=None) -> PlanRes
         from reflab.reconstruction.stages import turntable_axis
 
         centre, direction = turntable_axis(ws)
-    stack, _, _, _ = stack_photographs(ws, scene, depth, task=task, log=log)
+    stack, _, _, photos = stack_photographs(ws, scene, depth, task=task, log=log)
     noise = np.asarray(fit_report.get("noise") or [0.0] * 3, dtype=float)
     peak = float((fit_report.get("image") or {}).get("peak") or 1.0)
     noise = np.maximum(noise, 1e-3 * peak)  # a noise-free photograph plans as if it had 0.1 % noise
     result = plan_shots(stack, scene, materials, noise, n_lamps=len(photos[0].lights), lights=photos[0].lights,
                         camera=photos[0].camera, centre=centre, direction=direction, angles=o.angles,
                         taken=taken_shots(photos), max_shots=int(o.max_shots), reduce=int(o.reduce), depth=depth,
-                        held=[s.material.given for s in scene], reported=_reported(fit_report), task=task, log=log)
+                        held=[s.material.given for s in scene], reported=reported_relative_sigma(fit_report), task=task, log=log)
     report = dict(result.report, turntable={"centre": [float(v) for v in centre], "direction": direction},
                   photographs=[p.name for p in photos])
     task.check()
     write_json(ws.plan, report)
     return PlanResult(ws.plan, result.shots, report)
-
-
-def _reported(fit_report: dict) -> dict:
-    """fit.json's relative σ per ``surface.param[band]`` (as :mod:`reflab.inverse.plan` names them):
-    σ over max(|value|, 0.1) for linear parameters, σ for r and t, σ of log2 for ns and alpha;
-    inf where fit.json calls it undetermined."""
-    out = {}
-    for s in fit_report.get("surfaces", []):
-        mat, sig, und = s.get("material") or {}, s.get("sigma") or {}, set(s.get("undetermined") or [])
-        for key, value in mat.items():
-            if key in ("brdf", "ior") or value is None:
-                continue
-            values = value if isinstance(value, list) else [value]
-            sigmas = sig.get(key) if isinstance(sig.get(key), list) else [sig.get(key)] * len(values)
-            for c, (v, e) in enumerate(zip(values, sigmas)):
-                name = f"{s.get('name')}.{key}" + (f"[{c}]" if isinstance(value, list) else "")
-                if key in und or f"{key}[{c}]" in und or e is None:
-                    out[name] = float("inf")
-                elif key in ("ns", "alpha"):
-                    out[name] = e / max(abs(v) * np.log(2.0), 1e-300)
-                elif key in ("r", "t"):
-                    out[name] = e
-                else:
-                    out[name] = e / max(abs(v), 0.1)
-    return out
 
 
 # ---------------------------------------------------------------------- render

@@ -91,12 +91,13 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
-    ref = stack.blocks[0]
+    # The reference photograph's own pixels and their saturation (the stack's first block).
+    ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
     extra = {"image": {"file": photos[0].image.name, "width": camera.width, "height": camera.height,
-                       "saturated_pixels": int(saturated[stack.pixels(0)].sum()),
+                       "saturated_pixels": int(ref_saturated.sum()),
                        # the scale of fit.json's `noise`: renders judge a guess against noise / peak
-                       "peak": float(image[:ref.height, :ref.width].reshape(-1, 3)[~saturated[stack.pixels(0)]].max(initial=0.0)),
-                       "saturation_level": None if saturation is None and not saturated[stack.pixels(0)].any() else float(saturation if saturation is not None else image[:ref.height, :ref.width].max())},
+                       "peak": float(ref_image.reshape(-1, 3)[~ref_saturated].max(initial=0.0)),
+                       "saturation_level": None if saturation is None and not ref_saturated.any() else float(saturation if saturation is not None else ref_image.max())},
              "photographs": photograph_report(stack, photos, image, saturated, fac, result),
              "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
              "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
