@@ -54,17 +54,9 @@ def rows(res, fac, truth, user):
 
 def _views(ts, shots: str) -> list:
     """(camera, lights) of the reference and of each further shot named in ``shots``."""
-    from reflab.inverse.forward.photographs import turned_view
+    from reflab.hardware.sim.lab import named_views
 
-    out = [(ts.camera, ts.lights)]
-    for shot in filter(None, shots.split(",")):
-        if shot[0] == "L" and int(shot[1:]) >= len(ts.lights):
-            continue  # a scene with fewer lamps
-        if shot[0] == "L":
-            out.append(turned_view(ts.camera, ts.lights, 0.0, (0.0, 0.0), lit=[int(shot[1:])]))
-        else:
-            out.append(turned_view(ts.camera, ts.lights, float(shot[1:]), (0.0, 0.0)))
-    return out
+    return [(ts.camera, ts.lights)] + [(c, li) for _, c, li in named_views(ts.camera, ts.lights, shots)]
 
 
 def _photographs(ts, views) -> np.ndarray:

@@ -24,16 +24,14 @@ SHOTS = ["L0", "L1", "T35", "T-35", "T70", "T-70"]
 
 
 def workspace(root: Path, width: int, height: int, count: int, textured: bool) -> Path:
-    from reflab.hardware.sim.lab import user_workspace
-    from reflab.inverse.forward.photographs import turned_view, write_input
+    from reflab.hardware.sim.lab import named_views, user_workspace
+    from reflab.inverse.forward.photographs import write_input
 
     ws = root / f"n{count}"
     shutil.rmtree(ws, ignore_errors=True)
     lab, photo = user_workspace(ws, width, height, textured=textured, noise=0.005)
-    for shot in SHOTS[:count - 1]:
-        lit = [int(shot[1:])] if shot[0] == "L" else None
-        cam, lights = turned_view(lab.camera, lab.lights, 0.0 if lit else float(shot[1:]), (0.0, 0.0), lit=lit)
-        write_input(ws, shot.replace("-", "m"), photo(cam, lights), cam, lights)
+    for name, cam, lights in named_views(lab.camera, lab.lights, SHOTS[:count - 1]):
+        write_input(ws, name, photo(cam, lights), cam, lights)
     return ws
 
 

@@ -34,10 +34,10 @@ from reflab.app.cli import main  # noqa: E402
 from reflab.calibration.camera import Camera  # noqa: E402
 from reflab.calibration.lights import Lights  # noqa: E402
 from reflab.core.images import write_image  # noqa: E402
-from reflab.hardware.sim.lab import build_lab, write_lab  # noqa: E402
+from reflab.hardware.sim.lab import build_lab, named_views, write_lab  # noqa: E402
 from reflab.hardware.sim.reference import render_reference  # noqa: E402
 from reflab.hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
-from reflab.inverse.forward.photographs import turned_view, write_input  # noqa: E402
+from reflab.inverse.forward.photographs import write_input  # noqa: E402
 from reflab.inverse.stages import render_workspace  # noqa: E402
 
 
@@ -65,15 +65,11 @@ def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float
     if noise:  # Gaussian, sigma = noise x the image's peak, the same photograph for both models
         photo = photo + np.random.default_rng(seed).normal(0.0, noise * photo.max(), photo.shape)
     further = []
-    for shot in filter(None, photographs.split(",")):
-        if shot[0] == "L" and int(shot[1:]) >= len(lab.lights):
-            continue
-        cam, li = turned_view(lab.camera, lab.lights, 0.0 if shot[0] == "L" else float(shot[1:]), (0.0, 0.0),
-                              lit=[int(shot[1:])] if shot[0] == "L" else None)
+    for name, cam, li in named_views(lab.camera, lab.lights, photographs):
         img = render_reference(lab.scene, cam, li, albedo=lab.albedo)
         if noise:
             img = img + np.random.default_rng(seed + 1 + len(further)).normal(0.0, noise * img.max(), img.shape)
-        further.append((shot.replace("-", "m"), img, cam, li))
+        further.append((name, img, cam, li))
     out = {}
     for kind in ("true", "fitted"):
         root = tmp / kind

@@ -324,3 +324,21 @@ def user_workspace(root, width: int, height: int, *, textured: bool = True, nois
 
     write_image(root / "input.exr", photo(lab.camera, lab.lights))
     return lab, photo
+
+
+def named_views(camera, lights, shots, centre=(0.0, 0.0)) -> list:
+    """``(name, camera, lights)`` of further photographs named as the benchmarks name them:
+    ``Lk`` lamp k alone (left out where the set has fewer lamps), ``TA`` every lamp on with the
+    turntable turned by A degrees about the vertical axis through ``centre``. ``shots``: a list
+    or a comma-separated string; a name's ``-`` becomes ``m`` (a file name)."""
+    from reflab.inverse.forward.photographs import turned_view
+
+    out = []
+    for shot in filter(None, shots.split(",") if isinstance(shots, str) else shots):
+        lamp = shot[0] == "L"
+        if lamp and int(shot[1:]) >= len(lights):
+            continue
+        cam, lit = turned_view(camera, lights, 0.0 if lamp else float(shot[1:]), centre,
+                               lit=[int(shot[1:])] if lamp else None)
+        out.append((shot.replace("-", "m"), cam, lit))
+    return out
