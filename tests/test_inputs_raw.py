@@ -19,8 +19,9 @@ XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760
 NEUTRAL = np.array([0.5, 1.0, 0.7])  # the sensor's response to white: red half as sensitive as green
 
 
-def write_dng(path, linear: np.ndarray, black: int = 512, white: int = 16383):
-    """A minimal uncompressed CFA DNG (1.4) of the linear sRGB image ``linear`` (H, W, 3), H and W even."""
+def write_dng(path, linear: np.ndarray, black: int = 512, white: int = 16383, exposure: float | None = None):
+    """A minimal uncompressed CFA DNG (1.4) of the linear sRGB image ``linear`` (H, W, 3), H and W even;
+    ``exposure``: the EXIF ExposureTime (s) it records."""
     h, w, _ = linear.shape
     cfa = np.zeros((h, w), int)
     cfa[0::2, 1::2] = cfa[1::2, 0::2] = 1
@@ -38,6 +39,8 @@ def write_dng(path, linear: np.ndarray, black: int = 512, white: int = 16383):
             (50714, "H", 1, black, True), (50717, "H", 1, white, True),
             (50721, "2i", 9, rational(XYZ_TO_SRGB), True), (50778, "H", 1, 21, True),  # ColorMatrix1 under D65
             (50728, "2I", 3, rational(NEUTRAL), True)]  # AsShotNeutral
+    if exposure is not None:
+        tags.append((33434, "2I", 1, (int(round(exposure * 1e6)), 1000000), True))  # ExposureTime
     tifffile.imwrite(path, raw, photometric=32803, extratags=tags)
     return path
 
