@@ -194,7 +194,7 @@ def merge(options: MergeOptions, task: Task | None = None) -> MergeResult:
     if out.suffix.lower() not in (".exr", ".png", ".tif", ".tiff"):
         raise WorkspaceError(out, expected="an image name ending in .exr (or .png/.tif, which clip at 1)",
                              got=out.suffix or "no suffix")
-    check_folder(out.parent, write=True, create=True, what="output folder")
+    check_folder(out.parent, write=True, create=True, what="folder for the merged image")
     if o.exposures is not None and len(o.exposures) != len(paths):
         raise OptionError("exposures", f"gives {len(o.exposures)} times for {len(paths)} files")
     if o.exposures is not None:

@@ -61,7 +61,7 @@ def export(options: ExportOptions, task: Task | None = None) -> ExportResult:
     ws = Workspace(check_folder(o.workspace))
     out = Path(o.output) if o.output else ws.root / f"export-{o.format}"
     glb = o.format == "gltf" and out.suffix.lower() == ".glb"
-    check_folder(out.parent if glb else out, write=True, create=True, what="output folder")
+    check_folder(out.parent if glb else out, write=True, create=True, what="folder to export into")
     model = load_model(ws)
     warnings = []
     if np.any(model.camera.dist):

@@ -1,12 +1,13 @@
-"""The results page: the model against the photograph, and a novel view under dimmed lamps."""
+"""The results page: the model against the photograph, a novel view under dimmed lamps, and the
+model exported for outside tools (``reflab export``'s stage function, on a worker thread)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QFormLayout, QGridLayout, QGroupBox, QHBoxLayout, QPushButton, QSlider, QVBoxLayout,
-                               QWidget)
+from PySide6.QtWidgets import (QComboBox, QFileDialog, QFormLayout, QGridLayout, QGroupBox, QHBoxLayout, QLineEdit,
+                               QPushButton, QSlider, QVBoxLayout, QWidget)
 
 from reflab.app.gui.pages.page import StepPage, fmt, read_image, refill, table
 from reflab.app.gui.widgets import ImageView, text_label
@@ -45,6 +46,8 @@ class ResultsPage(StepPage):
     run_text = "Re-render and report"
     #: A novel view ended: (ok, its description or the failure's message).
     novel_rendered = Signal(bool, str)
+    #: An export ended: (ok, what it wrote or the failure's message).
+    exported = Signal(bool, str)
 
     def build(self):
         w = QWidget()
@@ -99,6 +102,69 @@ class ResultsPage(StepPage):
         self.novel.setObjectName("novel_view")
         nl.addWidget(self.novel, 3)
         self.tab(nv, "Novel view and relighting")
+        self.tab(self._build_export(), "Export")
+
+    def _build_export(self) -> QWidget:
+        """``reflab export`` from the window: a format, a folder (asked for), Export, a status line."""
+        from reflab.core.options import describe
+        from reflab.inverse.export.stage import FORMATS, ExportOptions
+
+        ex = QWidget()
+        form = QFormLayout(ex)
+        self.export_format = QComboBox()
+        self.export_format.setObjectName("export_format")
+        self.export_format.addItems(FORMATS)
+        self.export_format.setToolTip(describe(ExportOptions, "format"))
+        self.export_format.currentTextChanged.connect(self._default_export_folder)
+        form.addRow("format", self.export_format)
+        folder = QHBoxLayout()
+        self.export_output = QLineEdit()
+        self.export_output.setObjectName("export_output")
+        self.export_output.setToolTip(describe(ExportOptions, "output"))
+        folder.addWidget(self.export_output, 1)
+        choose = QPushButton("Choose…")
+        choose.setObjectName("export_choose")
+        choose.clicked.connect(self.choose_export_folder)
+        folder.addWidget(choose)
+        form.addRow("folder", folder)
+        self.export_button = QPushButton("Export")
+        self.export_button.setObjectName("export_run")
+        self.export_button.clicked.connect(self.run_export)
+        form.addRow(self.export_button)
+        self.export_info = text_label("Mitsuba 3 scene, glTF 2.0 binary (.glb) or PLY meshes with their textures: the "
+                                      "same files as reflab export (docs/export.md).", "export_status")
+        form.addRow(self.export_info)
+        self._default_export_folder()
+        return ex
+
+    def _default_export_folder(self, _=None) -> None:
+        self.export_output.setText(str(self.ws.root / f"export-{self.export_format.currentText()}"))
+
+    def choose_export_folder(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Export into folder", self.export_output.text())
+        if folder:
+            self.export_output.setText(folder)
+
+    def run_export(self) -> None:
+        from reflab.inverse.export.stage import ExportOptions, export
+
+        fmt_name, out = self.export_format.currentText(), self.export_output.text().strip()
+        options = ExportOptions(self.window.workspace, format=fmt_name, output=Path(out) if out else None)
+        self.export_button.setEnabled(False)
+        self.export_info.setText(f"running: exporting {fmt_name}…")
+        self.window.background(lambda task: export(options, task), self._export_done, "export")
+
+    def _export_done(self, ok: bool, result) -> None:
+        self.export_button.setEnabled(True)
+        if not ok:
+            self.export_info.setText(f"failed: {result}")
+            self.exported.emit(False, str(result))
+            return
+        text = f"done: wrote {result.path} ({len(result.notes)} surfaces, {len(result.written)} files)"
+        if result.warnings:
+            text += "; " + "; ".join(result.warnings)
+        self.export_info.setText(text)
+        self.exported.emit(True, text)
 
     def refresh(self):
         self._refresh_parameters()
