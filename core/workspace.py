@@ -135,6 +135,10 @@ class Workspace:
         """The default output of ``reflab render`` (render.exr, or albedo.exr for the albedo AOV)."""
         return self.root / ("albedo.exr" if aov == "albedo" else "render.exr")
 
+    def export(self, fmt: str) -> Path:
+        """The default output folder of ``reflab export --format FMT`` (export-FMT/; docs/export.md)."""
+        return self.root / f"export-{fmt}"
+
     def view(self, which: str) -> tuple[Path, Path]:
         """A view that scores the recovered model (docs/formats.md, "The simulated lab's truth"): ``novel``
         -> (novel_camera.json, novel.exr), ``relit`` -> (relit_lights.json, relit.exr); in truth/

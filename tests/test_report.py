@@ -365,3 +365,46 @@ def test_fields_of_unexpected_shape_spoil_only_their_section(tmp_path, capsys):
     assert {"captures", "camera", "lights", "geometry", "fit", "texture"} <= set(page.ids)
     assert str(tmp_path / "nope.ply") in page.all_text  # named, as scene.json names it
     assert "[fit]" in capsys.readouterr().out
+
+
+def test_export_section_gives_the_commands_and_names_the_exports_written(tmp_path):
+    """The export section: one exact command per format, and the default exports already in the workspace."""
+    import shlex
+    import subprocess
+    import sys
+
+    from reflab.inverse.export.stage import FORMATS, ExportOptions, export
+
+    lab = build_lab(*SIZE)
+    write_lab(tmp_path, lab)
+    export(ExportOptions(tmp_path, format="gltf"))  # into reflab export's default folder, export-gltf/
+    assert main(["report", str(tmp_path), "--no-render"]) == 0
+    page = parse(tmp_path / "report.html")
+    assert page.ids.get("export") == "section"
+    html = (tmp_path / "report.html").read_text()
+    section = html[html.index('id="export"'):]
+    section = section[:section.index("</section>")]
+    commands = re.findall(r"reflab export (\S+) --format (\w+)", section)
+    assert [f for _, f in commands] == list(FORMATS)
+    assert all(shlex.split(w) == [str(tmp_path.resolve())] for w, _ in commands)
+    text = " ".join(parse_text(section).split())
+    assert re.search(r"gltf .*? export-gltf/scene\.glb written \d{4}-\d\d-\d\d", text)
+    assert len(re.findall(r"not yet", text)) == 2 and "scene.json (not fitted yet" in text
+    # The command as the report spells it runs and writes the export it names.
+    workspace, fmt = commands[2]
+    run = subprocess.run([sys.executable, "-m", "reflab.app.cli", "export", *shlex.split(workspace), "--format", fmt],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert main(["report", str(tmp_path), "--no-render"]) == 0
+    text = parse(tmp_path / "report.html").all_text
+    assert "export-ply/" in text and len(re.findall(r"not yet", text)) == 1
+    # Without scene.json there is nothing to export: no section.
+    (tmp_path / "scene.json").unlink()
+    assert main(["report", str(tmp_path), "--no-render"]) == 0
+    assert "export" not in parse(tmp_path / "report.html").ids
+
+
+def parse_text(html: str) -> str:
+    page = Page()
+    page.feed(html)
+    return " ".join(page.text)

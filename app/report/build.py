@@ -134,6 +134,7 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     from reflab.app.report.sections.camera import camera_section
     from reflab.app.report.sections.captures import captures_section
     from reflab.app.report.sections.error_vs_time import error_section
+    from reflab.app.report.sections.export import export_section
     from reflab.app.report.sections.fit import fit_section
     from reflab.app.report.sections.geometry import geometry_section
     from reflab.app.report.sections.lights import lights_section
@@ -152,7 +153,7 @@ def build_report(workspace, *, render: bool = True) -> tuple[Path, dict]:
     parts = [("summary", "Summary", summary_section, (model, views)), ("captures", "Captures", captures_section, ()), ("camera", "Camera", camera_section, ()),
              ("lights", "Lights", lights_section, ()), ("geometry", "Geometry", geometry_section, ()),
              ("fit", "Fit", fit_section, (model,)), ("texture", "Texture", texture_section, (model, albedo)),
-             ("views", "Novel and relit views", views_section, (views,)),
+             ("views", "Novel and relit views", views_section, (views,)), ("export", "Export", export_section, ()),
              ("error", "Error against run time", error_section, ())]
     sections = []
     for sid, title, make, extra in parts:

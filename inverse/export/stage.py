@@ -59,7 +59,7 @@ def export(options: ExportOptions, task: Task | None = None) -> ExportResult:
     if o.format not in FORMATS:
         raise OptionError("format", f"must be one of {', '.join(FORMATS)}, got {o.format!r}")
     ws = Workspace(check_folder(o.workspace))
-    out = Path(o.output) if o.output else ws.root / f"export-{o.format}"
+    out = Path(o.output) if o.output else ws.export(o.format)
     glb = o.format == "gltf" and out.suffix.lower() == ".glb"
     check_folder(out.parent if glb else out, write=True, create=True, what="folder to export into")
     model = load_model(ws)

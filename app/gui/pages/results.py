@@ -138,7 +138,7 @@ class ResultsPage(StepPage):
         return ex
 
     def _default_export_folder(self, _=None) -> None:
-        self.export_output.setText(str(self.ws.root / f"export-{self.export_format.currentText()}"))
+        self.export_output.setText(str(self.ws.export(self.export_format.currentText())))
 
     def choose_export_folder(self) -> None:
         folder = QFileDialog.getExistingDirectory(self, "Export into folder", self.export_output.text())
