@@ -18,7 +18,8 @@ import importlib
 __all__ = ["__version__", "Task", "Cancelled", "Workspace", "WorkspaceError", "OptionError",
            "CaptureOptions", "run_capture", "CameraOptions", "calibrate_camera", "LightsOptions",
            "calibrate_lights", "ReconstructOptions", "reconstruct", "FitOptions", "fit",
-           "TextureOptions", "texture", "RenderOptions", "render", "ExportOptions", "export"]
+           "TextureOptions", "texture", "RenderOptions", "render", "ExportOptions", "export",
+           "MergeOptions", "merge"]
 
 #: Public name -> module that defines it.
 _API = {
@@ -33,6 +34,7 @@ _API = {
     "TextureOptions": "reflab.inverse.stages", "texture": "reflab.inverse.stages",
     "RenderOptions": "reflab.inverse.stages", "render": "reflab.inverse.stages",
     "ExportOptions": "reflab.inverse.export.stage", "export": "reflab.inverse.export.stage",
+    "MergeOptions": "reflab.core.brackets", "merge": "reflab.core.brackets",
 }
 
 

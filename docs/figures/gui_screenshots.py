@@ -6,8 +6,8 @@ Drives ``reflab.app.gui.MainWindow`` through the whole acquisition on the simula
 step by its Run button, from an empty WORKSPACE; no truth is handed to any stage. The one thing
 not done through the window is the corner marking, which the simulated user
 (hardware/sim/user.py) writes into marks.json as the sweep page would. Writes gui-<step>.png
-(and gui-fit-1.png, gui-results-1.png: the pages' second tabs, gui-sweep-running.png: the sweep
-while it runs) as 256-colour PNGs, and prints each step's time.
+(and gui-fit-1.png, gui-results-1.png: the pages' second tabs, gui-results-2.png: the results
+page's Export tab after a glTF export, gui-sweep-running.png: the sweep while it runs) as 256-colour PNGs, and prints each step's time.
 """
 from __future__ import annotations
 
@@ -110,6 +110,11 @@ def main(ws: Path, out: Path) -> None:
     page.render_novel()
     print(wait(page.novel_rendered)[1], flush=True)
     shot("results-1")
+    page.tabs.setCurrentIndex(page.tabs.count() - 1)  # Export
+    page.export_format.setCurrentText("gltf")
+    page.run_export()
+    print(wait(page.exported)[1], flush=True)
+    shot("results-2")
     window.close()
 
 
