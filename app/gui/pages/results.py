@@ -160,7 +160,8 @@ class ResultsPage(StepPage):
             self.export_info.setText(f"failed: {result}")
             self.exported.emit(False, str(result))
             return
-        text = f"done: wrote {result.path} ({len(result.notes)} surfaces, {len(result.written)} files)"
+        n = len(result.written)
+        text = f"done: wrote {result.path} ({len(result.notes)} surfaces, {n} file{'' if n == 1 else 's'})"
         if result.warnings:
             text += "; " + "; ".join(result.warnings)
         self.export_info.setText(text)
