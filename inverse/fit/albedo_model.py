@@ -1,0 +1,253 @@
+"""Which albedo model a surface declared textured gets: one colour, or a free texture (issue 35).
+
+A surface marked ``textured`` in scene.json gets a free albedo per texel in the texture rounds
+(:mod:`reflab.inverse.fit.texture_aware`), which absorbs any light seen only on its pixels: its
+own lobe and reflection are then reported undetermined, even when its photograph shows one
+colour under a white highlight and the colours would determine them. Here the photograph
+decides. After the homogeneous fit, on every pixel where the diffuse light of one directly seen
+textured surface carries almost all the predicted light (the pixels the texture rounds recover
+texture from), the albedo that pixel implies is
+
+    a = kd + (image − model) / E,    its noise σ / E,
+
+``E`` the light per unit albedo there (path product × the diffuse basis) and ``σ`` the
+photograph's noise per band (the fit's estimate, fit.json's ``noise``). Two models of those
+albedos are compared by the Bayesian information criterion, ``χ² + k ln n`` (``n`` the pixel
+values, ``k`` the free parameters; the noise is known, so ``−2 ln L`` is the χ²):
+
+- **uniform**: one colour (3 parameters);
+- **texture**: a free colour per block of ``b × b`` pixels (3 per block), for each block size of
+  :data:`SCALES` (a texel of the rounds is :data:`~reflab.inverse.fit.texture_aware.TEXEL_SCALE`
+  = 2 pixel footprints across; coarser blocks see smooth textures whose contrast per texel is
+  under the noise); the best of them.
+
+A surface whose uniform model has the lower BIC is fitted as homogeneous (its kd a free
+parameter, its lobe and reflection fitted with the rest, every σ from every pixel); the user's
+flag still rules the texture stage. Nothing here is tuned: a texture whose contrast stays within
+the noise over every block size is called uniform, and the misfit it leaves counts in the robust
+σ (:mod:`reflab.inverse.fit.uncertainty`) like any other. Pixels on a surface's outline are left
+out: an edge pixel's mix of two surfaces is no albedo.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Block sizes (pixels across) of the free-texture alternatives.
+SCALES = (2, 4, 8)
+#: A pixel counts when directly seen textured diffuse light carries at least this share of its
+#: predicted light in every band (the texture rounds' :data:`~reflab.inverse.fit.texture_aware.MIN_SHARE`).
+MIN_SHARE = 0.9
+
+
+@dataclass
+class AlbedoEvidence:
+    """What the photograph says of one textured surface's albedo (:func:`albedo_evidence`)."""
+
+    #: ``"uniform"`` or ``"texture"``.
+    model: str
+    #: Pixels that informed it (seen directly, diffuse-lit, inside the outline).
+    pixels: int
+    #: χ² of the one-colour model over those pixels and the three bands.
+    chi2_uniform: float
+    #: χ² of the best free-texture model, its block size (pixels) and its number of blocks.
+    chi2_texture: float
+    block: int
+    blocks: int
+    #: BIC(uniform) − BIC(texture): negative selects uniform.
+    delta_bic: float
+    #: The one colour (weighted mean albedo per band).
+    colour: list
+
+    def to_json(self) -> dict:
+        return {"model": self.model, "pixels": self.pixels, "chi2_uniform": round(self.chi2_uniform, 3),
+                "chi2_texture": round(self.chi2_texture, 3), "block_px": self.block, "blocks": self.blocks,
+                "delta_bic": round(self.delta_bic, 3), "colour": [round(float(v), 6) for v in self.colour]}
+
+
+def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, kd_nodes=None):
+    """Per usable pixel: its index, its surface, the albedo it implies and that albedo's weight E²."""
+    from reflab.inverse.forward.rendering import accumulate, linear_basis, node_radiance, path_products
+
+    npix = trees.width * trees.height
+    img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
+    basis = linear_basis(trees, materials, intensities)
+    model = accumulate(trees, node_radiance(trees, materials, intensities, kd_nodes=kd_nodes, basis=basis)).reshape(npix, 3)
+    coef = path_products(trees, materials) * basis[:, :, 0]  # light per unit albedo (kd in slot 0)
+    level1 = np.asarray(trees.level) == 1
+    first = np.full(npix, -1, dtype=np.int64)  # the surface each pixel sees directly
+    first[trees.pixel[level1]] = trees.surface[level1]
+    many = np.bincount(trees.pixel[level1], minlength=npix) != 1
+    first[many] = -1
+    on = level1 & np.asarray(textured, dtype=bool)[trees.surface]
+    E = np.zeros((npix, 3))
+    np.add.at(E, trees.pixel[on], coef[on])
+    kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)
+    node_kd = kd[trees.surface] if kd_nodes is None else np.asarray(kd_nodes, dtype=np.float64)
+    own = np.zeros((npix, 3))  # the directly seen node's albedo (its surface's kd, or its texel's)
+    np.add.at(own, trees.pixel[on], coef[on] * node_kd[on])
+    own = np.divide(own, E, out=np.zeros_like(E), where=E > 0)
+    surf = np.where(first >= 0, first, 0)
+    diffuse = E * own
+    ok = (first >= 0) & np.asarray(textured, dtype=bool)[surf] & np.all(E > 0, axis=1)
+    ok &= np.all(diffuse >= min_share * np.maximum(model, 1e-300), axis=1)
+    if mask is not None:
+        ok &= np.asarray(mask, dtype=bool).reshape(npix)
+    # Inside the outline: the four neighbours see the same surface directly.
+    grid = first.reshape(trees.height, trees.width)
+    inner = np.zeros_like(grid, dtype=bool)
+    inner[1:-1, 1:-1] = ((grid[1:-1, 1:-1] == grid[:-2, 1:-1]) & (grid[1:-1, 1:-1] == grid[2:, 1:-1])
+                         & (grid[1:-1, 1:-1] == grid[1:-1, :-2]) & (grid[1:-1, 1:-1] == grid[1:-1, 2:]))
+    ok &= inner.reshape(npix)
+    px = np.flatnonzero(ok)
+    albedo = own[px] + (img[px] - model[px]) / E[px]
+    return px, first[px], albedo, E[px] ** 2
+
+
+def _chi2(a, w, groups) -> float:
+    """χ² of a free colour per group (weighted means), over every band."""
+    _, g = np.unique(groups, return_inverse=True)
+    total = 0.0
+    for c in range(3):
+        sw = np.bincount(g, weights=w[:, c])
+        mean = np.bincount(g, weights=w[:, c] * a[:, c]) / np.maximum(sw, 1e-300)
+        total += float(np.sum(w[:, c] * (a[:, c] - mean[g]) ** 2))
+    return total
+
+
+def albedo_evidence(trees, materials, intensities, image, textured, noise, *, mask=None,
+                    min_share: float = MIN_SHARE, kd_nodes=None) -> dict:
+    """Per textured surface seen directly: uniform or texture, by BIC (see the module docstring).
+
+    Parameters
+    ----------
+    trees : reflab.inverse.forward.trees.Trees
+    materials : list of Material
+        The homogeneous fit's (its ``kd`` is each surface's mean albedo).
+    intensities : (K, 3) array_like
+    image : (H, W, 3) array_like
+    textured : (S,) bool array_like
+        The surfaces declared textured.
+    noise : (3,) array_like
+        The photograph's noise σ per band (the fit's ``stats["noise"]``).
+    mask : (H*W,) bool, optional
+        Pixels the fit may use.
+    min_share : float
+    kd_nodes : (N, 3) array_like, optional
+        Per-node albedo of the model (a recovered texture; default each surface's ``kd``): what
+        the textured surfaces reflected or seen through glass contribute.
+
+    Returns
+    -------
+    dict
+        Surface index → :class:`AlbedoEvidence`, for each textured surface with a usable pixel.
+    """
+    sigma = np.maximum(np.asarray(noise, dtype=np.float64).reshape(3), 1e-300)
+    px, surf, albedo, e2 = _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, kd_nodes)
+    x, y = px % trees.width, px // trees.width
+    out = {}
+    for s in np.unique(surf):
+        sel = surf == s
+        a, w = albedo[sel], e2[sel] / sigma ** 2
+        n = a.size  # pixel values: three per pixel
+        uniform = _chi2(a, w, np.zeros(len(a), dtype=np.int64))
+        best = None
+        for b in SCALES:
+            groups = (y[sel] // b) * (trees.width // b + 1) + x[sel] // b
+            blocks = len(np.unique(groups))
+            if blocks < 2:
+                continue
+            bic = _chi2(a, w, groups) + 3 * blocks * np.log(n)
+            if best is None or bic < best[0]:
+                best = (bic, b, blocks)
+        colour = [float(v) for v in (w * a).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-300)]
+        if best is None:  # a handful of pixels: nothing to compare, the user's flag stands
+            out[int(s)] = AlbedoEvidence("texture", int(sel.sum()), uniform, uniform, 0, 1, 0.0, colour)
+            continue
+        bic_t, b, blocks = best
+        delta = uniform + 3 * np.log(n) - bic_t
+        out[int(s)] = AlbedoEvidence("uniform" if delta < 0 else "texture", int(sel.sum()), uniform,
+                                     float(bic_t - 3 * blocks * np.log(n)), b, blocks, float(delta), colour)
+    return out
+
+
+def select(trees, scene, models, intensities, image, start, *, mask, method, maxiter=None, max_seconds=None,
+           task=None, held=None):
+    """The texture rounds' start with the surfaces the photograph shows uniform fitted as homogeneous.
+
+    Parameters
+    ----------
+    trees, scene, models, intensities, image
+        As :func:`reflab.inverse.fit.texture_aware.fit_with_texture` takes them; each surface's
+        ``material`` holds the fit's starting values.
+    start : FitSolution
+        The homogeneous fit with the declared ``textured`` flags.
+    mask : (H*W,) bool
+        Pixels the rounds may use (the start's outliers left out).
+    method, maxiter, max_seconds, task, held
+        For the refit; its σ is computed at once when no textured surface is left in view (no
+        texture round follows), else later (``stats["complete"]``).
+
+    Returns
+    -------
+    scene : Scene
+        ``scene`` with those surfaces' ``textured`` False (itself when none).
+    start : FitSolution
+        The homogeneous fit again with those flags, from the scene's materials (its starting
+        values, as ``start`` was); ``start`` when none. Its trace, time and counts continue
+        ``start``'s.
+    evidence : dict
+        Surface name → :meth:`AlbedoEvidence.to_json`, per textured surface judged.
+    """
+    from reflab.inverse.forward.factorization import Factorization
+    from reflab.inverse.fit.rounds import fit
+    from reflab.reconstruction.scene import Scene
+
+    declared = np.array([s.textured for s in scene], dtype=bool)
+    noise = start.stats.get("noise")
+    if noise is None or not declared.any():
+        return scene, start, {}
+    found = albedo_evidence(trees, start.materials, intensities, image, declared, noise, mask=mask)
+    evidence = {scene.names[s]: e.to_json() for s, e in found.items()}
+    uniform = [s for s, e in found.items() if e.model == "uniform"]
+    if not uniform:
+        return scene, start, evidence
+    textured = declared.copy()
+    textured[uniform] = False
+    scene = Scene([dataclasses.replace(s, textured=bool(t)) for s, t in zip(scene, textured)], scene.root)
+    fac = Factorization(trees, models, intensities, mask=mask)
+    last = not np.isin(trees.surface, np.flatnonzero(textured)).any()
+    # From the scene's own starting values, with the global scan: the fit of a scene declared so.
+    # From the start's values instead, a value the start had fitted to a bound (a hidden lobe's
+    # ks[0] = 0) was held there as its initial value when the refit found it unresolved, and
+    # rendered as a coloured lobe (zoo seed 0's wall: relit 51.8 -> 48.7 dB).
+    again = fit(fac, image, [s.material for s in scene], method, textured=list(textured), names=scene.names,
+                maxiter=maxiter, max_seconds=max_seconds, task=task, held=held, uncertainty=last)
+    # One history: the start's trace, time and counts, then the refit's; its outliers beside the start's.
+    rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
+    more = again.stats.get("rejected", {"count": 0, "pixels": []})
+    pixels = list(rejected["pixels"]) + list(more["pixels"])
+    stats = {**again.stats, "rejected": {**rejected, **more, "count": len(pixels), "pixels": pixels}}
+    if "complete" in again.stats:
+        def complete(done=again.stats["complete"]):
+            full = done()
+            return dataclasses.replace(full, stats={**full.stats, "rejected": stats["rejected"]})
+        stats["complete"] = complete
+    again = dataclasses.replace(again, stats=stats, trace=start.trace + [[start.time_s + t, r] for t, r in again.trace],
+                                time_s=start.time_s + again.time_s, evaluations=start.evaluations + again.evaluations,
+                                iterations=start.iterations + again.iterations)
+    return scene, again, evidence
+
+
+def annotate(report: dict) -> dict:
+    """fit.json's ``albedo_models`` (surface name → evidence) moved to each surface's
+    ``albedo_model`` (the model) and ``albedo_evidence`` (the statistic); ``report`` itself."""
+    for item in report.get("surfaces", []):
+        found = (report.get("albedo_models") or {}).get(item["name"])
+        if found:
+            item["albedo_model"] = found["model"]
+            item["albedo_evidence"] = {k: v for k, v in found.items() if k != "model"}
+    report.pop("albedo_models", None)
+    return report
