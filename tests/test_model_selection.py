@@ -85,8 +85,7 @@ def test_a_uniform_surface_declared_textured_gives_the_lobe_of_one_declared_plai
     assert np.all(np.isfinite(sa)) and np.all(np.isfinite(sb))
     assert np.all(np.abs(a - b) <= sb), (a, b, sb)  # ks per band and ns: the same within its σ
     # Every determined value of the flagged fit is right (3σ + 2 %), the box's kd among them.
-    rows = determined(flagged, fac, truth, Scene([Surface(s.name, s.mesh_path, s.material, False, s.mesh)
-                                                   for s in user]))
+    rows = determined(flagged, fac, truth, user)
     assert {"kd[0]", "ks[0]", "ns", "r[0]"} <= {r[1] for r in rows if r[0] == box}
     bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3])]
     assert not bad, bad
@@ -105,21 +104,22 @@ def test_a_printed_surface_keeps_its_texture(name, surface):
 
 
 def test_the_uniform_model_is_a_chi_square_against_the_noise():
-    """On a one-colour surface, after the homogeneous fit and with the true noise σ, χ² of the
-    uniform model over its pixel values is what Gaussian noise gives (its mean n, its spread
-    √(2n)); the same surface printed exceeds it many times."""
+    """On a one-colour surface after the homogeneous fit, the noise it uses is the photograph's true
+    σ (to 10 %), and χ² of the uniform model over its pixel values is what Gaussian noise
+    gives (its mean n, its spread √(2n)); the same surface printed exceeds it many times."""
     for printed in (False, True):
         ts = build("shiny_box", W, H) if printed else _uniform("shiny_box")
         image, sigma = _photograph(ts, seed=3)
         start, _, user, trees, _, _ = _start(ts, image)
-        found = albedo_evidence(trees, start.materials, ts.lights.intensities, image,
-                                [s.textured for s in user], np.full(3, sigma))
+        found = albedo_evidence(trees, start.materials, ts.lights.intensities, image, [s.textured for s in user],
+                                start.stats["noise"])
         e = found[user.names.index("box")]
         n = 3 * e.pixels
         assert e.pixels > 100
         if printed:
             assert e.chi2_uniform > 5 * n and e.model == "texture"
         else:
+            assert np.allclose(e.noise, sigma, rtol=0.1), (e.noise, sigma)
             assert abs(e.chi2_uniform - n) < 4 * np.sqrt(2 * n) + 0.05 * n, (e.chi2_uniform, n)
             assert e.model == "uniform" and np.allclose(e.colour, ts.scene[1].material["kd"], atol=0.01)
 
@@ -141,7 +141,7 @@ def test_fit_json_says_which_albedo_model_each_textured_surface_got(tmp_path):
     box = surfaces["box"]
     assert box["albedo_model"] == "uniform"
     assert set(box["albedo_evidence"]) == {"pixels", "chi2_uniform", "chi2_texture", "block_px", "blocks",
-                                           "delta_bic", "colour"}
+                                           "delta_bic", "colour", "noise"}
     assert box["albedo_evidence"]["delta_bic"] < 0 and "albedo_models" not in report
     assert not {"ks", "ns"} & set(box["undetermined"])
     assert report["texture_rounds"]["rounds"] == []  # nothing left textured: no round

@@ -11,9 +11,12 @@ texture from), the albedo that pixel implies is
     a = kd + (image − model) / E,    its noise σ / E,
 
 ``E`` the light per unit albedo there (path product × the diffuse basis) and ``σ`` the
-photograph's noise per band (the fit's estimate, fit.json's ``noise``). Two models of those
-albedos are compared by the Bayesian information criterion, ``χ² + k ln n`` (``n`` the pixel
-values, ``k`` the free parameters; the noise is known, so ``−2 ln L`` is the χ²):
+photograph's noise per band: the smaller of the fit's image-wide estimate (fit.json's ``noise``)
+and the one measured on those very pixels from the second differences of their albedos
+(:func:`_local_noise`). Texture inflates both, each elsewhere: the image-wide one counts a fine
+texture anywhere in view as noise (twice the true σ on two_textured at 80×60, which called its
+two-ink box uniform), the local one the surface's own fine print (shiny_box at 80×60: 1.9×). Two models of those albedos are compared by the Bayesian information criterion,
+``χ² + k ln n`` (``n`` the pixel values, ``k`` the free parameters):
 
 - **uniform**: one colour (3 parameters);
 - **texture**: a free colour per block of ``b × b`` pixels (3 per block), for each block size of
@@ -37,6 +40,8 @@ import numpy as np
 
 #: Block sizes (pixels across) of the free-texture alternatives.
 SCALES = (2, 4, 8)
+#: Second differences needed to measure the noise on a surface's pixels (fewer: nothing judged).
+MIN_DOF = 30
 #: A pixel counts when directly seen textured diffuse light carries at least this share of its
 #: predicted light in every band (the texture rounds' :data:`~reflab.inverse.fit.texture_aware.MIN_SHARE`).
 MIN_SHARE = 0.9
@@ -60,11 +65,14 @@ class AlbedoEvidence:
     delta_bic: float
     #: The one colour (weighted mean albedo per band).
     colour: list
+    #: The photograph's noise σ per band on these pixels (:func:`_local_noise`).
+    noise: list
 
     def to_json(self) -> dict:
         return {"model": self.model, "pixels": self.pixels, "chi2_uniform": round(self.chi2_uniform, 3),
                 "chi2_texture": round(self.chi2_texture, 3), "block_px": self.block, "blocks": self.blocks,
-                "delta_bic": round(self.delta_bic, 3), "colour": [round(float(v), 6) for v in self.colour]}
+                "delta_bic": round(self.delta_bic, 3), "colour": [round(float(v), 6) for v in self.colour],
+                "noise": [float(v) for v in self.noise]}
 
 
 def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, kd_nodes=None):
@@ -106,18 +114,38 @@ def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_shar
     return px, first[px], albedo, E[px] ** 2
 
 
-def _chi2(a, w, groups) -> float:
-    """χ² of a free colour per group (weighted means), over every band."""
+def _rss(a, w, groups) -> np.ndarray:
+    """(3,) weighted squared residual per band of a free colour per group (weighted means)."""
     _, g = np.unique(groups, return_inverse=True)
-    total = 0.0
+    out = np.empty(3)
     for c in range(3):
         sw = np.bincount(g, weights=w[:, c])
         mean = np.bincount(g, weights=w[:, c] * a[:, c]) / np.maximum(sw, 1e-300)
-        total += float(np.sum(w[:, c] * (a[:, c] - mean[g]) ** 2))
-    return total
+        out[c] = np.sum(w[:, c] * (a[:, c] - mean[g]) ** 2)
+    return out
 
 
-def albedo_evidence(trees, materials, intensities, image, textured, noise, *, mask=None,
+def _local_noise(px, a, e, width, height) -> np.ndarray | None:
+    """(3,) the pixel noise σ per band from the second differences of the albedos ``a`` along
+    rows and columns (pixels ``px``, light per unit albedo ``e``): ``a(x−1) − 2a(x) + a(x+1)``
+    scaled by ``e`` has variance 6σ² and no trace of a texture's gradients; the median absolute
+    value (× 1.4826) is blind to the few that straddle an ink's edge. None with fewer than
+    :data:`MIN_DOF` differences."""
+    grid = np.full((width * height, 3), np.nan)
+    grid[px] = a
+    x = px % width
+    diffs = []
+    for step, inside in ((1, (x > 0) & (x < width - 1)), (width, (px >= width) & (px < width * (height - 1)))):
+        p = px[inside]
+        d = (grid[p - step] - 2 * grid[p] + grid[p + step]) * e[inside]
+        diffs.append(d[np.all(np.isfinite(d), axis=1)])
+    d = np.concatenate(diffs)
+    if len(d) < MIN_DOF:
+        return None
+    return 1.4826 * np.median(np.abs(d), axis=0) / np.sqrt(6.0)
+
+
+def albedo_evidence(trees, materials, intensities, image, textured, noise=None, *, mask=None,
                     min_share: float = MIN_SHARE, kd_nodes=None) -> dict:
     """Per textured surface seen directly: uniform or texture, by BIC (see the module docstring).
 
@@ -130,8 +158,10 @@ def albedo_evidence(trees, materials, intensities, image, textured, noise, *, ma
     image : (H, W, 3) array_like
     textured : (S,) bool array_like
         The surfaces declared textured.
-    noise : (3,) array_like
-        The photograph's noise σ per band (the fit's ``stats["noise"]``).
+    noise : (3,) array_like, optional
+        The fit's image-wide noise σ per band (``stats["noise"]``): the noise used is the smaller
+        of it and the one measured on the surface (:func:`_local_noise`), both of which a texture
+        can only inflate.
     mask : (H*W,) bool, optional
         Pixels the fit may use.
     min_share : float
@@ -144,32 +174,32 @@ def albedo_evidence(trees, materials, intensities, image, textured, noise, *, ma
     dict
         Surface index → :class:`AlbedoEvidence`, for each textured surface with a usable pixel.
     """
-    sigma = np.maximum(np.asarray(noise, dtype=np.float64).reshape(3), 1e-300)
     px, surf, albedo, e2 = _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, kd_nodes)
     x, y = px % trees.width, px // trees.width
     out = {}
     for s in np.unique(surf):
         sel = surf == s
-        a, w = albedo[sel], e2[sel] / sigma ** 2
+        a, w = albedo[sel], e2[sel]  # w: a pixel value's error over its albedo's, squared
         n = a.size  # pixel values: three per pixel
-        uniform = _chi2(a, w, np.zeros(len(a), dtype=np.int64))
-        best = None
-        for b in SCALES:
-            groups = (y[sel] // b) * (trees.width // b + 1) + x[sel] // b
-            blocks = len(np.unique(groups))
-            if blocks < 2:
-                continue
-            bic = _chi2(a, w, groups) + 3 * blocks * np.log(n)
-            if best is None or bic < best[0]:
-                best = (bic, b, blocks)
         colour = [float(v) for v in (w * a).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-300)]
-        if best is None:  # a handful of pixels: nothing to compare, the user's flag stands
-            out[int(s)] = AlbedoEvidence("texture", int(sel.sum()), uniform, uniform, 0, 1, 0.0, colour)
+        rss = {b: _rss(a, w, (y[sel] // b) * (trees.width // b + 1) + x[sel] // b) for b in SCALES}
+        blocks = {b: len(np.unique((y[sel] // b) * (trees.width // b + 1) + x[sel] // b)) for b in SCALES}
+        uniform = _rss(a, w, np.zeros(len(a), dtype=np.int64))
+        sigma = _local_noise(px[sel], a, np.sqrt(w), trees.width, trees.height)
+        if sigma is None:  # too few pixels to measure the noise: the user's flag stands
+            out[int(s)] = AlbedoEvidence("texture", int(sel.sum()), float("nan"), float("nan"), 0, 0, float("nan"),
+                                         colour, [float("nan")] * 3)
             continue
-        bic_t, b, blocks = best
-        delta = uniform + 3 * np.log(n) - bic_t
-        out[int(s)] = AlbedoEvidence("uniform" if delta < 0 else "texture", int(sel.sum()), uniform,
-                                     float(bic_t - 3 * blocks * np.log(n)), b, blocks, float(delta), colour)
+        if noise is not None:
+            sigma = np.fmin(sigma, np.asarray(noise, dtype=np.float64).reshape(3))
+        var = np.maximum(sigma ** 2, 1e-300)
+        chi2_u = float(np.sum(uniform / var))
+        bic = {b: float(np.sum(rss[b] / var)) + 3 * blocks[b] * np.log(n) for b in SCALES if blocks[b] > 1}
+        b = min(bic, key=bic.get)
+        delta = chi2_u + 3 * np.log(n) - bic[b]
+        out[int(s)] = AlbedoEvidence("uniform" if delta < 0 else "texture", int(sel.sum()), chi2_u,
+                                     float(np.sum(rss[b] / var)), b, blocks[b], float(delta), colour,
+                                     [float(v) for v in np.sqrt(var)])
     return out
 
 
@@ -206,10 +236,9 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     from reflab.reconstruction.scene import Scene
 
     declared = np.array([s.textured for s in scene], dtype=bool)
-    noise = start.stats.get("noise")
-    if noise is None or not declared.any():
+    if not declared.any():
         return scene, start, {}
-    found = albedo_evidence(trees, start.materials, intensities, image, declared, noise, mask=mask)
+    found = albedo_evidence(trees, start.materials, intensities, image, declared, start.stats.get("noise"), mask=mask)
     evidence = {scene.names[s]: e.to_json() for s, e in found.items()}
     uniform = [s for s, e in found.items() if e.model == "uniform"]
     if not uniform:
