@@ -203,6 +203,27 @@ def albedo_evidence(trees, materials, intensities, image, textured, noise=None, 
     return out
 
 
+def _off_bounds(materials, initial, bounds) -> list:
+    """``materials`` with each value listed in ``bounds`` (per surface ``{"ks[0]": "lower"}``,
+    :func:`reflab.inverse.fit.ranges.at_bound`) set back to its value in ``initial``."""
+    out = list(materials)
+    for i, found in enumerate(bounds or []):
+        params = dict(out[i].params)
+        for label in found:
+            name, _, band = label.partition("[")
+            if name not in params or name not in initial[i].params:
+                continue
+            start = np.broadcast_to(np.asarray(initial[i][name], dtype=np.float64), np.shape(params[name]))
+            if band:
+                value = np.array(params[name], dtype=np.float64)
+                value[int(band.rstrip("]"))] = start[int(band.rstrip("]"))]
+                params[name] = value
+            else:
+                params[name] = start.copy() if np.ndim(start) else float(start)
+        out[i] = dataclasses.replace(out[i], params=params)
+    return out
+
+
 def select(trees, scene, models, intensities, image, start, *, mask, method, maxiter=None, max_seconds=None,
            task=None, held=None):
     """The texture rounds' start with the surfaces the photograph shows uniform fitted as homogeneous.
@@ -225,9 +246,9 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     scene : Scene
         ``scene`` with those surfaces' ``textured`` False (itself when none).
     start : FitSolution
-        The homogeneous fit again with those flags, from the scene's materials (its starting
-        values, as ``start`` was); ``start`` when none. Its trace, time and counts continue
-        ``start``'s.
+        The homogeneous fit again with those flags, from ``start``'s values (those on a bound of
+        their range from the scene's starting values); ``start`` when none. Its trace, time and
+        counts continue ``start``'s.
     evidence : dict
         Surface name → :meth:`AlbedoEvidence.to_json`, per textured surface judged.
     """
@@ -248,12 +269,13 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     scene = Scene([dataclasses.replace(s, textured=bool(t)) for s, t in zip(scene, textured)], scene.root)
     fac = Factorization(trees, models, intensities, mask=mask)
     last = not np.isin(trees.surface, np.flatnonzero(textured)).any()
-    # From the scene's own starting values, with the global scan: the fit of a scene declared so.
-    # From the start's values instead, a value the start had fitted to a bound (a hidden lobe's
-    # ks[0] = 0) was held there as its initial value when the refit found it unresolved, and
-    # rendered as a coloured lobe (zoo seed 0's wall: relit 51.8 -> 48.7 dB).
-    again = fit(fac, image, [s.material for s in scene], method, textured=list(textured), names=scene.names,
-                maxiter=maxiter, max_seconds=max_seconds, task=task, held=held, uncertainty=last)
+    # From the start's values, without the global scan (the flags change which pixels judge
+    # what, not the objective: its shininesses are in their basins; the scan again cost 2-3 s on
+    # zoo seeds 0 and 1); those it fitted onto a bound from the scene's starting values, where a
+    # fit from scratch would hold them if the refit finds them unresolved.
+    again = fit(fac, image, _off_bounds(start.materials, [s.material for s in scene], start.stats.get("at_bound")),
+                method, textured=list(textured), names=scene.names, scan=False, maxiter=maxiter,
+                max_seconds=max_seconds, task=task, held=held, uncertainty=last)
     # One history: the start's trace, time and counts, then the refit's; its outliers beside the start's.
     rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
     more = again.stats.get("rejected", {"count": 0, "pixels": []})
