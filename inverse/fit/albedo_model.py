@@ -270,9 +270,9 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     fac = Factorization(trees, models, intensities, mask=mask)
     last = not np.isin(trees.surface, np.flatnonzero(textured)).any()
     # From the start's values, without the global scan (the flags change which pixels judge
-    # what, not the objective: its shininesses are in their basins; the scan again cost 2-3 s on
-    # zoo seeds 0 and 1); those it fitted onto a bound from the scene's starting values, where a
-    # fit from scratch would hold them if the refit finds them unresolved.
+    # what, not the objective: its shininesses are in their basins), but those it fitted onto a
+    # bound from the scene's starting values, where a fit from scratch would hold them if the
+    # refit finds them unresolved.
     again = fit(fac, image, _off_bounds(start.materials, [s.material for s in scene], start.stats.get("at_bound")),
                 method, textured=list(textured), names=scene.names, scan=False, maxiter=maxiter,
                 max_seconds=max_seconds, task=task, held=held, uncertainty=last)
