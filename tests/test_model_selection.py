@@ -103,6 +103,26 @@ def test_a_printed_surface_keeps_its_texture(name, surface):
     assert set(res.stats["albedo_models"]) == {s.name for s in user if s.textured}
 
 
+def test_a_faint_print_called_uniform_stays_honest():
+    """A print whose contrast is within the noise at every block size (shiny_box's pattern, its
+    two colours ± 0.04 about one) is called uniform and fitted as one colour; what the print leaves
+    in the residual widens the robust σ, so every determined value, its kd against the mean of the
+    whole print, stays within 3σ + 2 % (measured: within 2.7σ)."""
+    from reflab.hardware.sim.scenes import _mean, _pattern
+
+    ts = build("shiny_box", W, H)
+    base = np.array([0.45, 0.34, 0.42])
+    ts.textures[1] = lambda p: _pattern(p, 0.03, (base - 0.04, base + 0.04))
+    ts.scene[1].material.params["kd"] = _mean(ts.scene[1].mesh, ts.textures[1])
+    image, _ = _photograph(ts)
+    res, fac, user = _fit(ts, image)
+    assert res.stats["albedo_models"]["box"]["model"] == "uniform"
+    rows = determined(res, fac, [s.material for s in ts.scene], user)
+    assert {"kd[0]", "ks[0]", "ns"} <= {r[1] for r in rows if r[0] == 1}
+    bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3])]
+    assert not bad, bad
+
+
 def test_the_uniform_model_is_a_chi_square_against_the_noise():
     """On a one-colour surface after the homogeneous fit, the noise it uses is the photograph's true
     σ (to 10 %), and χ² of the uniform model over its pixel values is what Gaussian noise
