@@ -65,7 +65,7 @@ class AlbedoEvidence:
     delta_bic: float
     #: The one colour (weighted mean albedo per band).
     colour: list
-    #: The photograph's noise σ per band on these pixels (:func:`_local_noise`).
+    #: The noise σ per band used: the smaller of the fit's and the one measured here (:func:`_local_noise`).
     noise: list
 
     def to_json(self) -> dict:
@@ -75,14 +75,14 @@ class AlbedoEvidence:
                 "noise": [float(v) for v in self.noise]}
 
 
-def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, kd_nodes=None):
+def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share):
     """Per usable pixel: its index, its surface, the albedo it implies and that albedo's weight E²."""
     from reflab.inverse.forward.rendering import accumulate, linear_basis, node_radiance, path_products
 
     npix = trees.width * trees.height
     img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
     basis = linear_basis(trees, materials, intensities)
-    model = accumulate(trees, node_radiance(trees, materials, intensities, kd_nodes=kd_nodes, basis=basis)).reshape(npix, 3)
+    model = accumulate(trees, node_radiance(trees, materials, intensities, basis=basis)).reshape(npix, 3)
     coef = path_products(trees, materials) * basis[:, :, 0]  # light per unit albedo (kd in slot 0)
     level1 = np.asarray(trees.level) == 1
     first = np.full(npix, -1, dtype=np.int64)  # the surface each pixel sees directly
@@ -93,12 +93,8 @@ def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_shar
     E = np.zeros((npix, 3))
     np.add.at(E, trees.pixel[on], coef[on])
     kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)
-    node_kd = kd[trees.surface] if kd_nodes is None else np.asarray(kd_nodes, dtype=np.float64)
-    own = np.zeros((npix, 3))  # the directly seen node's albedo (its surface's kd, or its texel's)
-    np.add.at(own, trees.pixel[on], coef[on] * node_kd[on])
-    own = np.divide(own, E, out=np.zeros_like(E), where=E > 0)
     surf = np.where(first >= 0, first, 0)
-    diffuse = E * own
+    diffuse = E * kd[surf]
     ok = (first >= 0) & np.asarray(textured, dtype=bool)[surf] & np.all(E > 0, axis=1)
     ok &= np.all(diffuse >= min_share * np.maximum(model, 1e-300), axis=1)
     if mask is not None:
@@ -110,7 +106,7 @@ def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_shar
                          & (grid[1:-1, 1:-1] == grid[1:-1, :-2]) & (grid[1:-1, 1:-1] == grid[1:-1, 2:]))
     ok &= inner.reshape(npix)
     px = np.flatnonzero(ok)
-    albedo = own[px] + (img[px] - model[px]) / E[px]
+    albedo = kd[first[px]] + (img[px] - model[px]) / E[px]
     return px, first[px], albedo, E[px] ** 2
 
 
@@ -146,7 +142,7 @@ def _local_noise(px, a, e, width, height) -> np.ndarray | None:
 
 
 def albedo_evidence(trees, materials, intensities, image, textured, noise=None, *, mask=None,
-                    min_share: float = MIN_SHARE, kd_nodes=None) -> dict:
+                    min_share: float = MIN_SHARE) -> dict:
     """Per textured surface seen directly: uniform or texture, by BIC (see the module docstring).
 
     Parameters
@@ -165,16 +161,15 @@ def albedo_evidence(trees, materials, intensities, image, textured, noise=None, 
     mask : (H*W,) bool, optional
         Pixels the fit may use.
     min_share : float
-    kd_nodes : (N, 3) array_like, optional
-        Per-node albedo of the model (a recovered texture; default each surface's ``kd``): what
-        the textured surfaces reflected or seen through glass contribute.
+        A pixel counts when directly seen textured diffuse light carries at least this share of
+        its predicted light in every band.
 
     Returns
     -------
     dict
         Surface index → :class:`AlbedoEvidence`, for each textured surface with a usable pixel.
     """
-    px, surf, albedo, e2 = _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, kd_nodes)
+    px, surf, albedo, e2 = _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share)
     x, y = px % trees.width, px // trees.width
     out = {}
     for s in np.unique(surf):
@@ -225,7 +220,7 @@ def _off_bounds(materials, initial, bounds) -> list:
 
 
 def select(trees, scene, models, intensities, image, start, *, mask, method, maxiter=None, max_seconds=None,
-           task=None, held=None):
+           task=None, held=None, min_share: float = MIN_SHARE):
     """The texture rounds' start with the surfaces the photograph shows uniform fitted as homogeneous.
 
     Parameters
@@ -237,6 +232,8 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
         The homogeneous fit with the declared ``textured`` flags.
     mask : (H*W,) bool
         Pixels the rounds may use (the start's outliers left out).
+    min_share : float
+        As :func:`albedo_evidence` takes it (the rounds' own).
     method, maxiter, max_seconds, task, held
         For the refit; its σ is computed at once when no textured surface is left in view (no
         texture round follows), else later (``stats["complete"]``).
@@ -259,7 +256,8 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     declared = np.array([s.textured for s in scene], dtype=bool)
     if not declared.any():
         return scene, start, {}
-    found = albedo_evidence(trees, start.materials, intensities, image, declared, start.stats.get("noise"), mask=mask)
+    found = albedo_evidence(trees, start.materials, intensities, image, declared, start.stats.get("noise"), mask=mask,
+                            min_share=min_share)
     evidence = {scene.names[s]: e.to_json() for s, e in found.items()}
     uniform = [s for s, e in found.items() if e.model == "uniform"]
     if not uniform:

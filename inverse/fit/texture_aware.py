@@ -293,7 +293,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         # Surfaces whose photograph shows one colour are fitted as homogeneous (albedo_model).
         scene, start, albedo_models = select(trees, scene, models, intensities, image, start, mask=mask,
                                              method=method, maxiter=maxiter, max_seconds=max_seconds,
-                                             task=task, held=held)
+                                             task=task, held=held, min_share=min_share)
         _leave_out(mask, start, trees.width)  # the refit's outliers too
     rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
     textured = np.array([s.textured for s in scene], dtype=bool)
