@@ -167,6 +167,10 @@ def lab_workspace(tmp_path_factory):
             material["ns"] = 50.0  # truth 60
         surfaces.append({"name": s.name, "material": material, "sigma": {"ns": 2.0}, "undetermined": [],
                          "at_bound": {"ks[0]": "upper"} if s.name == "box" else {}})
+        if s.name == "box":
+            surfaces[-1].update(albedo_model="texture", albedo_evidence={
+                "pixels": 812, "chi2_uniform": 9000.0, "chi2_texture": 2000.0, "block_px": 2, "blocks": 210,
+                "delta_bic": 3141.5, "colour": [0.4, 0.3, 0.2], "noise": [0.002, 0.002, 0.003]})
     write_json(root / "fit.json", {"method": "ftbo", "depth": 2, "time_s": 1.5, "rms": [0.01, 0.02, 0.03],
                                    "status": "ok", "noise": [0.001, 0.001, 0.001],
                                    "phases_s": {"trees": 0.1, "structure": 0.05, "scan": 0.4, "refinement": 0.8},
@@ -220,6 +224,8 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     assert "Where the fit's time went" in text and re.search(r"\bmethod\s+F-TBO\s", text)
     # The tile's lobe came from its texture's colours: the report says so, with its numbers.
     assert re.search(r"tile\s+0\.341 ± 0\.005\s+ns 62\.8 ± 1\.9\s+line\s+1231 \(3 outliers\)\s+1\.02\s", text)
+    # What the photograph said of the box's albedo (fit.json albedo_model).
+    assert re.search(r"box\s+texture\s+812\s+3142\s+2 px \(210 blocks\)\s+\[0\.002, 0\.002, 0\.003\]\s", text)
     assert "whose re-render includes this texture" in text  # the texture's residual: the fit's maps
     assert re.search(r"outlier pixels left out of the fit\s+2 \(residual above 8 σ", text)
     # Novel and relit views against truth/ (true materials and a recovered texture): PSNR shown and sane.

@@ -284,14 +284,17 @@ def user_materials(scene: Scene) -> list:
 def determined(result, fac, truth: list, scene: Scene) -> list:
     """(surface, name, fitted, true, σ) of every parameter ``result`` (a FitSolution) fitted and did
     not report undetermined; a textured surface's kd (its texture's mean) is left to the texture
-    stage. ``fac``: the scene's Factorization, ``truth``: the true materials."""
+    stage, unless the fit found its albedo uniform (``stats["albedo_models"]``) and fitted it as one
+    colour. ``fac``: the scene's Factorization, ``truth``: the true materials."""
     from reflab.inverse.fit.rounds import params_of
 
     p, t, sig, free, lay = result.params, params_of(fac, truth), result.sigma, result.free, fac.layout
+    chosen = result.stats.get("albedo_models") or {}
+    textured = [s.textured and (chosen.get(s.name) or {}).get("model") != "uniform" for s in scene]
     out = []
     for k, (s, n) in enumerate(lay.x_names):
         out += [(s, f"{n}[{c}]", p.x[k, c], t.x[k, c], sig.x[k, c]) for c in range(3)
-                if free.x[k, c] and not (n == "kd" and scene[s].textured)]
+                if free.x[k, c] and not (n == "kd" and textured[s])]
     for f in range(lay.n_factors):
         out += [(f // 2, f"{'rt'[f % 2]}[{c}]", p.s[f, c], t.s[f, c], sig.s[f, c]) for c in range(3) if free.s[f, c]]
     out += [(s, n, p.theta[q], t.theta[q], sig.theta[q]) for q, (s, n) in enumerate(lay.theta_names) if free.theta[q]]

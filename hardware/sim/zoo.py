@@ -357,7 +357,9 @@ def compare(report: dict, truth: dict, textured: list) -> list:
     """One row per visible parameter value: (surface, name, fitted, true, σ or None, determined).
 
     ``report``: fit.json, ``truth``: truth.json, ``textured``: per surface. Values the user gave
-    (held: a lambert surface's r) and t of opaque surfaces are not fitted and not listed.
+    (held: a lambert surface's r) and t of opaque surfaces are not fitted and not listed; nor is a
+    textured surface's kd (its texture's mean, the texture stage's), unless the fit found its
+    albedo uniform (fit.json's ``albedo_model``) and fitted it as one colour.
     """
     rows = []
     seen = seen_surfaces(report)
@@ -367,7 +369,7 @@ def compare(report: dict, truth: dict, textured: list) -> list:
         fitted, sig, und = item["material"], item["sigma"], set(item["undetermined"])
         tm = true["material"]
         for name, value in fitted.items():
-            if name in ("brdf", "ior") or (name == "kd" and textured[i]):
+            if name in ("brdf", "ior") or (name == "kd" and textured[i] and item.get("albedo_model") != "uniform"):
                 continue
             if name == "t" and tm.get("ior") is None or (name == "r" and tm["brdf"] == "lambert"):
                 continue

@@ -32,6 +32,7 @@ import time
 import numpy as np
 
 from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.albedo_model import select
 from reflab.inverse.fit.rounds import FitSolution, fit
 from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
 from reflab.inverse.texture.solve import SolverOptions, build_maps, recover_texture, sample_texture
@@ -216,10 +217,18 @@ def relative_albedo(trees, textured, result, only=None) -> np.ndarray:
     return out
 
 
+def _leave_out(mask, result, width) -> None:
+    """Clear ``mask`` (H*W,) at ``result``'s rejected outlier pixels."""
+    rejected = result.stats.get("rejected", {"count": 0, "pixels": []})
+    if rejected["count"]:
+        xy = np.asarray(rejected["pixels"], dtype=np.int64).reshape(-1, 2)
+        mask[xy[:, 1] * width + xy[:, 0]] = False
+
+
 def fit_with_texture(trees, scene, models, intensities, image, start: FitSolution, *, mask=None, rounds: int = 2,
                      min_share: float = MIN_SHARE, method: str = "ftbo", options: SolverOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
-                     progress=None, task=None, held=None) -> tuple[FitSolution, list]:
+                     progress=None, task=None, held=None, select_models: bool = True) -> tuple[FitSolution, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
     Parameters
@@ -254,6 +263,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         Handed to each round's fit; no round starts once it is out of time.
     held : list of set of str, optional
         Per surface, the names given in scene.json (held; :func:`reflab.inverse.fit.rounds.fit`).
+    select_models : bool
+        First ask the photograph whether each textured surface's albedo is one colour
+        (:mod:`reflab.inverse.fit.albedo_model`); those that are are refitted as homogeneous and
+        get no texture here (``stats["albedo_models"]`` says what each got). When none is left
+        textured in view, the refit is the result and no round runs.
 
     Returns
     -------
@@ -268,16 +282,26 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     """
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
-    textured = np.array([s.textured for s in scene], dtype=bool)
     options = options or SolverOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
     # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
     # for outliers where the homogeneous fit excused it as albedo variation).
-    rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
     n_pix = trees.width * trees.height
     mask = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix).copy()
-    if rejected["count"]:
-        xy = np.asarray(rejected["pixels"], dtype=np.int64).reshape(-1, 2)
-        mask[xy[:, 1] * trees.width + xy[:, 0]] = False
+    _leave_out(mask, start, trees.width)
+    albedo_models = {}
+    if select_models:
+        # Surfaces whose photograph shows one colour are fitted as homogeneous (albedo_model).
+        scene, start, albedo_models = select(trees, scene, models, intensities, image, start, mask=mask,
+                                             method=method, maxiter=maxiter, max_seconds=max_seconds,
+                                             task=task, held=held, min_share=min_share)
+        _leave_out(mask, start, trees.width)  # the refit's outliers too
+    rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
+    textured = np.array([s.textured for s in scene], dtype=bool)
+    if not np.isin(trees.surface, np.flatnonzero(textured)).any():  # every one uniform: no round
+        if "complete" in start.stats:
+            start = dataclasses.replace(start.stats["complete"](), trace=start.trace, time_s=start.time_s,
+                                        evaluations=start.evaluations, iterations=start.iterations)
+        return dataclasses.replace(start, stats={**start.stats, "best_round": 0, "albedo_models": albedo_models}), []
     result, records, relative, tex = start, [], None, None
     best, best_err, best_round = start, float(np.sum(np.asarray(start.rms) ** 2)), 0
     best_relative = None
@@ -349,5 +373,5 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         best = best.stats["complete"]()
     warnings = [w for w in start.stats.get("warnings", []) if "outlier" in w] + best.stats.get("warnings", [])
     result = dataclasses.replace(best, stats={**best.stats, "best_round": best_round, "rejected": rejected,
-                                              "warnings": warnings}, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
+                                              "warnings": warnings, "albedo_models": albedo_models}, trace=trace, time_s=elapsed, evaluations=evaluations, iterations=iterations)
     return result, records

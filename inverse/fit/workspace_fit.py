@@ -13,6 +13,7 @@ import numpy as np
 from reflab.core.task import Task, ensure
 from reflab.core.workspace import WorkspaceError
 from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.fit.albedo_model import annotate
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
@@ -108,6 +109,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if rounds is not None:
         extra["texture_rounds"] = rounds
     report = fit_json(result, fac, scene, depth, extra)
+    annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:
         for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
             item["determined_by"] = shares

@@ -82,6 +82,7 @@ def fit_section(src: Sources, model: dict | None) -> Section | None:
               "as its plausible range (docs/fit.md, \"Plausible ranges\"), never with a σ wider than that range: either "
               "held at its initial or user-given value, or fitted with a σ that spans the range (the value used below)" + (f"; truth: {truth_file}." if truth else "."))
     _colour_lobes(sec, fit)
+    _albedo_models(sec, items)
     _photographs(sec, fit)
     if model and model.get("image") is not None:
         _model_images(sec, src, fit, model)
@@ -153,6 +154,24 @@ def _colour_lobes(sec: Section, fit: dict) -> None:
               "from its colours\"): the texture's albedo lies on a line or plane in RGB, the highlight has the lamps' "
               "colour, so the light off that set is the lobe's. The materials table above holds these values; misfit is per "
               "degree of freedom over the image noise (about 1 when the set and the lobe explain the pixels).")
+
+
+def _albedo_models(sec: Section, items: list) -> None:
+    """What the photograph said of each textured surface's albedo (fit.json ``albedo_model``)."""
+    rows = []
+    for s in items:
+        model, ev = s.get("albedo_model"), as_dict(s.get("albedo_evidence"))
+        if model is None:
+            continue
+        rows.append([str(s.get("name")), str(model), num(ev.get("pixels")), num(ev.get("delta_bic"), 4),
+                     f"{num(ev.get('block_px'))} px ({num(ev.get('blocks'))} blocks)", num(ev.get("noise"), 3)])
+    if rows:
+        sec.table(["surface", "albedo fitted as", "pixels", "ΔBIC", "best texture model", "noise σ per band"], rows,
+                  "Surfaces declared textured, as their photograph shows them (docs/fit.md, \"Model selection\"): "
+                  "\"uniform\" when one colour explains their diffuse-lit pixels better than a free colour per block "
+                  "(BIC(uniform) − BIC(texture) = ΔBIC < 0): fitted as homogeneous, their lobe and reflection "
+                  "judged like an untextured surface's; \"texture\": a free texture, as declared. The texture stage "
+                  "textures both.")
 
 
 def method_name(fit: dict):

@@ -1,0 +1,302 @@
+"""Which albedo model a surface declared textured gets: one colour, or a free texture (issue 35).
+
+A surface marked ``textured`` in scene.json gets a free albedo per texel in the texture rounds
+(:mod:`reflab.inverse.fit.texture_aware`), which absorbs any light seen only on its pixels: its
+own lobe and reflection are then reported undetermined, even when its photograph shows one
+colour under a white highlight and the colours would determine them. Here the photograph
+decides. After the homogeneous fit, on every pixel where the diffuse light of one directly seen
+textured surface carries almost all the predicted light (the pixels the texture rounds recover
+texture from), the albedo that pixel implies is
+
+    a = kd + (image − model) / E,    its noise σ / E,
+
+``E`` the light per unit albedo there (path product × the diffuse basis) and ``σ`` the
+photograph's noise per band: the smaller of the fit's image-wide estimate (fit.json's ``noise``)
+and the one measured on those very pixels from the second differences of their albedos
+(:func:`_local_noise`). Texture inflates both, each elsewhere: the image-wide one counts a fine
+texture anywhere in view as noise (twice the true σ on two_textured at 80×60, which called its
+two-ink box uniform), the local one the surface's own fine print (shiny_box at 80×60: 1.9×). Two models of those albedos are compared by the Bayesian information criterion,
+``χ² + k ln n`` (``n`` the pixel values, ``k`` the free parameters):
+
+- **uniform**: one colour (3 parameters);
+- **texture**: a free colour per block of ``b × b`` pixels (3 per block), for each block size of
+  :data:`SCALES` (a texel of the rounds is :data:`~reflab.inverse.fit.texture_aware.TEXEL_SCALE`
+  = 2 pixel footprints across; coarser blocks see smooth textures whose contrast per texel is
+  under the noise); the best of them.
+
+A surface whose uniform model has the lower BIC is fitted as homogeneous (its kd a free
+parameter, its lobe and reflection fitted with the rest, every σ from every pixel); the user's
+flag still rules the texture stage. Nothing here is tuned: a texture whose contrast stays within
+the noise over every block size is called uniform, and the misfit it leaves counts in the robust
+σ (:mod:`reflab.inverse.fit.uncertainty`) like any other. Pixels on a surface's outline are left
+out: an edge pixel's mix of two surfaces is no albedo.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Block sizes (pixels across) of the free-texture alternatives.
+SCALES = (2, 4, 8)
+#: Second differences needed to measure the noise on a surface's pixels (fewer: nothing judged).
+MIN_DOF = 30
+#: A pixel counts when directly seen textured diffuse light carries at least this share of its
+#: predicted light in every band (the texture rounds' :data:`~reflab.inverse.fit.texture_aware.MIN_SHARE`).
+MIN_SHARE = 0.9
+
+
+@dataclass
+class AlbedoEvidence:
+    """What the photograph says of one textured surface's albedo (:func:`albedo_evidence`)."""
+
+    #: ``"uniform"`` or ``"texture"``.
+    model: str
+    #: Pixels that informed it (seen directly, diffuse-lit, inside the outline).
+    pixels: int
+    #: χ² of the one-colour model over those pixels and the three bands.
+    chi2_uniform: float
+    #: χ² of the best free-texture model, its block size (pixels) and its number of blocks.
+    chi2_texture: float
+    block: int
+    blocks: int
+    #: BIC(uniform) − BIC(texture): negative selects uniform.
+    delta_bic: float
+    #: The one colour (weighted mean albedo per band).
+    colour: list
+    #: The noise σ per band used: the smaller of the fit's and the one measured here (:func:`_local_noise`).
+    noise: list
+
+    def to_json(self) -> dict:
+        return {"model": self.model, "pixels": self.pixels, "chi2_uniform": round(self.chi2_uniform, 3),
+                "chi2_texture": round(self.chi2_texture, 3), "block_px": self.block, "blocks": self.blocks,
+                "delta_bic": round(self.delta_bic, 3), "colour": [round(float(v), 6) for v in self.colour],
+                "noise": [float(v) for v in self.noise]}
+
+
+def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share):
+    """Per usable pixel: its index, its surface, the albedo it implies and that albedo's weight E²."""
+    from reflab.inverse.forward.rendering import accumulate, linear_basis, node_radiance, path_products
+
+    npix = trees.width * trees.height
+    img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
+    basis = linear_basis(trees, materials, intensities)
+    model = accumulate(trees, node_radiance(trees, materials, intensities, basis=basis)).reshape(npix, 3)
+    coef = path_products(trees, materials) * basis[:, :, 0]  # light per unit albedo (kd in slot 0)
+    level1 = np.asarray(trees.level) == 1
+    first = np.full(npix, -1, dtype=np.int64)  # the surface each pixel sees directly
+    first[trees.pixel[level1]] = trees.surface[level1]
+    many = np.bincount(trees.pixel[level1], minlength=npix) != 1
+    first[many] = -1
+    on = level1 & np.asarray(textured, dtype=bool)[trees.surface]
+    E = np.zeros((npix, 3))
+    np.add.at(E, trees.pixel[on], coef[on])
+    kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)
+    surf = np.where(first >= 0, first, 0)
+    diffuse = E * kd[surf]
+    ok = (first >= 0) & np.asarray(textured, dtype=bool)[surf] & np.all(E > 0, axis=1)
+    ok &= np.all(diffuse >= min_share * np.maximum(model, 1e-300), axis=1)
+    if mask is not None:
+        ok &= np.asarray(mask, dtype=bool).reshape(npix)
+    # Inside the outline: the four neighbours see the same surface directly.
+    grid = first.reshape(trees.height, trees.width)
+    inner = np.zeros_like(grid, dtype=bool)
+    inner[1:-1, 1:-1] = ((grid[1:-1, 1:-1] == grid[:-2, 1:-1]) & (grid[1:-1, 1:-1] == grid[2:, 1:-1])
+                         & (grid[1:-1, 1:-1] == grid[1:-1, :-2]) & (grid[1:-1, 1:-1] == grid[1:-1, 2:]))
+    ok &= inner.reshape(npix)
+    px = np.flatnonzero(ok)
+    albedo = kd[first[px]] + (img[px] - model[px]) / E[px]
+    return px, first[px], albedo, E[px] ** 2
+
+
+def _rss(a, w, groups) -> np.ndarray:
+    """(3,) weighted squared residual per band of a free colour per group (weighted means)."""
+    _, g = np.unique(groups, return_inverse=True)
+    out = np.empty(3)
+    for c in range(3):
+        sw = np.bincount(g, weights=w[:, c])
+        mean = np.bincount(g, weights=w[:, c] * a[:, c]) / np.maximum(sw, 1e-300)
+        out[c] = np.sum(w[:, c] * (a[:, c] - mean[g]) ** 2)
+    return out
+
+
+def _local_noise(px, a, e, width, height) -> np.ndarray | None:
+    """(3,) the pixel noise σ per band from the second differences of the albedos ``a`` along
+    rows and columns (pixels ``px``, light per unit albedo ``e``): ``a(x−1) − 2a(x) + a(x+1)``
+    scaled by ``e`` has variance 6σ² and no trace of a texture's gradients; the median absolute
+    value (× 1.4826) is blind to the few that straddle an ink's edge. None with fewer than
+    :data:`MIN_DOF` differences."""
+    grid = np.full((width * height, 3), np.nan)
+    grid[px] = a
+    x = px % width
+    diffs = []
+    for step, inside in ((1, (x > 0) & (x < width - 1)), (width, (px >= width) & (px < width * (height - 1)))):
+        p = px[inside]
+        d = (grid[p - step] - 2 * grid[p] + grid[p + step]) * e[inside]
+        diffs.append(d[np.all(np.isfinite(d), axis=1)])
+    d = np.concatenate(diffs)
+    if len(d) < MIN_DOF:
+        return None
+    return 1.4826 * np.median(np.abs(d), axis=0) / np.sqrt(6.0)
+
+
+def albedo_evidence(trees, materials, intensities, image, textured, noise=None, *, mask=None,
+                    min_share: float = MIN_SHARE) -> dict:
+    """Per textured surface seen directly: uniform or texture, by BIC (see the module docstring).
+
+    Parameters
+    ----------
+    trees : reflab.inverse.forward.trees.Trees
+    materials : list of Material
+        The homogeneous fit's (its ``kd`` is each surface's mean albedo).
+    intensities : (K, 3) array_like
+    image : (H, W, 3) array_like
+    textured : (S,) bool array_like
+        The surfaces declared textured.
+    noise : (3,) array_like, optional
+        The fit's image-wide noise σ per band (``stats["noise"]``): the noise used is the smaller
+        of it and the one measured on the surface (:func:`_local_noise`), both of which a texture
+        can only inflate.
+    mask : (H*W,) bool, optional
+        Pixels the fit may use.
+    min_share : float
+        A pixel counts when directly seen textured diffuse light carries at least this share of
+        its predicted light in every band.
+
+    Returns
+    -------
+    dict
+        Surface index → :class:`AlbedoEvidence`, for each textured surface with a usable pixel.
+    """
+    px, surf, albedo, e2 = _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share)
+    x, y = px % trees.width, px // trees.width
+    out = {}
+    for s in np.unique(surf):
+        sel = surf == s
+        a, w = albedo[sel], e2[sel]  # w: a pixel value's error over its albedo's, squared
+        n = a.size  # pixel values: three per pixel
+        colour = [float(v) for v in (w * a).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-300)]
+        rss = {b: _rss(a, w, (y[sel] // b) * (trees.width // b + 1) + x[sel] // b) for b in SCALES}
+        blocks = {b: len(np.unique((y[sel] // b) * (trees.width // b + 1) + x[sel] // b)) for b in SCALES}
+        uniform = _rss(a, w, np.zeros(len(a), dtype=np.int64))
+        sigma = _local_noise(px[sel], a, np.sqrt(w), trees.width, trees.height)
+        if sigma is None:  # too few pixels to measure the noise: the user's flag stands
+            out[int(s)] = AlbedoEvidence("texture", int(sel.sum()), float("nan"), float("nan"), 0, 0, float("nan"),
+                                         colour, [float("nan")] * 3)
+            continue
+        if noise is not None:
+            sigma = np.fmin(sigma, np.asarray(noise, dtype=np.float64).reshape(3))
+        var = np.maximum(sigma ** 2, 1e-300)
+        chi2_u = float(np.sum(uniform / var))
+        bic = {b: float(np.sum(rss[b] / var)) + 3 * blocks[b] * np.log(n) for b in SCALES if blocks[b] > 1}
+        b = min(bic, key=bic.get)
+        delta = chi2_u + 3 * np.log(n) - bic[b]
+        out[int(s)] = AlbedoEvidence("uniform" if delta < 0 else "texture", int(sel.sum()), chi2_u,
+                                     float(np.sum(rss[b] / var)), b, blocks[b], float(delta), colour,
+                                     [float(v) for v in np.sqrt(var)])
+    return out
+
+
+def _off_bounds(materials, initial, bounds) -> list:
+    """``materials`` with each value listed in ``bounds`` (per surface ``{"ks[0]": "lower"}``,
+    :func:`reflab.inverse.fit.ranges.at_bound`) set back to its value in ``initial``."""
+    out = list(materials)
+    for i, found in enumerate(bounds or []):
+        params = dict(out[i].params)
+        for label in found:
+            name, _, band = label.partition("[")
+            if name not in params or name not in initial[i].params:
+                continue
+            start = np.broadcast_to(np.asarray(initial[i][name], dtype=np.float64), np.shape(params[name]))
+            if band:
+                value = np.array(params[name], dtype=np.float64)
+                value[int(band.rstrip("]"))] = start[int(band.rstrip("]"))]
+                params[name] = value
+            else:
+                params[name] = start.copy() if np.ndim(start) else float(start)
+        out[i] = dataclasses.replace(out[i], params=params)
+    return out
+
+
+def select(trees, scene, models, intensities, image, start, *, mask, method, maxiter=None, max_seconds=None,
+           task=None, held=None, min_share: float = MIN_SHARE):
+    """The texture rounds' start with the surfaces the photograph shows uniform fitted as homogeneous.
+
+    Parameters
+    ----------
+    trees, scene, models, intensities, image
+        As :func:`reflab.inverse.fit.texture_aware.fit_with_texture` takes them; each surface's
+        ``material`` holds the fit's starting values.
+    start : FitSolution
+        The homogeneous fit with the declared ``textured`` flags.
+    mask : (H*W,) bool
+        Pixels the rounds may use (the start's outliers left out).
+    min_share : float
+        As :func:`albedo_evidence` takes it (the rounds' own).
+    method, maxiter, max_seconds, task, held
+        For the refit; its σ is computed at once when no textured surface is left in view (no
+        texture round follows), else later (``stats["complete"]``).
+
+    Returns
+    -------
+    scene : Scene
+        ``scene`` with those surfaces' ``textured`` False (itself when none).
+    start : FitSolution
+        The homogeneous fit again with those flags, from ``start``'s values (those on a bound of
+        their range from the scene's starting values); ``start`` when none. Its trace, time and
+        counts continue ``start``'s.
+    evidence : dict
+        Surface name → :meth:`AlbedoEvidence.to_json`, per textured surface judged.
+    """
+    from reflab.inverse.forward.factorization import Factorization
+    from reflab.inverse.fit.rounds import fit
+    from reflab.reconstruction.scene import Scene
+
+    declared = np.array([s.textured for s in scene], dtype=bool)
+    if not declared.any():
+        return scene, start, {}
+    found = albedo_evidence(trees, start.materials, intensities, image, declared, start.stats.get("noise"), mask=mask,
+                            min_share=min_share)
+    evidence = {scene.names[s]: e.to_json() for s, e in found.items()}
+    uniform = [s for s, e in found.items() if e.model == "uniform"]
+    if not uniform:
+        return scene, start, evidence
+    textured = declared.copy()
+    textured[uniform] = False
+    scene = Scene([dataclasses.replace(s, textured=bool(t)) for s, t in zip(scene, textured)], scene.root)
+    fac = Factorization(trees, models, intensities, mask=mask)
+    last = not np.isin(trees.surface, np.flatnonzero(textured)).any()
+    # From the start's values, without the global scan (the flags change which pixels judge
+    # what, not the objective: its shininesses are in their basins), but those it fitted onto a
+    # bound from the scene's starting values, where a fit from scratch would hold them if the
+    # refit finds them unresolved.
+    again = fit(fac, image, _off_bounds(start.materials, [s.material for s in scene], start.stats.get("at_bound")),
+                method, textured=list(textured), names=scene.names, scan=False, maxiter=maxiter,
+                max_seconds=max_seconds, task=task, held=held, uncertainty=last)
+    # One history: the start's trace, time and counts, then the refit's; its outliers beside the start's.
+    rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
+    more = again.stats.get("rejected", {"count": 0, "pixels": []})
+    pixels = list(rejected["pixels"]) + list(more["pixels"])
+    stats = {**again.stats, "rejected": {**rejected, **more, "count": len(pixels), "pixels": pixels}}
+    if "complete" in again.stats:
+        def complete(done=again.stats["complete"]):
+            full = done()
+            return dataclasses.replace(full, stats={**full.stats, "rejected": stats["rejected"]})
+        stats["complete"] = complete
+    again = dataclasses.replace(again, stats=stats, trace=start.trace + [[start.time_s + t, r] for t, r in again.trace],
+                                time_s=start.time_s + again.time_s, evaluations=start.evaluations + again.evaluations,
+                                iterations=start.iterations + again.iterations)
+    return scene, again, evidence
+
+
+def annotate(report: dict) -> dict:
+    """fit.json's ``albedo_models`` (surface name → evidence) moved to each surface's
+    ``albedo_model`` (the model) and ``albedo_evidence`` (the statistic); ``report`` itself."""
+    for item in report.get("surfaces", []):
+        found = (report.get("albedo_models") or {}).get(item["name"])
+        if found:
+            item["albedo_model"] = found["model"]
+            item["albedo_evidence"] = {k: v for k, v in found.items() if k != "model"}
+    report.pop("albedo_models", None)
+    return report

@@ -1,0 +1,167 @@
+"""Model selection for surfaces declared textured (issue 35, reflab.inverse.fit.albedo_model): a
+surface whose photograph shows one colour is fitted as homogeneous, so its lobe and reflection are
+determined as on a surface declared plain; a printed one keeps its free texture. Photographs by
+the independent reference renderer (hardware/sim/scenes.py's designs), 1 % noise, 80×60."""
+import json
+
+import numpy as np
+import pytest
+
+from reflab.hardware.sim.scenes import build, determined, render, user_materials
+from reflab.inverse.fit.albedo_model import albedo_evidence
+from reflab.inverse.forward.factorization import Factorization
+from reflab.inverse.forward.models import get_model
+from reflab.inverse.fit.rounds import fit
+from reflab.reconstruction.scene import Scene, Surface
+
+W, H = 80, 60
+NOISE = 0.01
+
+
+def _uniform(name):
+    """Design ``name`` with every texture taken away: each surface its one colour (its texture's
+    mean), still declared textured."""
+    ts = build(name, W, H)
+    ts.textures.clear()
+    return ts
+
+
+def _photograph(ts, seed=1):
+    img = render(ts)
+    return img + np.random.default_rng(seed).normal(0.0, NOISE * img.max(), img.shape), NOISE * img.max()
+
+
+def _start(ts, image, textured=True):
+    """The homogeneous fit (every surface declared as in ``ts`` when ``textured``, else plain), its
+    factorization, the user's scene, the trees and what fit_with_texture takes besides."""
+    from reflab.inverse.forward.trees import build_trees
+
+    init = user_materials(ts.scene)
+    user = Scene([Surface(s.name, s.mesh_path, m, s.textured and textured, s.mesh) for s, m in zip(ts.scene, init)])
+    trees = build_trees(user, ts.camera, ts.lights, depth=3)
+    models = [get_model(m.brdf) for m in init]
+    held = [m.given for m in init]
+    fac = Factorization(trees, models, ts.lights.intensities)
+    flags = [s.textured for s in user]
+    start = fit(fac, image, init, "ftbo", textured=flags, names=user.names, held=held, uncertainty=not any(flags))
+    return start, fac, user, trees, models, held
+
+
+def _fit(ts, image, textured=True):
+    """The fit as fit_workspace runs it: homogeneous, then the texture rounds when some surface is
+    declared textured. ``textured`` False: every surface declared plain."""
+    from reflab.inverse.fit.texture_aware import fit_with_texture
+
+    start, fac, user, trees, models, held = _start(ts, image, textured)
+    if not any(s.textured for s in user):
+        return start, fac, user
+    res, _ = fit_with_texture(trees, user, models, ts.lights.intensities, image, start, rounds=2, held=held)
+    return res, fac, user
+
+
+def _lobe(res, fac, s):
+    """(value, σ) of surface ``s``'s ks per band and ns, from the fit."""
+    lay, model = fac.layout, fac.models[s]
+    k = lay.x_offset[s] + model.linear.index("ks")
+    q = lay.theta_offset[s] + model.nonlinear.index("ns")
+    return (np.append(res.params.x[k], res.params.theta[q]), np.append(res.sigma.x[k], res.sigma.theta[q]))
+
+
+def test_a_uniform_surface_declared_textured_gives_the_lobe_of_one_declared_plain():
+    """The issue's test: the shiny box in one colour, fitted with and without ``textured``, gives the
+    same lobe within its σ, determined in both; with the flag its reflection of the ground is
+    determined too (a free texture took it up: held at 0 and undetermined before)."""
+    ts = _uniform("shiny_box")
+    image, _ = _photograph(ts)
+    truth = [s.material for s in ts.scene]
+    flagged, fac, user = _fit(ts, image, textured=True)
+    plain, fac_p, user_p = _fit(ts, image, textured=False)
+    box = user.names.index("box")
+    chosen = flagged.stats["albedo_models"]["box"]
+    assert chosen["model"] == "uniform" and chosen["delta_bic"] < 0, chosen
+    for res, u in ((flagged, user), (plain, user_p)):
+        assert not {"ks", "ns", "r"} & set(res.undetermined[box]), res.undetermined[box]
+    (a, sa), (b, sb) = _lobe(flagged, fac, box), _lobe(plain, fac_p, box)
+    assert np.all(np.isfinite(sa)) and np.all(np.isfinite(sb))
+    assert np.all(np.abs(a - b) <= sb), (a, b, sb)  # ks per band and ns: the same within its σ
+    # Every determined value of the flagged fit is right (3σ + 2 %), the box's kd among them.
+    rows = determined(flagged, fac, truth, user)
+    assert {"kd[0]", "ks[0]", "ns", "r[0]"} <= {r[1] for r in rows if r[0] == box}
+    bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3])]
+    assert not bad, bad
+
+
+@pytest.mark.parametrize("name, surface", [("shiny_box", "box"), ("print_can", "can"), ("floor_mirror", "floor")])
+def test_a_printed_surface_keeps_its_texture(name, surface):
+    """Two inks (shiny_box, floor_mirror's floor seen in a mirror too) or a full-colour print
+    (print_can): never called uniform, and fitted as before (no refit, rounds run)."""
+    ts = build(name, W, H)
+    image, _ = _photograph(ts)
+    res, _, user = _fit(ts, image)
+    chosen = res.stats["albedo_models"][surface]
+    assert chosen["model"] == "texture" and chosen["delta_bic"] > 0, chosen
+    assert set(res.stats["albedo_models"]) == {s.name for s in user if s.textured}
+
+
+def test_a_faint_print_called_uniform_stays_honest():
+    """A print whose contrast is within the noise at every block size (shiny_box's pattern, its
+    two colours ± 0.04 about one) is called uniform and fitted as one colour; what the print leaves
+    in the residual widens the robust σ, so every determined value, its kd against the mean of the
+    whole print, stays within 3σ + 2 % (measured: within 2.7σ)."""
+    from reflab.hardware.sim.scenes import _mean, _pattern
+
+    ts = build("shiny_box", W, H)
+    base = np.array([0.45, 0.34, 0.42])
+    ts.textures[1] = lambda p: _pattern(p, 0.03, (base - 0.04, base + 0.04))
+    ts.scene[1].material.params["kd"] = _mean(ts.scene[1].mesh, ts.textures[1])
+    image, _ = _photograph(ts)
+    res, fac, user = _fit(ts, image)
+    assert res.stats["albedo_models"]["box"]["model"] == "uniform"
+    rows = determined(res, fac, [s.material for s in ts.scene], user)
+    assert {"kd[0]", "ks[0]", "ns"} <= {r[1] for r in rows if r[0] == 1}
+    bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3])]
+    assert not bad, bad
+
+
+def test_the_uniform_model_is_a_chi_square_against_the_noise():
+    """On a one-colour surface after the homogeneous fit, the noise it uses is the photograph's true
+    σ (to 10 %), and χ² of the uniform model over its pixel values is what Gaussian noise
+    gives (its mean n, its spread √(2n)); the same surface printed exceeds it many times."""
+    for printed in (False, True):
+        ts = build("shiny_box", W, H) if printed else _uniform("shiny_box")
+        image, sigma = _photograph(ts, seed=3)
+        start, _, user, trees, _, _ = _start(ts, image)
+        found = albedo_evidence(trees, start.materials, ts.lights.intensities, image, [s.textured for s in user],
+                                start.stats["noise"])
+        e = found[user.names.index("box")]
+        n = 3 * e.pixels
+        assert e.pixels > 100
+        if printed:
+            assert e.chi2_uniform > 5 * n and e.model == "texture"
+        else:
+            assert np.allclose(e.noise, sigma, rtol=0.1), (e.noise, sigma)
+            assert abs(e.chi2_uniform - n) < 4 * np.sqrt(2 * n) + 0.05 * n, (e.chi2_uniform, n)
+            assert e.model == "uniform" and np.allclose(e.colour, ts.scene[1].material["kd"], atol=0.01)
+
+
+def test_fit_json_says_which_albedo_model_each_textured_surface_got(tmp_path):
+    """`reflab fit` on a workspace: fit.json's surfaces[].albedo_model and albedo_evidence (docs/formats.md)."""
+    from reflab.core.images import write_image
+    from reflab.hardware.sim.lab import write_lab
+    from reflab.inverse.stages import FitOptions, fit as fit_stage
+
+    ts = _uniform("shiny_box")
+    write_lab(tmp_path, ts, materials=False)
+    image, _ = _photograph(ts)
+    write_image(tmp_path / "input.exr", image.astype(np.float32))
+    fit_stage(FitOptions(tmp_path))
+    report = json.loads((tmp_path / "fit.json").read_text())
+    surfaces = {s["name"]: s for s in report["surfaces"]}
+    assert "albedo_model" not in surfaces["ground"]  # declared plain: nothing to select
+    box = surfaces["box"]
+    assert box["albedo_model"] == "uniform"
+    assert set(box["albedo_evidence"]) == {"pixels", "chi2_uniform", "chi2_texture", "block_px", "blocks",
+                                           "delta_bic", "colour", "noise"}
+    assert box["albedo_evidence"]["delta_bic"] < 0 and "albedo_models" not in report
+    assert not {"ks", "ns"} & set(box["undetermined"])
+    assert report["texture_rounds"]["rounds"] == []  # nothing left textured: no round
