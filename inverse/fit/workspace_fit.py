@@ -6,19 +6,22 @@ rounds, which build on it: no import cycle.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
 
 from reflab.core.task import Task, ensure
 from reflab.core.workspace import WorkspaceError
+from reflab.inverse.fit import sampling
 from reflab.inverse.forward.factorization import Factorization
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
-                  progress=None, task: Task | None = None, single: bool = False) -> tuple[dict, FitSolution]:
+                  progress=None, task: Task | None = None, single: bool = False,
+                  sample: bool = True) -> tuple[dict, FitSolution]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -46,6 +49,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         the trees are built); its deadline stops the fit like ``max_seconds``.
     single : bool
         Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
+    sample : bool
+        Read a pilot sample, then the evidence and a share of the other pixels
+        (:mod:`reflab.inverse.fit.sampling`), when the photographs hold more; False: every pixel.
 
     Returns
     -------
@@ -67,7 +73,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                                         task=task)
     trees, intensities, camera = stack.trees, stack.intensities, photos[0].camera
     t1 = time.perf_counter()
-    fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], intensities, mask=~saturated)
+    models = [get_model(s.material.brdf) for s in scene]
+    usable = ~saturated.reshape(-1)
+    sampled = sample and sampling.needed(usable)
+    fac = Factorization(trees, models, intensities, mask=sampling.uniform(usable, sampling.PILOT) if sampled else usable)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
@@ -78,7 +87,26 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     refit = texture_rounds > 0 and seen_textured.any()
     # With texture rounds to follow, the homogeneous fit's σ is computed only if it is the one kept.
     result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
-                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held, uncertainty=not refit)
+                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held,
+                 uncertainty=not (refit or sampled))
+    sample_report, keep = None, usable
+    if sampled and not result.message.startswith("stopped"):
+        # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
+        t3 = time.perf_counter()
+        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable)
+        fac = Factorization(trees, models, intensities, mask=keep)
+        sample_report["pilot"] = int(sampling.PILOT)
+        sample_report["pilot_s"] = round(result.time_s, 6)
+        if not refit:
+            left = None if max_seconds is None else max_seconds - result.time_s
+            pilot = result
+            result = fit(fac, image, result.materials, method, maxiter=maxiter,
+                         max_seconds=None if left is None else max(left, 1e-3), textured=[s.textured for s in scene],
+                         names=scene.names, task=task, held=held, scan=False)
+            result = dataclasses.replace(result, time_s=result.time_s + pilot.time_s,
+                                         evaluations=result.evaluations + pilot.evaluations,
+                                         iterations=result.iterations + pilot.iterations)
+        sample_report["select_s"] = round(time.perf_counter() - t3, 6)
     rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
     if "complete" in result.stats and result.message.startswith("stopped"):
         result = result.stats["complete"]()  # no round follows a fit that ran out of time
@@ -87,7 +115,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
 
         homogeneous_rms = [float(v) for v in result.rms]
         result, records = fit_with_texture(trees, scene, fac.models, intensities, image, result,
-                                           mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
+                                           mask=keep, rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
@@ -107,6 +135,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     extra["scan_evaluations"] = scan_evaluations
     if rounds is not None:
         extra["texture_rounds"] = rounds
+    if sample_report is not None:
+        extra["sampling"] = sample_report
     report = fit_json(result, fac, scene, depth, extra)
     if len(photos) > 1:
         for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
