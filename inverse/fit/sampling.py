@@ -5,12 +5,12 @@ them lit diffusely: each adds little to what the others already say of a surface
 a highlight, a mirror's or a glass' pixels, the few that hold a lobe's or a reflection's
 information, are rare. So the fit reads
 
-1. a **pilot**: a uniform random sample of :data:`PILOT` pixels, fitted as the homogeneous start;
+1. a **pilot**: a uniform random sample of :data:`PILOT` of the budget, fitted as the homogeneous start;
 2. then **the evidence and a share of the bulk**: under the pilot's parameters (undetermined
    lobes at their plausible value), each pixel's light that is not the diffuse light of a directly
    seen surface — highlights, reflections, transmissions, in any photograph — weighs its
-   information on those terms; pixels are drawn by that weight (about :data:`EVIDENCE`, the
-   strongest all kept), and a uniform random sample of :data:`BULK` of the others.
+   information on those terms; pixels are drawn by that weight (:data:`EVIDENCE` of the budget,
+   the strongest all kept), and a uniform random sample of the others (:data:`BULK` of it).
 
 Choosing rows by the model, not by their values, keeps least squares unbiased (the residual of a
 kept pixel has the same distribution as before), and every σ is computed from the rows the fit
@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Pixels of the pilot (uniform random sample).
-PILOT = 40_000
-#: Pixels of the bulk kept beside the evidence (uniform), and the evidence's expected count.
-BULK = 40_000
-EVIDENCE = 60_000
+#: Pixels the fit reads at most, by default (``reflab fit --pixels``, :class:`reflab.inverse.stages.FitOptions`'
+#: default is this number): above it, it samples.
+PIXELS = 85_000
+#: Of that budget: the pilot's share (uniform), the evidence's (drawn by information) and the
+#: bulk's (uniform, beside the evidence).
+PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
 #: The sampling's seed.
 SEED = 0
 
@@ -57,19 +58,24 @@ def evidence_light(trees, materials, intensities) -> np.ndarray:
     return np.maximum(other, 0.0).max(axis=1)
 
 
-def needed(mask) -> bool:
-    """Whether sampling reads fewer pixels than ``mask`` holds (else the fit reads them all)."""
-    return int(np.count_nonzero(mask)) > PILOT + EVIDENCE + BULK
+def needed(mask, pixels: int = PIXELS) -> bool:
+    """Whether ``mask`` holds more than ``pixels`` (0: never): the fit then samples."""
+    return 0 < int(pixels) < int(np.count_nonzero(mask))
 
 
-def fit_sample(trees, materials, intensities, mask, evidence: int = EVIDENCE, bulk: int = BULK,
-               seed: int = SEED) -> tuple[np.ndarray, dict]:
-    """The pixels the fit reads after its pilot: ``mask``'s evidence and ``bulk`` of the rest.
+def pilot(mask, pixels: int = PIXELS, seed: int = SEED) -> np.ndarray:
+    """The pilot's pixels: :data:`PILOT` of the budget ``pixels``, uniformly at random from ``mask``."""
+    return uniform(mask, max(int(PILOT * pixels), 1), seed)
 
-    Each pixel is kept with probability ``min(1, evidence · w / Σ w)``, ``w`` the square of its
+
+def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: int = SEED) -> tuple[np.ndarray, dict]:
+    """The pixels the fit reads after its pilot: ``mask``'s evidence and a uniform share of the rest.
+
+    With ``evidence`` = :data:`EVIDENCE` · ``pixels``, each pixel is kept with probability
+    ``min(1, evidence · w / Σ w)``, ``w`` the square of its
     light that is not direct diffuse (:func:`evidence_light`; its information on those terms), so
     that a highlight, a mirror's or a glass' pixels are all read and a faint broad lobe spread over
-    the image is sampled like the bulk; then ``bulk`` of the others, uniformly.
+    the image is sampled like the bulk; then :data:`BULK` · ``pixels`` of the others, uniformly.
 
     Returns
     -------
@@ -78,6 +84,7 @@ def fit_sample(trees, materials, intensities, mask, evidence: int = EVIDENCE, bu
         fit.json's ``sampling`` counts: ``evidence``, ``bulk``, ``of`` (the pixels ``mask`` held).
     """
     mask = np.asarray(mask, dtype=bool)
+    evidence, bulk = int(EVIDENCE * pixels), int(BULK * pixels)
     w = np.where(mask, evidence_light(trees, materials, intensities) ** 2, 0.0)
     total = float(w.sum())
     rng = np.random.default_rng(seed + 1)
@@ -86,9 +93,9 @@ def fit_sample(trees, materials, intensities, mask, evidence: int = EVIDENCE, bu
     if total > 0:
         # The scale c with Σ min(1, c·w) = evidence (bisection on the sorted weights).
         c = _scale(w[w > 0], float(evidence))
-        ev = (w > 0) & (draw < np.minimum(1.0, c * w))
+        ev = (w > 0) & (draw < (np.minimum(1.0, c * w) if np.isfinite(c) else 1.0))
     rest = uniform(mask & ~ev, bulk, seed + 2)
-    return ev | rest, {"evidence": int(ev.sum()), "bulk": int(rest.sum()), "of": int(mask.sum())}
+    return ev | rest, {"pixels": int(pixels), "evidence": int(ev.sum()), "bulk": int(rest.sum()), "of": int(mask.sum())}
 
 
 def _scale(w, budget: float) -> float:

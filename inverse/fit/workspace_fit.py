@@ -21,7 +21,7 @@ from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, s
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
                   progress=None, task: Task | None = None, single: bool = False,
-                  sample: bool = True) -> tuple[dict, FitSolution]:
+                  pixels: int = sampling.PIXELS) -> tuple[dict, FitSolution]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -49,9 +49,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         the trees are built); its deadline stops the fit like ``max_seconds``.
     single : bool
         Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
-    sample : bool
-        Read a pilot sample, then the evidence and a share of the other pixels
-        (:mod:`reflab.inverse.fit.sampling`), when the photographs hold more; False: every pixel.
+    pixels : int
+        Pixels the fit reads at most: when the photographs hold more, a pilot sample, then the
+        evidence and a share of the others (:mod:`reflab.inverse.fit.sampling`); 0: every pixel.
 
     Returns
     -------
@@ -61,7 +61,6 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     """
     from reflab.core.workspace import Workspace, write_json
     from reflab.inverse.fit.photograph import stack_photographs
-    from reflab.inverse.forward.models import get_model
     from reflab.reconstruction.scene import Scene
 
     ws = Workspace(workspace)
@@ -73,13 +72,68 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                                         task=task)
     trees, intensities, camera = stack.trees, stack.intensities, photos[0].camera
     t1 = time.perf_counter()
-    models = [get_model(s.material.brdf) for s in scene]
     usable = ~saturated.reshape(-1)
-    sampled = sample and sampling.needed(usable)
-    fac = Factorization(trees, models, intensities, mask=sampling.uniform(usable, sampling.PILOT) if sampled else usable)
+    done = fit_scene(trees, scene, intensities, image, usable, method, maxiter=maxiter, max_seconds=max_seconds,
+                     texture_rounds=texture_rounds, progress=progress, task=task, pixels=pixels, scene_file=ws.scene)
+    result, fac, rounds = done.result, done.fac, done.rounds
+    # The reference photograph's own pixels and their saturation (the stack's first block).
+    ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
+    extra = {"image": {"file": photos[0].image.name, "width": camera.width, "height": camera.height,
+                       "saturated_pixels": int(ref_saturated.sum()),
+                       # the scale of fit.json's `noise`: renders judge a guess against noise / peak
+                       "peak": float(ref_image.reshape(-1, 3)[~ref_saturated].max(initial=0.0)),
+                       "saturation_level": None if saturation is None and not ref_saturated.any() else float(saturation if saturation is not None else ref_image.max())},
+             "photographs": photograph_report(stack, photos, image, saturated, fac, result),
+             "setup_s": {"trees": round(t1 - t0, 6), "factorization": done.phases["factorization"]},
+             "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
+    # Where the time went: trees, factorization, then the homogeneous fit's phases, then the texture rounds.
+    extra["phases_s"] = {"trees": round(t1 - t0, 6), **done.phases}
+    extra["scan_evaluations"] = done.scan_evaluations
+    if rounds is not None:
+        extra["texture_rounds"] = rounds
+    if done.sampling is not None:
+        extra["sampling"] = done.sampling
+    report = fit_json(result, fac, scene, depth, extra)
+    if len(photos) > 1:
+        for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
+            item["determined_by"] = shares
+    ensure(task).check()  # a cancel during the last iteration: nothing written
+    write_json(ws.fit, report)
+    return report, result
+
+
+@dataclasses.dataclass
+class SceneFit:
+    """What :func:`fit_scene` found: the fit, the system it was judged on (``fac``: its rows are
+    the pixels read), the texture rounds' records, the sampling's counts, seconds per phase."""
+
+    result: FitSolution
+    fac: Factorization
+    rounds: dict | None
+    sampling: dict | None
+    phases: dict
+    scan_evaluations: int
+
+
+def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
+              texture_rounds: int = 2, progress=None, task=None, pixels: int = sampling.PIXELS,
+              scene_file="scene.json") -> SceneFit:
+    """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
+    evidence when the photographs hold more than ``pixels`` (:mod:`reflab.inverse.fit.sampling`),
+    and the texture rounds when a seen surface is textured. Parameters as :func:`fit_workspace`;
+    ``usable`` (H*W,) bool: the pixels the fit may read (not saturated). A scene with no lit
+    surface in view raises WorkspaceError naming ``scene_file``.
+    """
+    from reflab.inverse.forward.models import get_model
+
+    t1 = time.perf_counter()
+    models = [get_model(s.material.brdf) for s in scene]
+    usable = np.asarray(usable, dtype=bool).reshape(-1)
+    sampled = sampling.needed(usable, pixels)
+    fac = Factorization(trees, models, intensities, mask=sampling.pilot(usable, pixels) if sampled else usable)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
-        raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
+        raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
                              got="no pixel sees a lit surface")
     # What the user gave in scene.json is held (Material.defaulted names the rest).
     held = [s.material.given for s in scene]
@@ -93,9 +147,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if sampled and not result.message.startswith("stopped"):
         # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
         t3 = time.perf_counter()
-        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable)
+        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable, pixels)
+        sample_report["pilot"] = int(fac.n_rows)
         fac = Factorization(trees, models, intensities, mask=keep)
-        sample_report["pilot"] = int(sampling.PILOT)
+        t4 = time.perf_counter()
         sample_report["pilot_s"] = round(result.time_s, 6)
         if not refit:
             left = None if max_seconds is None else max_seconds - result.time_s
@@ -106,7 +161,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
             result = dataclasses.replace(result, time_s=result.time_s + pilot.time_s,
                                          evaluations=result.evaluations + pilot.evaluations,
                                          iterations=result.iterations + pilot.iterations)
-        sample_report["select_s"] = round(time.perf_counter() - t3, 6)
+        sample_report["select_s"] = round(t4 - t3, 6)
     rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
     if "complete" in result.stats and result.message.startswith("stopped"):
         result = result.stats["complete"]()  # no round follows a fit that ran out of time
@@ -119,31 +174,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
-    # The reference photograph's own pixels and their saturation (the stack's first block).
-    ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
-    extra = {"image": {"file": photos[0].image.name, "width": camera.width, "height": camera.height,
-                       "saturated_pixels": int(ref_saturated.sum()),
-                       # the scale of fit.json's `noise`: renders judge a guess against noise / peak
-                       "peak": float(ref_image.reshape(-1, 3)[~ref_saturated].max(initial=0.0)),
-                       "saturation_level": None if saturation is None and not ref_saturated.any() else float(saturation if saturation is not None else ref_image.max())},
-             "photographs": photograph_report(stack, photos, image, saturated, fac, result),
-             "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
-             "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
-    # Where the time went: trees, factorization, then the homogeneous fit's phases, then the texture rounds.
-    extra["phases_s"] = {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6), **homogeneous_phases,
-                         "texture_rounds": round(sum(r["texture_s"] + r["fit_s"] for r in rounds["rounds"]), 6) if rounds else 0.0}
-    extra["scan_evaluations"] = scan_evaluations
-    if rounds is not None:
-        extra["texture_rounds"] = rounds
-    if sample_report is not None:
-        extra["sampling"] = sample_report
-    report = fit_json(result, fac, scene, depth, extra)
-    if len(photos) > 1:
-        for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
-            item["determined_by"] = shares
-    ensure(task).check()  # a cancel during the last iteration: nothing written
-    write_json(ws.fit, report)
-    return report, result
+    return SceneFit(result, fac, rounds, sample_report,
+                    {"factorization": round(t2 - t1, 6), **homogeneous_phases,
+                     "texture_rounds": round(sum(r["texture_s"] + r["fit_s"] for r in rounds["rounds"]), 6) if rounds else 0.0},
+                    scan_evaluations)
 
 
 def photograph_report(stack, photos, image, unused, fac, result) -> list:
