@@ -36,11 +36,6 @@ STOP_GAIN = 1e-8
 #: texture rounds, refitted against a new texture): its last iterations on a large-residual
 #: problem each gain half the one before (GN's curvature lacks the residual's second-order term).
 SEED_STOP_GAIN = 1e-6
-#: ... or below this many noise variances (a χ² gain): the step then moves no combination of the
-#: parameters by more than 0.1 of its noise σ, which no later stage can tell from where it is.
-#: On a noisy photograph this, not the relative gain, ends the creep of a flat valley (a textured
-#: zoo scene's 15k-pixel pilot at 640x480: one call took 187 evaluations).
-CHI2_STOP = 0.01
 #: ... or below this share of the image's squared norm, whatever ε is: the inner solve's rounding.
 #: At a noise-free fit's exact solution (ε ≈ 1e-22) a flat θ (a lobe with no signal) otherwise
 #: chases "gains" of 1e-23 for a hundred iterations, each lowering ε by its own rounding. Where
@@ -92,7 +87,6 @@ def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True, 
         u, (E, g, cur, A, grad, res) = _scan(pb, q, u, (E, g, cur, A, grad, res), evaluate, t0, trace)
     lam, message, it = 1e-3, f"stopped after {maxiter} iterations", 0
     lo, hi = srch.lo[q], srch.hi[q]
-    noise_gain = CHI2_STOP * float(np.mean(np.asarray(pb.noise, dtype=np.float64) ** 2)) / pb.norm
     for it in range(1, maxiter + 1):
         pb.step(it, maxiter, step_message("F-TBO iteration", trace))
         if pb.out_of_time():
@@ -101,7 +95,7 @@ def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True, 
             break
         S = _theta_curvature(pb, cur, free, A, grad) * np.outer(srch.dtheta_du(cur.theta)[q], srch.dtheta_du(cur.theta)[q])
         S = 2.0 * S / pb.norm
-        if _predicted_gain(S, g, u, lo, hi) <= max(stop_gain * E, noise_gain) + STOP_FLOOR:
+        if _predicted_gain(S, g, u, lo, hi) <= stop_gain * E + STOP_FLOOR:
             message = "converged: the Gauss-Newton step predicts no further gain"
             break
         improved = False
