@@ -169,7 +169,16 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
-        result, records = fit_with_texture(trees, scene, fac.models, intensities, image, result,
+        round_trees = trees
+        ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
+        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
+            # The rounds' texture from the reference photograph's every pixel and the further ones'
+            # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
+            # with the sample, not with the photographs.
+            seen = keep.copy()
+            seen[:int(ref)] = True
+            round_trees = trees.of_pixels(seen)
+        result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
                                            mask=keep, rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
