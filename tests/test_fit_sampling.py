@@ -66,3 +66,22 @@ def test_a_sampled_fit_is_honest_and_agrees_with_the_full_one(tmp_path, seed):
     ratio = np.array([a[k][1] / b[k][1] for k in both])
     print(len(both), np.round(np.percentile(ratio, [0, 50, 100]), 2), s)
     assert np.median(ratio) >= 1.0  # fewer pixels: the σ widens (it is the estimate's own)
+
+
+def test_trees_of_some_pixels_render_those_pixels_as_the_whole():
+    """Trees.of_pixels keeps the chosen pixels' nodes (mirror and glass children included) unchanged."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(80, 60, textured=False)
+    truth = [s.material for s in lab.scene]
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    chosen = np.random.default_rng(0).random(80 * 60) < 0.3
+    part = trees.of_pixels(chosen)
+    assert 0 < len(part) < 0.5 * len(trees) and (part.level > 1).any()
+    whole = render(trees, truth, lab.lights.intensities).reshape(-1, 3)
+    some = render(part, truth, lab.lights.intensities).reshape(-1, 3)
+    assert np.array_equal(some[chosen], whole[chosen]) and not some[~chosen].any()
+    assert ((part.parent == -1) == (part.level == 1)).all() and (part.pixel[part.parent[part.parent >= 0]]
+                                                                  == part.pixel[part.parent >= 0]).all()
