@@ -42,6 +42,9 @@ class FitOptions:
                                  "as in the dissertation)", type=nonneg_int)
     single: bool = opt(False, "fit the reference photograph alone, ignoring inputs/ (the dissertation's method)",
                        flag="--single-photograph")
+    pixels: int = opt(85_000, "pixels the fit reads at most: above it, a pilot sample, then the pixels that show "
+                              "lobes, reflections and transmissions and a share of the rest (0 = every pixel)",
+                      type=nonneg_int)
 
 
 @dataclass
@@ -76,7 +79,8 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     check_folder(o.workspace, write=True)  # before any work: missing or read-only, named in one line
     report, result = fit_workspace(o.workspace, o.method, o.depth, saturation=o.saturation,
                                    maxiter=o.max_iterations, max_seconds=o.max_seconds,
-                                   texture_rounds=o.texture_rounds, progress=on_round, task=task, single=o.single)
+                                   texture_rounds=o.texture_rounds, progress=on_round, task=task, single=o.single,
+                                   pixels=o.pixels)
     return FitResult(Workspace(o.workspace).fit, report, result)
 
 

@@ -12,6 +12,7 @@ bar), the worst |error|/σ, and how often each parameter was reported undetermin
     python docs/figures/fit_calibration.py --size 160x120 --realisations 1 --noise 0 --verbose   # one fit per scene
     python docs/figures/fit_calibration.py --scenes more ...   # the further designs (reflab.hardware.sim.scenes.MORE)
     python docs/figures/fit_calibration.py --photographs L0,L1,T35,T-35,T70,T-70 ...   # several photographs
+    python docs/figures/fit_calibration.py --pixels 1500 ...   # the fit reading a sample (docs/fit.md "Sampling")
 
 ``--photographs``: further photographs fitted together with the reference (docs/fit.md "Several
 photographs"): ``Lk`` lamp k alone, ``TA`` the turntable turned by A degrees about the vertical
@@ -31,11 +32,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from reflab.hardware.sim.scenes import MORE, NAMES, build, determined, render, user_materials  # noqa: E402
-from reflab.inverse.forward.factorization import Factorization  # noqa: E402
-from reflab.inverse.fit.rounds import fit  # noqa: E402
-from reflab.inverse.forward.models import get_model  # noqa: E402
+from reflab.inverse.fit.workspace_fit import fit_scene  # noqa: E402
 from reflab.inverse.forward.photographs import stack_trees  # noqa: E402
-from reflab.inverse.fit.texture_aware import fit_with_texture  # noqa: E402
 from reflab.inverse.forward.trees import build_trees  # noqa: E402
 from reflab.reconstruction.scene import Scene, Surface  # noqa: E402
 
@@ -74,6 +72,8 @@ def main(argv=None):
     ap.add_argument("--scenes", default=",".join(NAMES), help="comma-separated names, or 'more' for " + ", ".join(MORE))
     ap.add_argument("--json")
     ap.add_argument("--verbose", action="store_true", help="print every determined parameter of every fit")
+    ap.add_argument("--pixels", type=int, default=0,
+                    help="pixels the fit reads at most (reflab fit --pixels; default 0 here: every pixel)")
     ap.add_argument("--photographs", default="", help="further shots: Lk (lamp k alone), TA (turntable A degrees)")
     ap.add_argument("--vary-texture", action="store_true",
                     help="realisation k also draws another texture (reflab.hardware.sim.scenes.build's texture_seed=k)")
@@ -88,8 +88,6 @@ def main(argv=None):
         user = Scene([Surface(s.name, s.mesh_path, m, s.textured, s.mesh) for s, m in zip(ts.scene, init)])
         stack = stack_trees([build_trees(user, c, li, depth=3) for c, li in views], [li for _, li in views])
         trees, intensities = stack.trees, stack.intensities
-        models = [get_model(m.brdf) for m in init]
-        held = [m.given for m in init]
         truth = [s.material for s in ts.scene]
         z, undetermined, t0 = [], Counter(), time.perf_counter()
         for seed in range(args.realisations):
@@ -97,9 +95,9 @@ def main(argv=None):
                 ts = build(name, W, H, texture_seed=seed)
                 clean, truth = _photographs(ts, views), [s.material for s in ts.scene]
             img = clean + (np.random.default_rng(seed).normal(0.0, args.noise * clean.max(), clean.shape) if args.noise else 0.0)
-            fac = Factorization(trees, models, intensities)
-            start = fit(fac, img, init, "ftbo", textured=[s.textured for s in user], names=user.names, held=held)
-            res, _ = fit_with_texture(trees, user, models, intensities, img, start, rounds=2, held=held)
+            done = fit_scene(trees, user, intensities, img, np.ones(trees.width * trees.height, dtype=bool),
+                             pixels=args.pixels)
+            res, fac = done.result, done.fac
             det, und = rows(res, fac, truth, user)
             if args.verbose:
                 for r in det:

@@ -6,12 +6,14 @@ rounds, which build on it: no import cycle.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
 
 from reflab.core.task import Task, ensure
 from reflab.core.workspace import WorkspaceError
+from reflab.inverse.fit import sampling
 from reflab.inverse.forward.factorization import Factorization
 from reflab.inverse.fit.albedo_model import annotate
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
@@ -19,7 +21,8 @@ from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, s
 
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
-                  progress=None, task: Task | None = None, single: bool = False) -> tuple[dict, FitSolution]:
+                  progress=None, task: Task | None = None, single: bool = False,
+                  pixels: int = sampling.PIXELS) -> tuple[dict, FitSolution]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -47,6 +50,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         the trees are built); its deadline stops the fit like ``max_seconds``.
     single : bool
         Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
+    pixels : int
+        Pixels the fit reads at most: when the photographs hold more, a pilot sample, then the
+        evidence and a share of the others (:mod:`reflab.inverse.fit.sampling`); 0: every pixel.
 
     Returns
     -------
@@ -56,7 +62,6 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     """
     from reflab.core.workspace import Workspace, write_json
     from reflab.inverse.fit.photograph import stack_photographs
-    from reflab.inverse.forward.models import get_model
     from reflab.reconstruction.scene import Scene
 
     ws = Workspace(workspace)
@@ -68,30 +73,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                                         task=task)
     trees, intensities, camera = stack.trees, stack.intensities, photos[0].camera
     t1 = time.perf_counter()
-    fac = Factorization(trees, [get_model(s.material.brdf) for s in scene], intensities, mask=~saturated)
-    t2 = time.perf_counter()
-    if fac.n_columns == 0:
-        raise WorkspaceError(ws.scene, "surfaces", "at least one surface seen by the camera and lit by a lamp",
-                             got="no pixel sees a lit surface")
-    # What the user gave in scene.json is held (Material.defaulted names the rest).
-    held = [s.material.given for s in scene]
-    seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
-    refit = texture_rounds > 0 and seen_textured.any()
-    # With texture rounds to follow, the homogeneous fit's σ is computed only if it is the one kept.
-    result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
-                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held, uncertainty=not refit)
-    rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
-    if "complete" in result.stats and result.message.startswith("stopped"):
-        result = result.stats["complete"]()  # no round follows a fit that ran out of time
-    if refit and not result.message.startswith("stopped"):
-        from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
-
-        homogeneous_rms = [float(v) for v in result.rms]
-        result, records = fit_with_texture(trees, scene, fac.models, intensities, image, result,
-                                           mask=~saturated.reshape(-1), rounds=texture_rounds, method=method,
-                                           maxiter=maxiter, progress=progress, task=task, held=held,
-                                           max_seconds=None if max_seconds is None else max_seconds - result.time_s)
-        rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
+    usable = ~saturated.reshape(-1)
+    done = fit_scene(trees, scene, intensities, image, usable, method, maxiter=maxiter, max_seconds=max_seconds,
+                     texture_rounds=texture_rounds, progress=progress, task=task, pixels=pixels, scene_file=ws.scene)
+    result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
     ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
     extra = {"image": {"file": photos[0].image.name, "width": camera.width, "height": camera.height,
@@ -100,14 +85,15 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                        "peak": float(ref_image.reshape(-1, 3)[~ref_saturated].max(initial=0.0)),
                        "saturation_level": None if saturation is None and not ref_saturated.any() else float(saturation if saturation is not None else ref_image.max())},
              "photographs": photograph_report(stack, photos, image, saturated, fac, result),
-             "setup_s": {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6)},
+             "setup_s": {"trees": round(t1 - t0, 6), "factorization": done.phases["factorization"]},
              "trees": {"nodes": int(len(trees.pixel)), "paths": len(trees.paths), "cache": trees.stats["cache"]}}
     # Where the time went: trees, factorization, then the homogeneous fit's phases, then the texture rounds.
-    extra["phases_s"] = {"trees": round(t1 - t0, 6), "factorization": round(t2 - t1, 6), **homogeneous_phases,
-                         "texture_rounds": round(sum(r["texture_s"] + r["fit_s"] for r in rounds["rounds"]), 6) if rounds else 0.0}
-    extra["scan_evaluations"] = scan_evaluations
+    extra["phases_s"] = {"trees": round(t1 - t0, 6), **done.phases}
+    extra["scan_evaluations"] = done.scan_evaluations
     if rounds is not None:
         extra["texture_rounds"] = rounds
+    if done.sampling is not None:
+        extra["sampling"] = done.sampling
     report = fit_json(result, fac, scene, depth, extra)
     annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:
@@ -116,6 +102,93 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     ensure(task).check()  # a cancel during the last iteration: nothing written
     write_json(ws.fit, report)
     return report, result
+
+
+@dataclasses.dataclass
+class SceneFit:
+    """What :func:`fit_scene` found: the fit, the system it was judged on (``fac``: its rows are
+    the pixels read), the texture rounds' records, the sampling's counts, seconds per phase."""
+
+    result: FitSolution
+    fac: Factorization
+    rounds: dict | None
+    sampling: dict | None
+    phases: dict
+    scan_evaluations: int
+
+
+def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
+              texture_rounds: int = 2, progress=None, task=None, pixels: int = sampling.PIXELS,
+              scene_file="scene.json") -> SceneFit:
+    """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
+    evidence when the photographs hold more than ``pixels`` (:mod:`reflab.inverse.fit.sampling`),
+    and the texture rounds when a seen surface is textured. Parameters as :func:`fit_workspace`;
+    ``usable`` (H*W,) bool: the pixels the fit may read (not saturated). A scene with no lit
+    surface in view raises WorkspaceError naming ``scene_file``.
+    """
+    from reflab.inverse.forward.models import get_model
+
+    t1 = time.perf_counter()
+    models = [get_model(s.material.brdf) for s in scene]
+    usable = np.asarray(usable, dtype=bool).reshape(-1)
+    sampled = sampling.needed(usable, pixels)
+    fac = Factorization(trees, models, intensities, mask=sampling.pilot(usable, pixels) if sampled else usable)
+    t2 = time.perf_counter()
+    if fac.n_columns == 0:
+        raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
+                             got="no pixel sees a lit surface")
+    # What the user gave in scene.json is held (Material.defaulted names the rest).
+    held = [s.material.given for s in scene]
+    seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
+    refit = texture_rounds > 0 and seen_textured.any()
+    # With texture rounds to follow, the homogeneous fit's σ is computed only if it is the one kept.
+    result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
+                 textured=[s.textured for s in scene], names=scene.names, task=task, held=held,
+                 uncertainty=not (refit or sampled))
+    sample_report, keep = None, usable
+    if sampled and not result.message.startswith("stopped"):
+        # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
+        t3 = time.perf_counter()
+        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable, pixels)
+        sample_report["pilot"] = int(fac.n_rows)
+        fac = Factorization(trees, models, intensities, mask=keep)
+        t4 = time.perf_counter()
+        sample_report["pilot_s"] = round(result.time_s, 6)
+        if not refit:
+            left = None if max_seconds is None else max_seconds - result.time_s
+            pilot = result
+            result = fit(fac, image, result.materials, method, maxiter=maxiter,
+                         max_seconds=None if left is None else max(left, 1e-3), textured=[s.textured for s in scene],
+                         names=scene.names, task=task, held=held, scan=False)
+            result = dataclasses.replace(result, time_s=result.time_s + pilot.time_s,
+                                         evaluations=result.evaluations + pilot.evaluations,
+                                         iterations=result.iterations + pilot.iterations)
+        sample_report["select_s"] = round(t4 - t3, 6)
+    rounds, homogeneous_phases, scan_evaluations = None, result.stats["phases_s"], result.stats["scan_evaluations"]
+    if "complete" in result.stats and result.message.startswith("stopped"):
+        result = result.stats["complete"]()  # no round follows a fit that ran out of time
+    if refit and not result.message.startswith("stopped"):
+        from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
+
+        homogeneous_rms = [float(v) for v in result.rms]
+        round_trees = trees
+        ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
+        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
+            # The rounds' texture from the reference photograph's every pixel and the further ones'
+            # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
+            # with the sample, not with the photographs.
+            seen = keep.copy()
+            seen[:int(ref)] = True
+            round_trees = trees.of_pixels(seen)
+        result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
+                                           mask=keep, rounds=texture_rounds, method=method,
+                                           maxiter=maxiter, progress=progress, task=task, held=held,
+                                           max_seconds=None if max_seconds is None else max_seconds - result.time_s)
+        rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
+    return SceneFit(result, fac, rounds, sample_report,
+                    {"factorization": round(t2 - t1, 6), **homogeneous_phases,
+                     "texture_rounds": round(sum(r["texture_s"] + r["fit_s"] for r in rounds["rounds"]), 6) if rounds else 0.0},
+                    scan_evaluations)
 
 
 def photograph_report(stack, photos, image, unused, fac, result) -> list:

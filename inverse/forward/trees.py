@@ -71,6 +71,17 @@ class Trees:
     def n_lights(self) -> int:
         return self.light_dist2.shape[1]
 
+    def of_pixels(self, pixels) -> "Trees":
+        """The trees of the pixels where ``pixels`` (H*W,) bool is True: their nodes alone, every
+        pixel index and the image size unchanged (``parent`` renumbered)."""
+        keep = np.asarray(pixels, dtype=bool).reshape(-1)[np.asarray(self.pixel, dtype=np.int64)]
+        renumber = np.cumsum(keep) - 1
+        parent = np.asarray(self.parent, dtype=np.int64)[keep]
+        arrays = {name: np.asarray(getattr(self, name))[keep] for name in _ARRAYS if name != "parent"}
+        arrays["parent"] = np.where(parent >= 0, renumber[np.maximum(parent, 0)], -1)
+        key = hashlib.sha1(self.key.encode() + np.packbits(np.asarray(pixels, dtype=bool)).tobytes()).hexdigest()
+        return Trees(self.width, self.height, self.depth, paths=self.paths, stats=dict(self.stats), key=key, **arrays)
+
     def save(self, path) -> Path:
         """Write the trees to an ``.npz`` file, atomically."""
         flat = [item for p in self.paths for item in p]

@@ -1,0 +1,111 @@
+"""Which pixels the fit reads: the evidence of every parameter, and a share of the rest (docs/fit.md "Sampling").
+
+The fit has a few dozen unknowns and a photograph has hundreds of thousands of pixels, most of
+them lit diffusely: each adds little to what the others already say of a surface's ``kd``, while
+a highlight, a mirror's or a glass' pixels, the few that hold a lobe's or a reflection's
+information, are rare. So the fit reads
+
+1. a **pilot**: a uniform random sample of :data:`PILOT` of the budget, fitted as the homogeneous start;
+2. then **the evidence and a share of the bulk**: under the pilot's parameters (undetermined
+   lobes at their plausible value), each pixel's light that is not the diffuse light of a directly
+   seen surface — highlights, reflections, transmissions, in any photograph — weighs its
+   information on those terms; pixels are drawn by that weight (:data:`EVIDENCE` of the budget,
+   the strongest all kept), and a uniform random sample of the others (:data:`BULK` of it).
+
+Choosing rows by the model, not by their values, keeps least squares unbiased (the residual of a
+kept pixel has the same distribution as before), and every σ is computed from the rows the fit
+read, so it is the honest σ of the estimate actually made: a sample can only widen it. The
+sample is seeded (the same photograph gives the same fit).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Pixels the fit reads at most, by default (``reflab fit --pixels``, :class:`reflab.inverse.stages.FitOptions`'
+#: default is this number): above it, it samples.
+PIXELS = 85_000
+#: Of that budget: the pilot's share (uniform), the evidence's (drawn by information) and the
+#: bulk's (uniform, beside the evidence).
+PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
+#: The sampling's seed.
+SEED = 0
+
+
+def uniform(mask, count: int, seed: int = SEED) -> np.ndarray:
+    """``mask`` (bool) with at most ``count`` of its True pixels kept, chosen uniformly at random."""
+    mask = np.asarray(mask, dtype=bool)
+    idx = np.flatnonzero(mask)
+    if len(idx) <= count:
+        return mask.copy()
+    keep = np.random.default_rng(seed).choice(idx, size=int(count), replace=False)
+    out = np.zeros_like(mask)
+    out[keep] = True
+    return out
+
+
+def evidence_light(trees, materials, intensities) -> np.ndarray:
+    """(H*W,) per pixel, the largest band's predicted light that is not the diffuse light of a
+    directly seen surface (lobes, reflections, transmissions), under ``materials``."""
+    from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
+
+    npix = trees.width * trees.height
+    kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)[trees.surface]
+    basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd in slot 0
+    light = node_radiance(trees, materials, intensities, kd_nodes=kd, basis=basis)
+    diffuse = np.where((np.asarray(trees.level) == 1)[:, None], path_products(trees, materials) * basis[:, :, 0] * kd, 0.0)
+    other = np.stack([np.bincount(trees.pixel, weights=light[:, c] - diffuse[:, c], minlength=npix)
+                      for c in range(3)], axis=1)
+    return np.maximum(other, 0.0).max(axis=1)
+
+
+def needed(mask, pixels: int = PIXELS) -> bool:
+    """Whether ``mask`` holds more than ``pixels`` (0: never): the fit then samples."""
+    return 0 < int(pixels) < int(np.count_nonzero(mask))
+
+
+def pilot(mask, pixels: int = PIXELS, seed: int = SEED) -> np.ndarray:
+    """The pilot's pixels: :data:`PILOT` of the budget ``pixels``, uniformly at random from ``mask``."""
+    return uniform(mask, max(int(PILOT * pixels), 1), seed)
+
+
+def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: int = SEED) -> tuple[np.ndarray, dict]:
+    """The pixels the fit reads after its pilot: ``mask``'s evidence and a uniform share of the rest.
+
+    With ``evidence`` = :data:`EVIDENCE` · ``pixels``, each pixel is kept with probability
+    ``min(1, evidence · w / Σ w)``, ``w`` the square of its
+    light that is not direct diffuse (:func:`evidence_light`; its information on those terms), so
+    that a highlight, a mirror's or a glass' pixels are all read and a faint broad lobe spread over
+    the image is sampled like the bulk; then :data:`BULK` · ``pixels`` of the others, uniformly.
+
+    Returns
+    -------
+    (H*W,) bool
+    dict
+        fit.json's ``sampling`` counts: ``evidence``, ``bulk``, ``of`` (the pixels ``mask`` held).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    evidence, bulk = int(EVIDENCE * pixels), int(BULK * pixels)
+    w = np.where(mask, evidence_light(trees, materials, intensities) ** 2, 0.0)
+    total = float(w.sum())
+    rng = np.random.default_rng(seed + 1)
+    draw = rng.random(len(w))
+    ev = np.zeros_like(mask)
+    if total > 0:
+        # The scale c with Σ min(1, c·w) = evidence (bisection on the sorted weights).
+        c = _scale(w[w > 0], float(evidence))
+        ev = (w > 0) & (draw < (np.minimum(1.0, c * w) if np.isfinite(c) else 1.0))
+    rest = uniform(mask & ~ev, bulk, seed + 2)
+    return ev | rest, {"pixels": int(pixels), "evidence": int(ev.sum()), "bulk": int(rest.sum()), "of": int(mask.sum())}
+
+
+def _scale(w, budget: float) -> float:
+    """c such that Σ min(1, c·w) = budget (inf when every weight fits the budget)."""
+    if budget >= len(w):
+        return np.inf
+    ws = np.sort(w)[::-1]
+    # With the k largest capped at 1: k + c·Σ_{i≥k} w_i = budget, valid when c·w_k ≤ 1.
+    k = np.arange(int(budget) + 1)
+    tail = np.cumsum(ws[::-1])[::-1][k]
+    c = np.divide(budget - k, tail, out=np.full(len(k), np.inf), where=tail > 0)
+    ok = np.flatnonzero(c * ws[k] <= 1.0)
+    return float(c[ok[0]]) if len(ok) else np.inf

@@ -1,0 +1,87 @@
+"""The fit reads a sample of a large photograph's pixels (docs/fit.md "Sampling").
+
+Ground truth: the zoo's random scenes, photographed by the independent reference renderer with
+their true materials (truth.json), and the same fit reading every pixel.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reflab.hardware.sim.zoo import compare, score, write_zoo_workspace
+
+
+def test_the_sample_keeps_every_strong_evidence_pixel_and_is_seeded():
+    """Pixels whose non-diffuse light is strongest are all read; the rest is drawn, the same each time."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.sampling import BULK, EVIDENCE, evidence_light, fit_sample
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(80, 60, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material for s in lab.scene]
+    mask = np.ones(80 * 60, dtype=bool)
+    budget = 1200
+    keep, counts = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
+    again, _ = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
+    assert np.array_equal(keep, again)
+    w = evidence_light(trees, truth, lab.lights.intensities)
+    strongest = np.argsort(w)[::-1][:100]  # the mirror's and the sheet's brightest: all read
+    assert keep[strongest].all()
+    assert counts["bulk"] == int(BULK * budget)
+    assert abs(counts["evidence"] - EVIDENCE * budget) < 0.15 * EVIDENCE * budget  # drawn: about the budget
+    assert counts["evidence"] + counts["bulk"] == int(keep.sum()) < len(mask)
+
+
+def _values(report):
+    return {(s["name"], k, c): (v, s["sigma"][k][c] if isinstance(s["sigma"][k], list) else s["sigma"][k])
+            for s in report["surfaces"] for k, vals in s["material"].items() if k not in ("brdf", "ior")
+            for c, v in enumerate(np.atleast_1d(vals).tolist())
+            if k not in s["undetermined"] and f"{k}[{c}]" not in s["undetermined"]}
+
+
+@pytest.mark.parametrize("seed", [2, 6])
+def test_a_sampled_fit_is_honest_and_agrees_with_the_full_one(tmp_path, seed):
+    """Reading a fifth of the pixels: no confident wrong value against the truth, each value within
+    its σ of the fit that read every pixel, and σ no tighter than that fit's."""
+    from reflab.core.workspace import read_json
+    from reflab.inverse.stages import FitOptions, fit
+
+    zoo = write_zoo_workspace(tmp_path, seed, 160, 120, noise=0.01, truth_views=False)
+    truth, textured = read_json(tmp_path / "truth.json"), [x.textured for x in zoo.scene]
+    full = fit(FitOptions(tmp_path, pixels=0)).report
+    assert "sampling" not in full
+    sampled = fit(FitOptions(tmp_path, pixels=4000)).report
+    info = sampled["sampling"]
+    assert info["of"] == full["used_pixels"] + len(full["rejected"]["pixels"]) if "rejected" in full else True
+    assert info["evidence"] + info["bulk"] >= sampled["used_pixels"]  # less the outliers left out
+    assert sampled["used_pixels"] < 0.3 * full["used_pixels"]
+    s = score(compare(sampled, truth, textured))
+    assert s["wrong"] == [] and s["determined"] >= 10, s
+    a, b = _values(sampled), _values(full)
+    both = [k for k in a if k in b and b[k][1] and a[k][1]]
+    assert len(both) >= 10
+    far = [(k, a[k], b[k]) for k in both if abs(a[k][0] - b[k][0]) > 3 * a[k][1] + 0.02 * abs(b[k][0])]
+    assert far == []
+    ratio = np.array([a[k][1] / b[k][1] for k in both])
+    print(len(both), np.round(np.percentile(ratio, [0, 50, 100]), 2), s)
+    assert np.median(ratio) >= 1.0  # fewer pixels: the σ widens (it is the estimate's own)
+
+
+def test_trees_of_some_pixels_render_those_pixels_as_the_whole():
+    """Trees.of_pixels keeps the chosen pixels' nodes (mirror and glass children included) unchanged."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(80, 60, textured=False)
+    truth = [s.material for s in lab.scene]
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    chosen = np.random.default_rng(0).random(80 * 60) < 0.3
+    part = trees.of_pixels(chosen)
+    assert 0 < len(part) < 0.5 * len(trees) and (part.level > 1).any()
+    whole = render(trees, truth, lab.lights.intensities).reshape(-1, 3)
+    some = render(part, truth, lab.lights.intensities).reshape(-1, 3)
+    assert np.array_equal(some[chosen], whole[chosen]) and not some[~chosen].any()
+    assert ((part.parent == -1) == (part.level == 1)).all() and (part.pixel[part.parent[part.parent >= 0]]
+                                                                  == part.pixel[part.parent >= 0]).all()
