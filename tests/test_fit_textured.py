@@ -161,7 +161,7 @@ def test_other_designs_are_honest(name):
     shininess 3000, two glossy textured surfaces, a glossy textured tile and a glossy textured
     floor each seen directly and in a mirror), 80x60, 1 % noise: σ never NaN, nothing outside its
     range, every determined value within 3σ + 2 % (docs/fit.md, "Other designs"). The two-ink
-    Ward tile's lobe is claimed from its colours; the Oren-Nayar roughness never. The glossy floor
+    Ward tile's lobe is claimed from its colours; the Oren-Nayar roughness from the mirror's view. The glossy floor
     in a mirror at 160x120: at 80x60 its mirror's kd and r trade in one band past 3σ in 1 of 10
     realisations (docs/fit.md)."""
     from reflab.hardware.sim.scenes import build, render
@@ -176,8 +176,10 @@ def test_other_designs_are_honest(name):
             continue
         if name in ("glossy_floor_mirror", "ward_tile"):  # seen twice, or in two inks: its lobe is claimed
             assert not ({"ks"} | set(model.nonlinear)) & set(res.undetermined[i]), res.undetermined[i]
-        elif name == "oren_mirror":  # its roughness shapes the diffuse term itself: never claimed
-            assert set(model.nonlinear) <= set(res.undetermined[i]), (user.names[i], res.undetermined[i])
+        elif name == "oren_mirror":  # its roughness shows in the texels the mirror shows again
+            # Claimed since the first texture round keeps the box's pixels (0.278 ± 0.071 for 0.4;
+            # undetermined at 0.104 when its r[2], 0.12 from the homogeneous start, left them out).
+            assert not set(model.nonlinear) & set(res.undetermined[i]), (user.names[i], res.undetermined[i])
     assert len(rows) >= (0 if name == "two_textured" else 6)
 
 

@@ -216,7 +216,7 @@ def read_image(doc: dict, blob: bytes, index: int) -> np.ndarray:
 def write_ply_folder(model, out) -> tuple[list, dict]:
     """``out/<surface>.ply`` (texture_u, texture_v with v up, as MeshLab and Blender read them; a
     ``TextureFile`` comment), ``out/<surface>.png`` (sRGB) and ``.exr`` (linear kd) beside each
-    textured one, and ``out/materials.json`` (the materials, as fit.json holds them)."""
+    textured one, and ``out/materials.json`` (the materials, as the render takes them from fit.json)."""
     from reflab.core.images import write_image
     from reflab.core.workspace import atomic_write, write_json
     from reflab.inverse.export.ply import write_ply

@@ -107,6 +107,12 @@ def colour_held(trees, materials, guessed, intensities, image, textured, noise, 
     return materials, guessed, lobes
 
 
+def without_own_paths(materials, textured) -> list:
+    """``materials`` with every textured surface's ``r`` and ``t`` at 0 (the others unchanged)."""
+    return [dataclasses.replace(m, params=dict(m.params) | {n: np.zeros(3) for n in ("r", "t") if n in m.params})
+            if tex else m for m, tex in zip(materials, textured)]
+
+
 def direct_share(trees, materials, intensities, textured, relative=None) -> np.ndarray:
     """(H*W, 3) share of each pixel's predicted light that the diffuse term of directly seen
     textured surfaces carries.
@@ -327,7 +333,12 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
             materials, guessed, colour = colour_held(trees, materials, guessed, intensities, image, textured,
                                                      start.stats.get("noise"), mask, held, result.rms)
             colour_s = time.perf_counter() - t0
-        share = direct_share(trees, materials, intensities, textured, relative)
+        # The first round's pixels are chosen with each textured surface's own r and t at 0: the
+        # homogeneous start fitted them against one kd, so they carry the texture's variation (shiny
+        # box with a lamp alone: r [0, 0.07, 0.18] for 0), and chosen with them no pixel of the
+        # surface is left to recover the texture that would show them wrong.
+        share = direct_share(trees, without_own_paths(materials, textured) if k == 0 else materials,
+                             intensities, textured, relative)
         left_out = (share < min_share).any(axis=1)
         # The round whose values are reported (an earlier one only seeds it) also sees what the
         # photograph's noise makes of the texels (deattenuated).

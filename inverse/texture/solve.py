@@ -127,6 +127,10 @@ class TextureSolution:
 def load_materials(workspace, scene) -> tuple[list, str]:
     """Materials in surface order: fit.json's when it exists, else scene.json's.
 
+    fit.json's r and t are taken at the value a view renders them with (:func:`_render_values`):
+    a loose one shrinks toward 0, the posterior mean under the field's prior (docs/fit.md,
+    "Rendering a loose value").
+
     Returns
     -------
     materials : list of Material
@@ -149,8 +153,29 @@ def load_materials(workspace, scene) -> tuple[list, str]:
         name = item.get("name", scene[i].name if i < len(scene) else None)  # by name, else by position
         if name not in scene.names:
             raise WorkspaceError(ws.fit, f"surfaces[{i}].name", f"one of the scene's surfaces {scene.names}", got=name)
-        materials[scene.index(name)] = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
+        material = Material.from_json(item["material"], ws.fit, f"surfaces[{i}].material")
+        materials[scene.index(name)] = _render_values(material, item.get("sigma"), scene[scene.index(name)].material.given)
     return materials, "fit.json"
+
+
+def _render_values(material, sigma, given):
+    """``material`` with each fitted r and t at the value a view renders it with
+    (:func:`reflab.inverse.fit.ranges.render_value`: a loose one near 0 shrinks toward it);
+    given values, and values without a finite σ, unchanged."""
+    import dataclasses
+
+    from reflab.inverse.fit.ranges import render_value
+
+    if not isinstance(sigma, dict):
+        return material
+    params = dict(material.params)
+    for name in ("r", "t"):
+        sig = sigma.get(name)
+        if name in given or name not in params or not isinstance(sig, list) or len(sig) != np.size(params[name]):
+            continue
+        sig = np.array([np.inf if e is None else e for e in sig], dtype=np.float64)
+        params[name] = render_value(np.asarray(params[name], dtype=np.float64).reshape(-1), sig).reshape(np.shape(params[name]))
+    return dataclasses.replace(material, params=params)
 
 
 class Uncertainty(NamedTuple):
