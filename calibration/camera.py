@@ -76,6 +76,17 @@ class Camera:
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
         return Camera(width, height, K, self.dist.copy(), self.R.copy(), self.t.copy())
 
+    def binned(self, factor: int) -> "Camera":
+        """The camera of the image binned ``factor`` × ``factor`` (block means, right and bottom
+        remainders cropped): binned pixel j's centre is the centre of original pixels [j·f, (j+1)·f)."""
+        f = int(factor)
+        if f < 1:
+            raise ValueError(f"binning factor must be >= 1, got {factor!r}")
+        K = self.K.copy()
+        K[:2, :2] /= f
+        K[:2, 2] = (K[:2, 2] + 0.5) / f - 0.5
+        return Camera(self.width // f, self.height // f, K, self.dist.copy(), self.R.copy(), self.t.copy())
+
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """Normalised image coordinates (x, y) with distortion removed, for pixels ``uv`` (N, 2)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)

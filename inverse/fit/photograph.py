@@ -83,6 +83,18 @@ def image_noise(image, used=None) -> np.ndarray:
     return np.median(np.abs(resp[ok]), axis=0) / (0.6745 * 6.0)
 
 
+def read_photograph(photo, saturation: float | None = None):
+    """A photograph's image, checked against its camera (:func:`check_image`), and its saturated
+    pixels (:func:`saturated_pixels`); every pixel saturated raises WorkspaceError naming the file."""
+    from reflab.core.images import read_image
+
+    img = check_image(read_image(photo.image), photo.camera.width, photo.camera.height, photo.image)
+    sat = saturated_pixels(img, saturation)
+    if sat.all():
+        raise WorkspaceError(photo.image, "pixels", "some pixels below the saturation level", got="every pixel saturated")
+    return img, sat
+
+
 def stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
                       task=None, log=None):
     """The workspace's photographs (the reference and ``inputs/``, or the reference alone with
@@ -98,18 +110,13 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
         Saturated pixels (each photograph's own clipping level), padding included.
     photos : list of Photograph
     """
-    from reflab.core.images import read_image
     from reflab.inverse.forward.photographs import load_photographs, stack_trees
     from reflab.inverse.forward.trees import trees_for_workspace
 
     photos = load_photographs(workspace, reference_only=single)
     images, masks, trees = [], [], []
     for photo in photos:
-        img = check_image(read_image(photo.image), photo.camera.width, photo.camera.height, photo.image)
-        sat = saturated_pixels(img, saturation)
-        if sat.all():
-            raise WorkspaceError(photo.image, "pixels", "some pixels below the saturation level",
-                                 got="every pixel saturated")
+        img, sat = read_photograph(photo, saturation)
         images.append(img)
         masks.append(sat)
         trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,

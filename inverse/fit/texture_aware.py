@@ -234,7 +234,8 @@ def _leave_out(mask, result, width) -> None:
 def fit_with_texture(trees, scene, models, intensities, image, start: FitSolution, *, mask=None, rounds: int = 2,
                      min_share: float = MIN_SHARE, method: str = "ftbo", options: SolverOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
-                     progress=None, task=None, held=None, select_models: bool = True) -> tuple[FitSolution, list]:
+                     progress=None, task=None, held=None, select_models: bool = True,
+                     view=None) -> tuple[FitSolution, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
     Parameters
@@ -275,6 +276,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         get no texture here (``stats["albedo_models"]`` says what each got). When none is left
         textured in view, the refit is the result and no round runs.
 
+    view : (Trees, image, noise), optional
+        Where the rounds recover their texture, when not from ``trees`` and ``image`` themselves:
+        a large photograph's binned view (:mod:`reflab.inverse.fit.large`) and its noise σ per
+        band, whose texture the fit's rows, ``trees``' nodes, then look up.
+
     Returns
     -------
     FitSolution
@@ -311,6 +317,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     result, records, relative, tex = start, [], None, None
     best, best_err, best_round = start, float(np.sum(np.asarray(start.rms) ** 2)), 0
     best_relative = None
+    view_trees, view_image, view_noise = (trees, image, start.stats.get("noise")) if view is None else view
+    relative_view, best_relative_view = None, None
     trace, elapsed = [list(p) for p in start.trace], start.time_s
     evaluations, iterations = start.evaluations, start.iterations
     t_start = time.perf_counter()
@@ -337,16 +345,18 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         # homogeneous start fitted them against one kd, so they carry the texture's variation (shiny
         # box with a lamp alone: r [0, 0.07, 0.18] for 0), and chosen with them no pixel of the
         # surface is left to recover the texture that would show them wrong.
-        share = direct_share(trees, without_own_paths(materials, textured) if k == 0 else materials,
-                             intensities, textured, relative)
+        share = direct_share(view_trees, without_own_paths(materials, textured) if k == 0 else materials,
+                             intensities, textured, relative_view)
         left_out = (share < min_share).any(axis=1)
         # The round whose values are reported (an earlier one only seeds it) also sees what the
         # photograph's noise makes of the texels (deattenuated).
-        tex = recover_texture(scene, trees, materials, intensities, image, options, exclude=left_out,
-                              maps=build_maps(scene, trees, options, crop=True) if tex is None else tex.maps,
-                              perturb=noise_like(image, trees, textured, start.stats.get("noise"))
+        tex = recover_texture(scene, view_trees, materials, intensities, view_image, options, exclude=left_out,
+                              maps=build_maps(scene, view_trees, options, crop=True) if tex is None else tex.maps,
+                              perturb=noise_like(view_image, view_trees, textured, view_noise)
                               if last else None)
         relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex)
+        relative_view = relative if view is None else deattenuated(relative_albedo(view_trees, textured, tex),
+                                                                   view_trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
         # σ only for the last round (the one kept, unless its texture went wrong: see below). After
@@ -374,9 +384,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         if record["kept"]:
             best, best_err, best_round = result, min(err, best_err), k + 1
         else:  # a round whose texture made the image worse: its successor starts from the best
-            result, relative = best, best_relative
+            result, relative, relative_view = best, best_relative, best_relative_view
         if best_round == k + 1:
-            best_relative = relative
+            best_relative, best_relative_view = relative, relative_view
         records.append(record)
         if progress is not None:
             progress(record)

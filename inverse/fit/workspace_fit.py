@@ -69,16 +69,36 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     ws.require(ws.lights, "reflab calibrate lights")
     scene = Scene.load(ws.require(ws.scene, "reflab reconstruct"))
     t0 = time.perf_counter()
-    stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
-                                                        task=task)
-    trees, intensities, camera = stack.trees, stack.intensities, photos[0].camera
-    t1 = time.perf_counter()
-    usable = ~saturated.reshape(-1)
-    done = fit_scene(trees, scene, intensities, image, usable, method, maxiter=maxiter, max_seconds=max_seconds,
-                     texture_rounds=texture_rounds, progress=progress, task=task, pixels=pixels, scene_file=ws.scene)
+    from reflab.inverse.fit import large
+    from reflab.inverse.forward.photographs import load_photographs
+
+    photos = load_photographs(ws, reference_only=single)
+    if pixels and large.is_large(photos):
+        # Too large for trees of every pixel: read through a binned view (reflab.inverse.fit.large).
+        from reflab.inverse.fit.photograph import read_photograph
+        from reflab.inverse.forward.models import get_model
+
+        read = [read_photograph(p, saturation) for p in photos]
+        t1 = time.perf_counter()
+        done, big = large.fit_large(ws, scene, depth, photos, [r[0] for r in read], [r[1] for r in read],
+                                    [get_model(s.material.brdf) for s in scene], method=method, maxiter=maxiter,
+                                    max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
+                                    task=task, pixels=pixels)
+        stack, image, saturated = big.stack, big.image, big.saturated
+    else:
+        stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
+                                                            task=task)
+        t1 = time.perf_counter()
+        done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
+                         maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
+                         task=task, pixels=pixels, scene_file=ws.scene)
+    trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
-    ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
+    if pixels and large.is_large(photos):  # the reference's own saturation, not the pixels left unread
+        ref_image, ref_saturated = read[0]
+    else:
+        ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
     extra = {"image": {"file": photos[0].image.name, "width": camera.width, "height": camera.height,
                        "saturated_pixels": int(ref_saturated.sum()),
                        # the scale of fit.json's `noise`: renders judge a guess against noise / peak
