@@ -102,7 +102,7 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     :class:`LargeStack`).
     """
     from reflab.inverse.fit.rounds import fit
-    from reflab.inverse.fit.workspace_fit import SceneFit
+    from reflab.inverse.fit.result import SceneFit
     from reflab.inverse.forward.factorization import Factorization
     from reflab.inverse.forward.photographs import stack_trees
     from reflab.inverse.forward.trees import trees_for_workspace

@@ -1,6 +1,8 @@
 """The result of a fit and the fit.json object of docs/formats.md."""
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,3 +92,16 @@ def _finite(obj):
 def _sigma_list(sig, free) -> list:
     """Per-band sigma, None where the band is undetermined (JSON null, never NaN/inf)."""
     return [float(v) if f and np.isfinite(v) else None for v, f in zip(sig, free)]
+
+
+@dataclasses.dataclass
+class SceneFit:
+    """What :func:`reflab.inverse.fit.workspace_fit.fit_scene` found: the fit, the system it was judged on (``fac``: its rows are
+    the pixels read), the texture rounds' records, the sampling's counts, seconds per phase."""
+
+    result: "FitSolution"
+    fac: object  # reflab.inverse.forward.factorization.Factorization
+    rounds: dict | None
+    sampling: dict | None
+    phases: dict
+    scan_evaluations: int

@@ -16,6 +16,7 @@ from reflab.core.workspace import WorkspaceError
 from reflab.inverse.fit import sampling
 from reflab.inverse.forward.factorization import Factorization
 from reflab.inverse.fit.albedo_model import annotate
+from reflab.inverse.fit.result import SceneFit
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
@@ -122,19 +123,6 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     ensure(task).check()  # a cancel during the last iteration: nothing written
     write_json(ws.fit, report)
     return report, result
-
-
-@dataclasses.dataclass
-class SceneFit:
-    """What :func:`fit_scene` found: the fit, the system it was judged on (``fac``: its rows are
-    the pixels read), the texture rounds' records, the sampling's counts, seconds per phase."""
-
-    result: FitSolution
-    fac: Factorization
-    rounds: dict | None
-    sampling: dict | None
-    phases: dict
-    scan_evaluations: int
 
 
 def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
