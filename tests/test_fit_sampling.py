@@ -58,6 +58,8 @@ def test_a_sampled_fit_is_honest_and_agrees_with_the_full_one(tmp_path, seed):
     assert info["of"] == full["used_pixels"] + len(full["rejected"]["pixels"]) if "rejected" in full else True
     assert info["evidence"] + info["bulk"] >= sampled["used_pixels"]  # less the outliers left out
     assert sampled["used_pixels"] < 0.3 * full["used_pixels"]
+    # the noise from the usable pixels, not from the few whole 3×3 windows of the pixels read
+    assert np.allclose(sampled["noise"], full["noise"], rtol=0.05), (sampled["noise"], full["noise"])
     s = score(compare(sampled, truth, textured))
     assert s["wrong"] == [] and s["determined"] >= 10, s
     a, b = _values(sampled, textured), _values(full, textured)
@@ -105,6 +107,7 @@ def test_a_large_photograph_is_fitted_through_a_binned_view(tmp_path, monkeypatc
     assert info["view"] == [2] and info["read"] == report["used_pixels"] < 0.5 * 160 * 120
     assert report["trees"]["nodes"] < 0.6 * full["trees"]["nodes"]  # trees of the pixels read only
     assert (report["image"]["width"], report["image"]["height"]) == (160, 120)
+    assert np.allclose(report["noise"], full["noise"], rtol=0.05), (report["noise"], full["noise"])
     s = score(compare(report, truth, textured))
     assert s["wrong"] == [] and s["determined"] >= 10, s
     a, b = _values(report, textured), _values(full, textured)

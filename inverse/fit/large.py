@@ -101,6 +101,7 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     (H·W,) saturated masks. Returns (:class:`reflab.inverse.fit.workspace_fit.SceneFit`,
     :class:`LargeStack`).
     """
+    from reflab.inverse.fit.photograph import remember_noise
     from reflab.inverse.fit.rounds import fit
     from reflab.inverse.fit.result import SceneFit
     from reflab.inverse.forward.factorization import Factorization
@@ -119,6 +120,8 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     view_usable = np.zeros(view.width * view.height, dtype=bool)
     for i, (_, sat) in enumerate(binned):
         view_usable[view.pixels(i)] = ~sat
+    # The pixels read are too sparse for the noise's 3×3 windows: each image's usable ones say it.
+    remember_noise(view_image, view_usable)
     t1 = time.perf_counter()
     held = [s.material.given for s in scene]
     textured = [s.textured for s in scene]
@@ -152,6 +155,13 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     trees = [trees_of_pixels(scene, p.camera, p.lights, r, depth=depth, task=task) for p, r in zip(photos, read)]
     stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
     image = stack.image(images)
+    usable_full = np.zeros(stack.width * stack.height, dtype=bool)
+    for i, sat in enumerate(saturated):
+        b = stack.blocks[i]
+        usable_full.reshape(stack.height, stack.width)[b.row0:b.row0 + b.height, :b.width] = \
+            ~np.asarray(sat, dtype=bool).reshape(b.height, b.width)
+    remember_noise(image, usable_full)
+    del usable_full
     unusable = np.ones(stack.width * stack.height, dtype=bool)
     for i, (r, sat) in enumerate(zip(read, saturated)):
         b = stack.blocks[i]

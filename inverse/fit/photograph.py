@@ -83,6 +83,31 @@ def image_noise(image, used=None) -> np.ndarray:
     return np.median(np.abs(resp[ok]), axis=0) / (0.6745 * 6.0)
 
 
+#: Noise estimated once per image over its usable pixels (:func:`remember_noise`), by ``id``
+#: with a weak reference that says the image is still that one.
+_NOISE: dict = {}
+
+
+def remember_noise(image, usable=None) -> np.ndarray:
+    """:func:`image_noise` of ``image`` over its ``usable`` (H·W,) pixels, kept for every fit that
+    reads some of its pixels (:func:`known_noise`): a fit reading a sample of the pixels
+    (:mod:`reflab.inverse.fit.sampling`) has too few whole 3×3 windows of them for the estimate."""
+    import weakref
+
+    img = np.asarray(image)
+    sigma = image_noise(img, None if usable is None else np.asarray(usable, dtype=bool).reshape(img.shape[:2]))
+    for key in [k for k, (ref, _) in _NOISE.items() if ref() is None]:
+        del _NOISE[key]
+    _NOISE[id(img)] = (weakref.ref(img), sigma)
+    return sigma
+
+
+def known_noise(image) -> np.ndarray | None:
+    """The noise :func:`remember_noise` kept for this very image object, else None."""
+    hit = _NOISE.get(id(image))
+    return hit[1] if hit is not None and hit[0]() is image else None
+
+
 def read_photograph(photo, saturation: float | None = None):
     """A photograph's image, checked against its camera (:func:`check_image`), and its saturated
     pixels (:func:`saturated_pixels`); every pixel saturated raises WorkspaceError naming the file."""

@@ -13,7 +13,7 @@ import numpy as np
 
 from reflab.core.task import ensure
 from reflab.inverse.forward.factorization import BANDS, Factorization
-from reflab.inverse.fit.photograph import image_noise
+from reflab.inverse.fit.photograph import image_noise, known_noise
 from reflab.inverse.fit.ranges import theta_bounds
 
 
@@ -137,8 +137,11 @@ class Problem:
         self.peak = float(self.b.max()) if self.b.size else 0.0
         used = np.zeros(fac.width * fac.height, dtype=bool)
         used[fac.rows] = True
-        #: Noise σ per band estimated from the image alone, never below NOISE_FLOOR of the peak.
-        self.noise = np.maximum(image_noise(image, used.reshape(fac.height, fac.width)), NOISE_FLOOR * self.peak)
+        #: Noise σ per band estimated from the image alone (over its usable pixels when the stage
+        #: said which: remember_noise), never below NOISE_FLOOR of the peak.
+        known = known_noise(image)
+        self.noise = np.maximum(image_noise(image, used.reshape(fac.height, fac.width)) if known is None else known,
+                                NOISE_FLOOR * self.peak)
         self.search = Search(fac)
         names = [name for _, name in fac.layout.theta_names]
         self.scan_lo = np.array([SCAN_RANGE.get(n, (lo, hi))[0] for n, lo, hi in zip(names, self.search.lo, self.search.hi)])

@@ -140,6 +140,10 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     models = [get_model(s.material.brdf) for s in scene]
     usable = np.asarray(usable, dtype=bool).reshape(-1)
     sampled = sampling.needed(usable, pixels)
+    if sampled:  # the pixels read are too sparse for the noise's 3×3 windows: the usable ones say it
+        from reflab.inverse.fit.photograph import remember_noise
+
+        remember_noise(image, usable)
     fac = Factorization(trees, models, intensities, mask=sampling.pilot(usable, pixels) if sampled else usable)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
