@@ -14,7 +14,7 @@ from reflab.hardware.sim.zoo import compare, score, write_zoo_workspace
 def test_the_sample_keeps_every_strong_evidence_pixel_and_is_seeded():
     """Pixels whose non-diffuse light is strongest are all read; the rest is drawn, the same each time."""
     from reflab.hardware.sim.lab import build_lab
-    from reflab.inverse.fit.sampling import BULK, EVIDENCE, evidence_light, fit_sample
+    from reflab.inverse.fit.sampling import BULK, EVIDENCE, evidence_weight, fit_sample
     from reflab.inverse.forward.trees import build_trees
 
     lab = build_lab(80, 60, textured=False)
@@ -25,8 +25,8 @@ def test_the_sample_keeps_every_strong_evidence_pixel_and_is_seeded():
     keep, counts = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
     again, _ = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
     assert np.array_equal(keep, again)
-    w = evidence_light(trees, truth, lab.lights.intensities)
-    strongest = np.argsort(w)[::-1][:100]  # the mirror's and the sheet's brightest: all read
+    w = evidence_weight(trees, truth, lab.lights.intensities)
+    strongest = np.argsort(w)[::-1][:100]  # each term's strongest pixels (highlights): all read
     assert keep[strongest].all()
     assert counts["bulk"] == int(BULK * budget)
     assert abs(counts["evidence"] - EVIDENCE * budget) < 0.15 * EVIDENCE * budget  # drawn: about the budget

@@ -7,10 +7,11 @@ information, are rare. So the fit reads
 
 1. a **pilot**: a uniform random sample of :data:`PILOT` of the budget, fitted as the homogeneous start;
 2. then **the evidence and a share of the bulk**: under the pilot's parameters (undetermined
-   lobes at their plausible value), each pixel's light that is not the diffuse light of a directly
-   seen surface — highlights, reflections, transmissions, in any photograph — weighs its
-   information on those terms; pixels are drawn by that weight (:data:`EVIDENCE` of the budget,
-   the strongest all kept), and a uniform random sample of the others (:data:`BULK` of it).
+   lobes at their plausible value), each term that is not the diffuse light of a directly seen
+   surface — a surface's lobe, a reflected or transmitted path, in any photograph — spreads its
+   information over the pixels as its light squared; a pixel weighs its largest share of one
+   term's, and pixels are drawn by that weight (:data:`EVIDENCE` of the budget, the strongest all
+   kept), then a uniform random sample of the others (:data:`BULK` of it).
 
 Choosing rows by the model, not by their values, keeps least squares unbiased (the residual of a
 kept pixel has the same distribution as before), and every σ is computed from the rows the fit
@@ -44,18 +45,45 @@ def uniform(mask, count: int, seed: int = SEED) -> np.ndarray:
 
 
 def evidence_light(trees, materials, intensities) -> np.ndarray:
-    """(H*W,) per pixel, the largest band's predicted light that is not the diffuse light of a
-    directly seen surface (lobes, reflections, transmissions), under ``materials``."""
-    from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
+    """(H*W,) per pixel, the predicted light (largest band per term) that is not the diffuse light
+    of a directly seen surface (lobes, reflections, transmissions), under ``materials``."""
+    pixel, light, _, _ = _terms(trees, materials, intensities)
+    return np.bincount(pixel, weights=light, minlength=trees.width * trees.height)
 
-    npix = trees.width * trees.height
-    kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)[trees.surface]
+
+def evidence_weight(trees, materials, intensities) -> np.ndarray:
+    """(H*W,) per pixel, the largest share it holds of any one term's information: per term (each
+    surface's lobe, wherever it is seen; each reflected or transmitted path), the pixel's light of
+    that term squared over the term's sum of squares. A term's few strong pixels (a sharp
+    highlight) then weigh as much as another's many (a mirror's whole reflection)."""
+    from scipy.sparse import coo_matrix, diags
+
+    pixel, light, term, n_terms = _terms(trees, materials, intensities)
+    per = coo_matrix((light, (pixel, term)), shape=(trees.width * trees.height, n_terms)).tocsr()  # sums duplicates
+    per.data **= 2
+    total = np.asarray(per.sum(axis=0)).ravel()
+    per = per @ diags(np.divide(1.0, total, out=np.zeros_like(total), where=total > 0))
+    return np.asarray(per.max(axis=1).todense()).ravel()
+
+
+def _terms(trees, materials, intensities):
+    """Entries (pixel, light, term) and the count of terms: per node, its lobe's light (term: its
+    surface) and, deeper than the first hit, its diffuse light carried by the path (term: the
+    surface count + its path); the largest band of each, zero entries left out."""
+    from reflab.inverse.forward.rendering import linear_basis, node_parameters, path_products
+
+    x, _ = node_parameters(trees, materials)
     basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd in slot 0
-    light = node_radiance(trees, materials, intensities, kd_nodes=kd, basis=basis)
-    diffuse = np.where((np.asarray(trees.level) == 1)[:, None], path_products(trees, materials) * basis[:, :, 0] * kd, 0.0)
-    other = np.stack([np.bincount(trees.pixel, weights=light[:, c] - diffuse[:, c], minlength=npix)
-                      for c in range(3)], axis=1)
-    return np.maximum(other, 0.0).max(axis=1)
+    pp = path_products(trees, materials)
+    lobe = (pp * np.einsum("ncl,ncl->nc", basis[:, :, 1:], x[:, :, 1:])).max(axis=1)
+    deep = np.asarray(trees.level) > 1
+    carried = np.where(deep, (pp * basis[:, :, 0] * x[:, :, 0]).max(axis=1), 0.0)
+    n_surf = len(materials)
+    light = np.concatenate([lobe, carried])
+    term = np.concatenate([np.asarray(trees.surface, dtype=np.int64), n_surf + np.asarray(trees.path, dtype=np.int64)])
+    pixel = np.concatenate([trees.pixel, trees.pixel]).astype(np.int64)
+    keep = light > 0
+    return pixel[keep], light[keep], term[keep], n_surf + max(len(trees.paths), 1)
 
 
 def needed(mask, pixels: int = PIXELS) -> bool:
@@ -72,10 +100,10 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
     """The pixels the fit reads after its pilot: ``mask``'s evidence and a uniform share of the rest.
 
     With ``evidence`` = :data:`EVIDENCE` · ``pixels``, each pixel is kept with probability
-    ``min(1, evidence · w / Σ w)``, ``w`` the square of its
-    light that is not direct diffuse (:func:`evidence_light`; its information on those terms), so
-    that a highlight, a mirror's or a glass' pixels are all read and a faint broad lobe spread over
-    the image is sampled like the bulk; then :data:`BULK` · ``pixels`` of the others, uniformly.
+    ``min(1, c · w)``, ``w`` its largest share of one term's information (:func:`evidence_weight`)
+    and ``c`` such that about ``evidence`` are drawn: every term (a lobe, a reflection, a
+    transmission) keeps its strongest pixels, a sharp highlight all of them; then
+    :data:`BULK` · ``pixels`` of the others, uniformly.
 
     Returns
     -------
@@ -85,7 +113,7 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
     """
     mask = np.asarray(mask, dtype=bool)
     evidence, bulk = int(EVIDENCE * pixels), int(BULK * pixels)
-    w = np.where(mask, evidence_light(trees, materials, intensities) ** 2, 0.0)
+    w = np.where(mask, evidence_weight(trees, materials, intensities), 0.0)
     total = float(w.sum())
     rng = np.random.default_rng(seed + 1)
     draw = rng.random(len(w))
