@@ -102,6 +102,9 @@ class TextureOptions:
                                    type=positive_float)
     max_albedo: float = opt(1.0, "upper bound of kd", type=positive_float)
     single: bool = opt(False, "use the reference photograph alone, ignoring inputs/", flag="--single-photograph")
+    tile_pixels: int = opt(1 << 19, "a photograph larger than this is textured a tile of this many pixels at a time "
+                                    "(its trees built, reduced and released per tile, not cached): bounds memory",
+                           type=positive_int)
 
 
 @dataclass
@@ -137,6 +140,7 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     """
     from reflab.core.workspace import Workspace, check_folder, read_json
     from reflab.inverse.fit.photograph import stack_photographs
+    from reflab.inverse.forward.photographs import load_photographs
     from reflab.inverse.forward.rendering import undetermined_pixels
     from reflab.inverse.texture import solve as tex
     from reflab.reconstruction.scene import Scene
@@ -154,6 +158,9 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     solver = tex.SolverOptions(texel_scale=o.texel_scale, texel_size=o.texel_size, prior=o.prior,
                                 smoothness=o.smoothness, saturation=o.saturation, bounds=(0.0, o.max_albedo))
     solver.validate()
+    photos = load_photographs(ws, reference_only=o.single)
+    if max(p.camera.width * p.camera.height for p in photos) > o.tile_pixels:
+        return _texture_tiled(ws, scene, photos, materials, source, depth, solver, o, task, log)
     # Every photograph adds rows to one system (one albedo per texel), the reference alone with
     # ``single``; the solver finds each photograph's saturated pixels in the stacked image.
     stack, image, _, photos = stack_photographs(ws, scene, depth, saturation=o.saturation, single=o.single,
@@ -169,18 +176,52 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
         if any(u.undetermined) or any(u.sigma) else None
     result = tex.recover_texture(scene, trees, materials, intensities, image, solver, guess=guess, task=task,
                                  exclude=padding)
-    extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
-             "photographs": [{"name": p.name, "width": b.width, "height": b.height, "lamps": b.lights}
-                             for p, b in zip(photos, stack.blocks)],
+    photographs = [{"name": p.name, "width": b.width, "height": b.height, "lamps": b.lights}
+                   for p, b in zip(photos, stack.blocks)]
+    return _write_texture(ws, scene, result, source, depth, solver, trees.stats, photographs, guess, task)
+
+
+def _texture_tiled(ws, scene, photos, materials, source, depth, solver, o, task, log) -> TextureResult:
+    """:func:`texture` for photographs larger than ``tile_pixels``: tile by tile
+    (:mod:`reflab.inverse.texture.tiles`), the same texture within float rounding."""
+    from reflab.core.images import read_image
+    from reflab.core.workspace import WorkspaceError
+    from reflab.inverse.fit.photograph import check_image, saturated_pixels
+    from reflab.inverse.texture import solve as tex
+    from reflab.inverse.texture.tiles import texture_tiled
+
+    images = []
+    for p in photos:
+        img = check_image(read_image(p.image), p.camera.width, p.camera.height, p.image)
+        if saturated_pixels(img, o.saturation).all():
+            raise WorkspaceError(p.image, "pixels", "some pixels below the saturation level",
+                                 got="every pixel saturated")
+        images.append(img)
+    result, info = texture_tiled(scene, photos, images, materials, solver, depth=depth, tile_pixels=o.tile_pixels,
+                                 uncertainty=tex.load_uncertainty(ws, scene), task=task, log=log)
+    del images
+    photographs = [{"name": p.name, "width": w, "height": h, "lamps": len(p.lights)}
+                   for p, (_, w, h) in zip(photos, info["blocks"])]
+    return _write_texture(ws, scene, result, source, depth, solver, info["trees"], photographs, info["guess"], task)
+
+
+def _write_texture(ws, scene, result, source, depth, solver, trees_stats, photographs, guess, task) -> TextureResult:
+    """textures/ and its index.json with the stage's figures, after the last check."""
+    from reflab.inverse.texture import solve as tex
+
+    extra = {"materials": source, "depth": depth, "trees_s": trees_stats.get("build_s"),
+             "photographs": photographs,
              "undetermined_pixels": int(np.count_nonzero(guess)) if guess is not None else 0,
              "options": {"texel_scale": solver.texel_scale, "texel_size": solver.texel_size, "prior": solver.prior,
                          "smoothness": solver.smoothness, "saturation": solver.saturation,
                          "bounds": list(solver.bounds), "min_coverage": solver.min_coverage,
                          "amplification_limit": solver.amplification_limit}}
+    if trees_stats.get("cache") == "tiled":
+        extra["tiles"] = {"count": trees_stats["tiles"], "pixels": trees_stats["tile_pixels"]}
     task.check()
     written = tex.write_textures(ws, scene, result, extra)
     task.step(1, 1, f"wrote {len(written)} files in {ws.textures}")
-    return TextureResult(ws.textures, written, result, source, depth, solver, trees.stats)
+    return TextureResult(ws.textures, written, result, source, depth, solver, trees_stats)
 
 
 # ---------------------------------------------------------------------- plan
