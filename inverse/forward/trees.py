@@ -500,6 +500,27 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     )
 
 
+def tile_rows(height: int, width: int, tile_pixels: int) -> list[tuple[int, int]]:
+    """Row ranges ``[r0, r1)`` of at most ``tile_pixels`` pixels each (one row at least): the tiles
+    a large photograph's trees are built in (``build_trees(rows=)``)."""
+    step = max(1, int(tile_pixels) // max(int(width), 1))
+    return [(r, min(r + step, int(height))) for r in range(0, int(height), step)]
+
+
+class TileTask:
+    """The task one tile's :func:`build_trees` sees: its levels report as a fraction of tile
+    ``done`` of ``total``, under ``label``; pause and cancel are the stage's task's."""
+
+    def __init__(self, task, done: int, total: int, label: str):
+        self.task, self.done, self.total, self.label = task, done, total, label
+
+    def check(self) -> None:
+        self.task.check()
+
+    def step(self, done: float, total: float, message: str = "") -> None:
+        self.task.step(self.done + (done / total if total else 0.0), self.total, f"{self.label}: {message}")
+
+
 def _child_paths(parent_path, surface, kind, paths, path_id) -> np.ndarray:
     """Path index of each child ray: its parent's path extended by (surface, kind)."""
     if len(parent_path) == 0:

@@ -24,26 +24,6 @@ from reflab.inverse.texture.solve import (SolverOptions, TextureSolution, Textur
                                           maps_from_footprints, solve_texture, textured_nodes)
 from reflab.inverse.texture.texels import pixel_footprint
 
-def tile_rows(height: int, width: int, tile_pixels: int) -> list[tuple[int, int]]:
-    """Row ranges ``[r0, r1)`` of at most ``tile_pixels`` pixels each (one row at least)."""
-    step = max(1, int(tile_pixels) // max(int(width), 1))
-    return [(r, min(r + step, int(height))) for r in range(0, int(height), step)]
-
-
-class _TileTask:
-    """A task seen by one tile's tree build: its levels report as a fraction of the tile."""
-
-    def __init__(self, task, done: int, total: int, label: str):
-        self.task, self.done, self.total, self.label = task, done, total, label
-
-    def check(self) -> None:
-        self.task.check()
-
-    def step(self, done: float, total: float, message: str = "") -> None:
-        frac = done / total if total else 0.0
-        self.task.step(self.done + frac, self.total, f"{self.label}: {message}")
-
-
 def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, depth: int, tile_pixels: int,
                   uncertainty=None, task=None, log=None) -> tuple[TextureSolution, dict]:
     """Recover the texture from ``photos`` (:class:`reflab.inverse.forward.photographs.Photograph`)
@@ -64,7 +44,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     """
     from reflab.inverse.forward.photographs import lamp_slots, slot_lights
     from reflab.inverse.forward.rendering import undetermined_decision, undetermined_part
-    from reflab.inverse.forward.trees import build_trees
+    from reflab.inverse.forward.trees import TileTask, build_trees, tile_rows
 
     t0 = time.perf_counter()
     width = max(p.camera.width for p in photos)
@@ -107,7 +87,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
         # One row more than the tile keeps: its last row's footprints need the row below.
         extra = min(r1 + 1, h)
         trees = build_trees(scene, p.camera, p.lights, depth,
-                            task=None if task is None else _TileTask(task, k, len(tiles), label), rows=(r0, extra))
+                            task=None if task is None else TileTask(task, k, len(tiles), label), rows=(r0, extra))
         build_s += trees.stats["build_s"]
         if assign is not None:
             trees.light_dir, trees.light_dist2, trees.visible = slot_lights(trees, assign[i], len(intensities))
