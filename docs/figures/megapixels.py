@@ -87,14 +87,14 @@ def coverage(ws: Path, albedo: Path) -> dict:
     """Shares of the pixels seeing a surface (and a textured one) whose albedo the texture knows."""
     from reflab.calibration.camera import Camera
     from reflab.calibration.lights import Lights
-    from reflab.core.images import read_image
+    from reflab.core.images import read_exr
     from reflab.core.workspace import Workspace
     from reflab.inverse.forward.trees import build_trees, tile_rows
     from reflab.reconstruction.scene import Scene
 
     w = Workspace(ws)
     camera, lights, scene = Camera.load(w.camera), Lights.load(w.lights), Scene.load(w.scene)
-    known = np.all(np.isfinite(read_image(albedo)), axis=2).ravel()
+    known = np.all(np.isfinite(read_exr(albedo)[:, :, :3]), axis=2).ravel()  # NaN: unknown albedo
     surface = np.full(camera.width * camera.height, -1)
     for r0, r1 in tile_rows(camera.height, camera.width, 1 << 20):
         t = build_trees(scene, camera, lights, 1, rows=(r0, r1))  # primary hits only
@@ -112,6 +112,7 @@ def main(argv=None):
     ap.add_argument("--fit-max-mp", type=float, default=2.0,
                     help="largest size (MP) whose fit is run; above it fit.json comes from the 640x480 fit")
     ap.add_argument("--json")
+    ap.add_argument("--tile-pixels", type=int, help="the texture's and render's --tile-pixels (default theirs)")
     args = ap.parse_args(argv)
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
@@ -140,8 +141,9 @@ def main(argv=None):
                     run_stage(["fit", str(small)], root / "640x480.log")
             shutil.copy(small / "fit.json", ws / "fit.json")
             row["fit"] = "not run: fit.json of the 640x480 fit"
-        for stage, extra in (("texture", []), ("render", []),
-                             ("albedo", ["--aov", "albedo", "-o", str(ws / "albedo.exr")])):
+        tile = [] if args.tile_pixels is None else ["--tile-pixels", str(args.tile_pixels)]
+        for stage, extra in (("texture", tile), ("render", tile),
+                             ("albedo", ["--aov", "albedo", "-o", str(ws / "albedo.exr"), *tile])):
             shutil.rmtree(ws / "cache", ignore_errors=True)
             row[stage] = run_stage(["render" if stage == "albedo" else stage, str(ws), *extra], log)
         fit = json.loads((ws / "fit.json").read_text())

@@ -284,8 +284,14 @@ class TexturedNodes:
 
     @classmethod
     def concatenate(cls, parts: list) -> "TexturedNodes":
-        return cls(*(np.concatenate([getattr(p, k) for p in parts], axis=-1 if k in ("coef", "seen") else 0)
-                     for k in ("pixel", "surface", "triangle", "barycentric", "coef", "seen")))
+        """The parts in order, one field at a time; each part's field is released once copied, so
+        the peak is the whole plus one field, not twice the whole."""
+        fields = {}
+        for k in ("pixel", "surface", "triangle", "barycentric", "coef", "seen"):
+            fields[k] = np.concatenate([getattr(p, k) for p in parts], axis=-1 if k in ("coef", "seen") else 0)
+            for p in parts:
+                setattr(p, k, None)
+        return cls(**fields)
 
 
 def textured_nodes(trees, materials, intensities, textured_surfaces, *, pixel_map=None,
@@ -600,7 +606,8 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     order = np.argsort(label, kind="stable")
     rank = np.empty(ncol, dtype=np.int64)
     rank[order] = np.arange(ncol)
-    E = sp.csr_matrix((E.data, rank[E.indices], E.indptr), shape=E.shape)
+    # int32 column indices as scipy keeps them (rank[E.indices] would be int64: twice the bytes)
+    E = sp.csr_matrix((E.data, np.take(rank.astype(E.indices.dtype), E.indices), E.indptr), shape=E.shape)
     pi, pj = rank[pi], rank[pj]
     prior = system.prior[order]
 
