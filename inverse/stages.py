@@ -411,11 +411,13 @@ def _render_tiled(ws, scene, cam, lig, materials, source, aov, depth, tile_pixel
     from reflab.inverse.forward.rendering import (render as render_trees, render_albedo, undetermined_decision,
                                                   undetermined_part)
     from reflab.inverse.forward.trees import TileTask, build_trees, tile_rows
-    from reflab.inverse.texture.solve import albedo_nodes, guessed_nodes, load_texture_maps, load_uncertainty
+    from reflab.inverse.texture.solve import (albedo_nodes, guessed_flags, guessed_nodes, load_texture_maps,
+                                              load_uncertainty)
 
     t0 = time.perf_counter()
     H, W = cam.height, cam.width
     textures = load_texture_maps(ws, scene) if ws.textures.is_dir() else None
+    flags = guessed_flags(ws, scene, textures) if textures is not None and aov is None else None  # read once
     u = load_uncertainty(ws, scene) if aov is None else None
     loose = u is not None and (any(u.undetermined) or any(u.sigma))
     textured = [s.textured for s in scene]
@@ -447,7 +449,7 @@ def _render_tiled(ws, scene, cam, lig, materials, source, aov, depth, tile_pixel
         if kd_nodes is not None:
             kd_nodes = np.where(np.isfinite(kd_nodes), kd_nodes, homogeneous[trees.surface])
         image[r0:r1] = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
-        guessed = guessed_nodes(ws, scene, trees, textures) if textures is not None else None
+        guessed = guessed_nodes(ws, scene, trees, textures, flags) if textures is not None else None
         if loose or (guessed is not None and guessed.any()):
             if part is None:
                 part = np.zeros((H, W, 3))

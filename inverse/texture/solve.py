@@ -922,22 +922,34 @@ def albedo_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
     return out
 
 
-def guessed_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
-    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½);
-    ``textures`` as for :func:`albedo_nodes`."""
+def guessed_flags(workspace, scene, textures=None) -> dict:
+    """Surface index -> (H, W, 3) float64, 1 on the texels the texture stage flagged
+    :data:`GUESSED` (read from each diagnostics image once; :func:`guessed_nodes` samples it)."""
     from reflab.core.images import read_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    out = np.zeros(len(trees), dtype=bool)
     entries = {item.get("surface"): item for item in read_json(ws.texture_index).get("surfaces", [])
                if isinstance(item, dict)}
-    for s, (m, _, mask) in (load_texture_maps(ws, scene) if textures is None else textures).items():
+    out = {}
+    for s in (load_texture_maps(ws, scene) if textures is None else textures):
         diag = ws.textures / str(entries[scene[s].name].get("files", {}).get("diag", ""))
+        if diag.is_file():
+            flag = (read_image(diag)[:, :, 2].astype(np.int64) & GUESSED) > 0
+            out[s] = np.repeat(flag[:, :, None], 3, axis=2).astype(np.float64)
+    return out
+
+
+def guessed_nodes(workspace, scene, trees, textures=None, flags=None) -> np.ndarray:
+    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½);
+    ``textures`` as for :func:`albedo_nodes`, ``flags`` :func:`guessed_flags` when the caller
+    has read them already (a render tile by tile)."""
+    textures = load_texture_maps(workspace, scene) if textures is None else textures
+    flags = guessed_flags(workspace, scene, textures) if flags is None else flags
+    out = np.zeros(len(trees), dtype=bool)
+    for s, (m, _, mask) in textures.items():
         sel = np.nonzero(trees.surface == s)[0]
-        if not diag.is_file() or len(sel) == 0:
+        if s not in flags or len(sel) == 0:
             continue
-        flag = (read_image(diag)[:, :, 2].astype(np.int64) & GUESSED) > 0
-        value = sample_texture(m, np.repeat(flag[:, :, None], 3, axis=2).astype(np.float64), mask,
-                               trees.triangle[sel], trees.barycentric[sel])[:, 0]
+        value = sample_texture(m, flags[s], mask, trees.triangle[sel], trees.barycentric[sel])[:, 0]
         out[sel] = np.nan_to_num(value, nan=0.0) >= 0.5
     return out
