@@ -408,8 +408,8 @@ def _render_tiled(ws, scene, cam, lig, materials, source, aov, depth, tile_pixel
     """:func:`render_workspace` a tile of rows at a time: each tile's trees built, rendered and
     released (not cached). Every pixel is its own tree's, so the image is the untiled one; what
     needs the whole view (its peak, for the undetermined pixels) is decided after the last tile."""
-    from reflab.inverse.forward.rendering import (render as render_trees, render_albedo, undetermined_decision,
-                                                  undetermined_part)
+    from reflab.inverse.forward.rendering import (release_basis, render as render_trees, render_albedo,
+                                                  undetermined_decision, undetermined_part)
     from reflab.inverse.forward.trees import TileTask, build_trees, tile_rows
     from reflab.inverse.texture.solve import (albedo_nodes, guessed_flags, guessed_nodes, load_texture_maps,
                                               load_uncertainty)
@@ -457,6 +457,7 @@ def _render_tiled(ws, scene, cam, lig, materials, source, aov, depth, tile_pixel
             part[r0:r1] = undetermined_part(trees, materials, lig.intensities, u.undetermined, kd_nodes=kd_nodes,
                                             guessed=guessed, sigma=u.sigma, textured=textured)
         del trees, kd_nodes
+        release_basis()
     undetermined = np.zeros((H, W), dtype=bool)
     if any_part:
         undetermined = undetermined_decision(part, image, float(image.max()) if image.size else 0.0, noise=u.noise)

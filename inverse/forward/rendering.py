@@ -166,6 +166,12 @@ def linear_basis(trees, materials, intensities) -> np.ndarray:
     return basis
 
 
+def release_basis() -> None:
+    """Forget the basis :func:`linear_basis` keeps, and with it the trees it was computed for (a
+    tiled stage's last tile: about 1 GB that would otherwise outlive the tile)."""
+    _LAST_BASIS[0] = None
+
+
 def path_products(trees, materials) -> np.ndarray:
     """(N, 3) product of ``r_s`` (reflection) and ``t_s`` (transmission) along each node's path."""
     _check(trees, materials)

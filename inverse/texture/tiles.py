@@ -43,7 +43,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
         bool or None), ``blocks`` ((row0, width, height) per photograph), ``width``, ``height``.
     """
     from reflab.inverse.forward.photographs import lamp_slots, slot_lights
-    from reflab.inverse.forward.rendering import undetermined_decision, undetermined_part
+    from reflab.inverse.forward.rendering import release_basis, undetermined_decision, undetermined_part
     from reflab.inverse.forward.trees import TileTask, build_trees, tile_rows
 
     t0 = time.perf_counter()
@@ -111,6 +111,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
                                      sigma=u.sigma).reshape(-1, 3)[:own]
             guess[pixel_map[:own]] = undetermined_decision(part, flat[pixel_map[:own]], peak, noise=u.noise)
         del trees, nodes, q
+        release_basis()
     if task is not None:
         task.step(len(tiles), len(tiles), "texture: the system")
     footprint = {}
