@@ -8,6 +8,9 @@ box, a glass cylinder and a mirror box under two lamps; the workspace holds what
 ``python -m reflab.app.cli STAGE WORKSPACE`` in a fresh process with the trees cache emptied;
 its wall time and peak resident memory come from ``os.wait4`` (the child's own rusage).
 
+A texture above ``--texture-max-mp`` is not run either (its memory, measured at 3 MP and
+extrapolated, would pass the 6 GB a run may take on the shared machine): the render then uses the
+largest texture made before, its texel maps being independent of the photograph's size.
 A fit at a size above ``--fit-max-mp`` is not run (today's fit keeps every pixel's trees, about
 2 KB a pixel: 25 GB at 12 MP, until it fits on a subsample of pixels); the texture and render then
 use fit.json of the same scene's 640x480 fit, said in the table.
@@ -111,6 +114,9 @@ def main(argv=None):
     ap.add_argument("--root", default="/tmp/reflab-megapixels")
     ap.add_argument("--fit-max-mp", type=float, default=2.0,
                     help="largest size (MP) whose fit is run; above it fit.json comes from the 640x480 fit")
+    ap.add_argument("--texture-max-mp", type=float, default=3.5,
+                    help="largest size (MP) whose texture is run; above it textures/ come from the largest texture "
+                         "run before (texel maps do not depend on the photograph's size): render only")
     ap.add_argument("--json")
     ap.add_argument("--tile-pixels", type=int, help="the texture's and render's --tile-pixels (default theirs)")
     args = ap.parse_args(argv)
@@ -142,8 +148,16 @@ def main(argv=None):
             shutil.copy(small / "fit.json", ws / "fit.json")
             row["fit"] = "not run: fit.json of the 640x480 fit"
         tile = [] if args.tile_pixels is None else ["--tile-pixels", str(args.tile_pixels)]
-        for stage, extra in (("texture", tile), ("render", tile),
-                             ("albedo", ["--aov", "albedo", "-o", str(ws / "albedo.exr"), *tile])):
+        stages = [("texture", tile), ("render", tile), ("albedo", ["--aov", "albedo", "-o", str(ws / "albedo.exr"), *tile])]
+        if width * height / 1e6 > args.texture_max_mp:
+            done = sorted((p for p in root.glob("ws-*x*") if (p / "textures" / "index.json").is_file() and p != ws),
+                          key=lambda p: int(p.name[3:].split("x")[0]))
+            if not done:
+                raise SystemExit(f"{row['size']}: no texture of a smaller size to render with (run one first)")
+            shutil.copytree(done[-1] / "textures", ws / "textures")
+            row["texture"] = f"not run: textures/ of the {done[-1].name[3:]} run"
+            stages = stages[1:]
+        for stage, extra in stages:
             shutil.rmtree(ws / "cache", ignore_errors=True)
             row[stage] = run_stage(["render" if stage == "albedo" else stage, str(ws), *extra], log)
         fit = json.loads((ws / "fit.json").read_text())
