@@ -132,3 +132,26 @@ def test_cancel_between_tiles_leaves_nothing_half_written(zoo, tmp_path):
     assert any("tile 6 of 10" in m for m in seen) and not list(tmp_path.iterdir())
     r = render(RenderOptions(root, output=out, tile_pixels=TINY))  # the same call again finishes
     assert r.path == out and out.is_file() and r.info["tiles"] == 10
+
+
+def test_two_photographs_tiled_stack_as_untiled(tmp_path):
+    """A further photograph (the same view under the relit lamps): each photograph tiled on its
+    own and stacked into the lamp slots gives the stacked texture (here bit for bit; the docs say
+    where it may differ: a photograph's last row's footprints)."""
+    from reflab.hardware.sim.reference import render_reference
+    from reflab.hardware.sim.zoo import views, write_zoo_workspace
+    from reflab.inverse.forward.photographs import write_input
+
+    z = write_zoo_workspace(tmp_path, 9, W, H, noise=0.01, truth_views=False)
+    cam, lights = views(z)["relit"]
+    write_input(tmp_path, "relit", render_reference(z.scene, cam, lights, depth=3, albedo=z.albedo), cam, lights)
+    fit(FitOptions(tmp_path))
+    one = texture(TextureOptions(tmp_path)).result
+    tiled = texture(TextureOptions(tmp_path, tile_pixels=TINY))
+    assert tiled.trees["tiles"] == 20
+    b = tiled.result
+    assert b.stats["rows"] == one.stats["rows"] > 0 and b.stats["texels_guessed"] == one.stats["texels_guessed"]
+    for s in one.kd:
+        assert b.maps[s].texel_size == one.maps[s].texel_size
+        np.testing.assert_allclose(b.kd[s], one.kd[s], rtol=0, atol=1e-12)
+        assert np.array_equal(b.mask[s], one.mask[s])
