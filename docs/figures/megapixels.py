@@ -52,23 +52,35 @@ def band_camera(camera, r0: int, r1: int):
     return Camera(camera.width, r1 - r0, K, camera.dist.copy(), camera.R.copy(), camera.t.copy())
 
 
-def write_workspace(root: Path, width: int, height: int, band_pixels: int = 1 << 19) -> Path:
-    """The zoo scene's workspace at this size; its photograph rendered a band of rows at a time."""
+def render_band(width: int, height: int, r0: int, r1: int, out: Path) -> None:
+    """Rows ``r0 .. r1 - 1`` of the zoo scene's photograph (noise-free) by the reference renderer, to ``out`` (.npy)."""
+    from reflab.hardware.sim.reference import render_reference
+    from reflab.hardware.sim.zoo import random_scene
+
+    zoo = random_scene(SEED, width, height, noise=NOISE)
+    if np.any(zoo.camera.dist):
+        raise SystemExit("a band camera needs an undistorted camera")
+    np.save(out, render_reference(zoo.scene, band_camera(zoo.camera, r0, r1), zoo.lights, depth=3, albedo=zoo.albedo))
+
+
+def write_workspace(root: Path, width: int, height: int, band_pixels: int = 1 << 21) -> Path:
+    """The zoo scene's workspace at this size; its photograph rendered a band of rows at a time,
+    each in a fresh process (Dr.Jit aborted on the 20th band of one process, "unknown variable")."""
     from reflab.core.images import write_image
     from reflab.hardware.sim.lab import write_lab
-    from reflab.hardware.sim.reference import render_reference
     from reflab.hardware.sim.zoo import random_scene
     from reflab.inverse.forward.trees import tile_rows
 
     shutil.rmtree(root, ignore_errors=True)
     zoo = random_scene(SEED, width, height, noise=NOISE)
     write_lab(root, zoo, materials=False)
-    if np.any(zoo.camera.dist):
-        raise SystemExit("a band camera needs an undistorted camera")
     image = np.empty((height, width, 3))
+    band = root / "band.npy"
     for r0, r1 in tile_rows(height, width, band_pixels):
-        image[r0:r1] = render_reference(zoo.scene, band_camera(zoo.camera, r0, r1), zoo.lights, depth=3,
-                                        albedo=zoo.albedo)
+        subprocess.run([sys.executable, __file__, "--render-band", str(width), str(height), str(r0), str(r1), str(band)],
+                       check=True, env=dict(os.environ))
+        image[r0:r1] = np.load(band)
+    band.unlink()
     image += np.random.default_rng([35, SEED, 1]).normal(0.0, NOISE * image.max(), image.shape)
     write_image(root / "input.exr", image)
     return root
@@ -109,6 +121,10 @@ def coverage(ws: Path, albedo: Path) -> dict:
 
 
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--render-band"]:  # a child of write_workspace
+        w, h, r0, r1 = (int(v) for v in argv[1:5])
+        return render_band(w, h, r0, r1, Path(argv[5]))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1,3", help="megapixels, comma-separated, among " + ", ".join(map(str, SIZES)))
     ap.add_argument("--root", default="/tmp/reflab-megapixels")
