@@ -166,11 +166,12 @@ def main(argv=None):
         tile = [] if args.tile_pixels is None else ["--tile-pixels", str(args.tile_pixels)]
         stages = [("texture", tile), ("render", tile), ("albedo", ["--aov", "albedo", "-o", str(ws / "albedo.exr"), *tile])]
         if width * height / 1e6 > args.texture_max_mp:
-            done = sorted((p for p in root.glob("ws-*x*") if (p / "textures" / "index.json").is_file() and p != ws),
-                          key=lambda p: int(p.name[3:].split("x")[0]))
+            done = sorted((p for p in root.glob("ws-*x*") if (p / "textures" / "index.json").is_file() and p != ws
+                           and not (p / "textures-from.txt").is_file()), key=lambda p: int(p.name[3:].split("x")[0]))
             if not done:
                 raise SystemExit(f"{row['size']}: no texture of a smaller size to render with (run one first)")
             shutil.copytree(done[-1] / "textures", ws / "textures")
+            (ws / "textures-from.txt").write_text(f"{done[-1]}\n")  # a copy: not a texture made at this size
             row["texture"] = f"not run: textures/ of the {done[-1].name[3:]} run"
             stages = stages[1:]
         for stage, extra in stages:
