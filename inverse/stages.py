@@ -106,6 +106,9 @@ class TextureOptions:
                                    type=positive_float)
     max_albedo: float = opt(1.0, "upper bound of kd", type=positive_float)
     single: bool = opt(False, "use the reference photograph alone, ignoring inputs/", flag="--single-photograph")
+    tile_pixels: int = opt(1 << 19, "a photograph larger than this is textured a tile of this many pixels at a time "
+                                    "(its trees built, reduced and released per tile, not cached): bounds memory",
+                           type=positive_int)
 
 
 @dataclass
@@ -141,6 +144,7 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     """
     from reflab.core.workspace import Workspace, check_folder, read_json
     from reflab.inverse.fit.photograph import stack_photographs
+    from reflab.inverse.forward.photographs import load_photographs
     from reflab.inverse.forward.rendering import undetermined_pixels
     from reflab.inverse.texture import solve as tex
     from reflab.reconstruction.scene import Scene
@@ -158,6 +162,9 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     solver = tex.SolverOptions(texel_scale=o.texel_scale, texel_size=o.texel_size, prior=o.prior,
                                 smoothness=o.smoothness, saturation=o.saturation, bounds=(0.0, o.max_albedo))
     solver.validate()
+    photos = load_photographs(ws, reference_only=o.single)
+    if max(p.camera.width * p.camera.height for p in photos) > o.tile_pixels:
+        return _texture_tiled(ws, scene, photos, materials, source, depth, solver, o, task, log)
     # Every photograph adds rows to one system (one albedo per texel), the reference alone with
     # ``single``; the solver finds each photograph's saturated pixels in the stacked image.
     stack, image, _, photos = stack_photographs(ws, scene, depth, saturation=o.saturation, single=o.single,
@@ -173,18 +180,52 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
         if any(u.undetermined) or any(u.sigma) else None
     result = tex.recover_texture(scene, trees, materials, intensities, image, solver, guess=guess, task=task,
                                  exclude=padding)
-    extra = {"materials": source, "depth": depth, "trees_s": trees.stats.get("build_s"),
-             "photographs": [{"name": p.name, "width": b.width, "height": b.height, "lamps": b.lights}
-                             for p, b in zip(photos, stack.blocks)],
+    photographs = [{"name": p.name, "width": b.width, "height": b.height, "lamps": b.lights}
+                   for p, b in zip(photos, stack.blocks)]
+    return _write_texture(ws, scene, result, source, depth, solver, trees.stats, photographs, guess, task)
+
+
+def _texture_tiled(ws, scene, photos, materials, source, depth, solver, o, task, log) -> TextureResult:
+    """:func:`texture` for photographs larger than ``tile_pixels``: tile by tile
+    (:mod:`reflab.inverse.texture.tiles`), the same texture within float rounding."""
+    from reflab.core.images import read_image
+    from reflab.core.workspace import WorkspaceError
+    from reflab.inverse.fit.photograph import check_image, saturated_pixels
+    from reflab.inverse.texture import solve as tex
+    from reflab.inverse.texture.tiles import texture_tiled
+
+    images = []
+    for p in photos:
+        img = check_image(read_image(p.image), p.camera.width, p.camera.height, p.image)
+        if saturated_pixels(img, o.saturation).all():
+            raise WorkspaceError(p.image, "pixels", "some pixels below the saturation level",
+                                 got="every pixel saturated")
+        images.append(img)
+    result, info = texture_tiled(scene, photos, images, materials, solver, depth=depth, tile_pixels=o.tile_pixels,
+                                 uncertainty=tex.load_uncertainty(ws, scene), task=task, log=log)
+    del images
+    photographs = [{"name": p.name, "width": w, "height": h, "lamps": len(p.lights)}
+                   for p, (_, w, h) in zip(photos, info["blocks"])]
+    return _write_texture(ws, scene, result, source, depth, solver, info["trees"], photographs, info["guess"], task)
+
+
+def _write_texture(ws, scene, result, source, depth, solver, trees_stats, photographs, guess, task) -> TextureResult:
+    """textures/ and its index.json with the stage's figures, after the last check."""
+    from reflab.inverse.texture import solve as tex
+
+    extra = {"materials": source, "depth": depth, "trees_s": trees_stats.get("build_s"),
+             "photographs": photographs,
              "undetermined_pixels": int(np.count_nonzero(guess)) if guess is not None else 0,
              "options": {"texel_scale": solver.texel_scale, "texel_size": solver.texel_size, "prior": solver.prior,
                          "smoothness": solver.smoothness, "saturation": solver.saturation,
                          "bounds": list(solver.bounds), "min_coverage": solver.min_coverage,
                          "amplification_limit": solver.amplification_limit}}
+    if trees_stats.get("cache") == "tiled":
+        extra["tiles"] = {"count": trees_stats["tiles"], "pixels": trees_stats["tile_pixels"]}
     task.check()
     written = tex.write_textures(ws, scene, result, extra)
     task.step(1, 1, f"wrote {len(written)} files in {ws.textures}")
-    return TextureResult(ws.textures, written, result, source, depth, solver, trees.stats)
+    return TextureResult(ws.textures, written, result, source, depth, solver, trees_stats)
 
 
 # ---------------------------------------------------------------------- plan
@@ -272,6 +313,9 @@ class RenderOptions:
                               metavar="LIGHTS.json")
     aov: str | None = opt(None, "write the kd of the surface seen at each pixel instead", choices=["albedo"])
     depth: int = opt(3, "maximum internal nodes per path of the forward model", type=positive_int)
+    tile_pixels: int = opt(1 << 19, "an image larger than this is rendered a tile of this many pixels at a time "
+                                    "(its trees built and released per tile, not cached): bounds memory",
+                           type=positive_int)
 
 
 @dataclass
@@ -287,7 +331,7 @@ class RenderResult:
 
 
 def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = None, depth: int = 3,
-                     task: Task | None = None, log=None) -> tuple:
+                     task: Task | None = None, log=None, tile_pixels: int = 1 << 19) -> tuple:
     """Render the model of ``workspace`` (see the module's description); writes nothing.
 
     Parameters
@@ -302,6 +346,9 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     task : Task, optional
     log : callable, optional
         Told whether the trees were built or reused from the workspace's cache.
+    tile_pixels : int
+        An image of more pixels is rendered a tile of rows at a time (:func:`_render_tiled`: the
+        same image, memory bounded; its trees are not cached and ``info["trees"]`` is None).
 
     Returns
     -------
@@ -314,7 +361,7 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
         calls undetermined, on determined ones whose σ leaves it loose, or on texels the texture
         stage flagged guessed,
         :func:`reflab.inverse.forward.rendering.undetermined_pixels`; all False for the albedo AOV), ``trees_s``,
-        ``render_s``, ``trees``.
+        ``render_s``, ``trees``, ``nodes``.
     """
     from reflab.core.workspace import Workspace
     from reflab.inverse.forward.rendering import render as render_trees, render_albedo, undetermined_pixels
@@ -325,6 +372,8 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
     ws = Workspace(workspace)
     cam, lig, scene = _inputs(ws, camera, lights)
     materials, source = load_materials(ws, scene)
+    if cam.width * cam.height > tile_pixels:
+        return _render_tiled(ws, scene, cam, lig, materials, source, aov, depth, tile_pixels, task, log)
 
     t0 = time.perf_counter()
     trees = trees_for_workspace(ws, scene, cam, lig, depth=depth, log=log, task=task)
@@ -355,7 +404,74 @@ def render_workspace(workspace, camera=None, lights=None, *, aov: str | None = N
             info["undetermined_pixels"] = undetermined_pixels(trees, materials, lig.intensities, u.undetermined,
                                                               kd_nodes=kd_nodes, guessed=guessed, sigma=u.sigma,
                                                               noise=u.noise, textured=[s.textured for s in scene])
-    info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees)
+    info.update(trees_s=t1 - t0, render_s=time.perf_counter() - t1, trees=trees, nodes=len(trees))
+    return image, info
+
+
+def _render_tiled(ws, scene, cam, lig, materials, source, aov, depth, tile_pixels, task, log) -> tuple:
+    """:func:`render_workspace` a tile of rows at a time: each tile's trees built, rendered and
+    released (not cached). Every pixel is its own tree's, so the image is the untiled one; what
+    needs the whole view (its peak, for the undetermined pixels) is decided after the last tile."""
+    from reflab.inverse.forward.rendering import (release_basis, render as render_trees, render_albedo,
+                                                  undetermined_decision, undetermined_part)
+    from reflab.inverse.forward.trees import TileTask, build_trees, tile_rows
+    from reflab.inverse.texture.solve import (albedo_nodes, guessed_flags, guessed_nodes, load_texture_maps,
+                                              load_uncertainty)
+
+    t0 = time.perf_counter()
+    H, W = cam.height, cam.width
+    textures = load_texture_maps(ws, scene) if ws.textures.is_dir() else None
+    flags = guessed_flags(ws, scene, textures) if textures is not None and aov is None else None  # read once
+    u = load_uncertainty(ws, scene) if aov is None else None
+    loose = u is not None and (any(u.undetermined) or any(u.sigma))
+    textured = [s.textured for s in scene]
+    homogeneous = np.array([m["kd"] for m in materials])
+    image = np.empty((H, W, 3))
+    unknown_pixels = np.zeros((H, W), dtype=bool)
+    part, any_part = None, False
+    texture_nodes = unknown_albedo = nodes = 0
+    trees_s = 0.0
+    tiles = tile_rows(H, W, tile_pixels)
+    for k, (r0, r1) in enumerate(tiles):
+        label = f"render: tile {k + 1} of {len(tiles)}"
+        task.step(k, len(tiles), f"{label} (rows {r0}–{r1 - 1})")
+        t = time.perf_counter()
+        trees = build_trees(scene, cam, lig, depth, task=TileTask(task, k, len(tiles), label), rows=(r0, r1))
+        trees_s += time.perf_counter() - t
+        nodes += len(trees)
+        kd_nodes = albedo_nodes(ws, scene, trees, textures) if textures is not None else None
+        if kd_nodes is not None:
+            unknown = ~np.all(np.isfinite(kd_nodes), axis=1)
+            texture_nodes += int(np.count_nonzero(~unknown))
+            unknown_albedo += int(np.count_nonzero(unknown))
+            unknown_pixels[r0:r1] = (np.bincount(trees.pixel[unknown], minlength=trees.width * trees.height) > 0
+                                     ).reshape(r1 - r0, W)
+        task.check()
+        if aov == "albedo":
+            image[r0:r1] = render_albedo(trees, materials, kd_nodes)
+            continue
+        if kd_nodes is not None:
+            kd_nodes = np.where(np.isfinite(kd_nodes), kd_nodes, homogeneous[trees.surface])
+        image[r0:r1] = render_trees(trees, materials, lig.intensities, kd_nodes=kd_nodes)
+        guessed = guessed_nodes(ws, scene, trees, textures, flags) if textures is not None else None
+        if loose or (guessed is not None and guessed.any()):
+            if part is None:
+                part = np.zeros((H, W, 3))
+            any_part = True
+            part[r0:r1] = undetermined_part(trees, materials, lig.intensities, u.undetermined, kd_nodes=kd_nodes,
+                                            guessed=guessed, sigma=u.sigma, textured=textured)
+        del trees, kd_nodes
+        release_basis()
+    undetermined = np.zeros((H, W), dtype=bool)
+    if any_part:
+        undetermined = undetermined_decision(part, image, float(image.max()) if image.size else 0.0, noise=u.noise)
+    if log is not None:
+        log(f"trees: built in {len(tiles)} tiles of up to {tile_pixels} pixels, {trees_s:.2f} s ({nodes} nodes), "
+            "not cached")
+    info = {"materials": source, "texture_nodes": texture_nodes if textures is not None else None,
+            "unknown_albedo": unknown_albedo, "unknown_pixels": unknown_pixels, "undetermined_pixels": undetermined,
+            "trees_s": trees_s, "render_s": time.perf_counter() - t0 - trees_s, "trees": None, "nodes": nodes,
+            "tiles": len(tiles)}
     return image, info
 
 
@@ -368,7 +484,8 @@ def render(options: RenderOptions, task: Task | None = None, *, log=None) -> Ren
     o = options
     out = Path(o.output) if o.output else Workspace(check_folder(o.workspace)).render(o.aov)
     check_folder(out.parent, write=True, create=True, what="output folder")  # a read-only workspace renders elsewhere
-    image, info = render_workspace(o.workspace, o.camera, o.lights, aov=o.aov, depth=o.depth, task=task, log=log)
+    image, info = render_workspace(o.workspace, o.camera, o.lights, aov=o.aov, depth=o.depth, task=task, log=log,
+                                   tile_pixels=o.tile_pixels)
     task.check()
     write_image(out, image, allow_nan=o.aov == "albedo")
     preview = out.with_suffix(".png") if out.suffix.lower() != ".png" else out.with_name(out.stem + "_preview.png")

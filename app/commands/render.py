@@ -43,7 +43,7 @@ def run(args) -> int:
     texture = ("homogeneous kd" if info["texture_nodes"] is None else
                f"texture on {info['texture_nodes']} nodes ({info['unknown_albedo']} unknown)")
     LOG.info(f"materials from {info['materials']}, {texture}")
-    LOG.info(f"trees {info['trees_s']:.2f} s ({len(info['trees'])} nodes, depth {args.depth}), render {info['render_s']:.2f} s")
+    LOG.info(f"trees {info['trees_s']:.2f} s ({info['nodes']} nodes, depth {args.depth}), render {info['render_s']:.2f} s")
     if earlier is not None:
         LOG.warning(f"reflab render: replaced the earlier {r.path} (written "
                     f"{time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(earlier))}); -o FILE writes elsewhere")

@@ -176,6 +176,21 @@ def lamp_slots(lights_list) -> tuple[np.ndarray, list]:
     return np.array(slots, dtype=np.float64).reshape(-1, 3), assign
 
 
+def slot_lights(trees, mine, n_slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One photograph's (light_dir, light_dist2, visible) moved to the stack's ``n_slots`` lamp
+    slots, ``mine`` its lamps' (slot, scale) from :func:`lamp_slots`."""
+    n = len(trees.pixel)
+    ld = np.repeat(np.asarray(trees.normal, dtype=np.float64)[:, None, :], n_slots, axis=1)  # unlit slots: any finite direction
+    d2 = np.ones((n, n_slots))
+    vis = np.zeros((n, n_slots), dtype=bool)
+    for j, (slot, scale) in enumerate(mine):
+        ld[:, slot] = trees.light_dir[:, j]
+        vis[:, slot] = np.asarray(trees.visible[:, j], dtype=bool) & (scale > 0)
+        # I_lamp / d² = I_slot / (d² / scale)
+        d2[:, slot] = trees.light_dist2[:, j] / (scale if scale > 0 else 1.0)
+    return ld, d2, vis
+
+
 def stack_trees(trees_list, lights_list, names=None) -> Stack:
     """Stack the trees of several photographs (see the module's description).
 
@@ -207,14 +222,7 @@ def stack_trees(trees_list, lights_list, names=None) -> Stack:
         parts["path"].append(remap[np.asarray(t.path, dtype=np.int64)] if n else np.zeros(0, np.int64))
         parent = np.asarray(t.parent, dtype=np.int64)
         parts["parent"].append(np.where(parent >= 0, parent + offset, -1))
-        ld = np.repeat(np.asarray(t.normal, dtype=np.float64)[:, None, :], K, axis=1)  # unlit slots: any finite direction
-        d2 = np.ones((n, K))
-        vis = np.zeros((n, K), dtype=bool)
-        for j, (slot, scale) in enumerate(mine):
-            ld[:, slot] = t.light_dir[:, j]
-            vis[:, slot] = np.asarray(t.visible[:, j], dtype=bool) & (scale > 0)
-            # I_lamp / d² = I_slot / (d² / scale)
-            d2[:, slot] = t.light_dist2[:, j] / (scale if scale > 0 else 1.0)
+        ld, d2, vis = slot_lights(t, mine, K)
         parts["light_dir"].append(ld)
         parts["light_dist2"].append(d2)
         parts["visible"].append(vis)

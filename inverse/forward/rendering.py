@@ -166,6 +166,12 @@ def linear_basis(trees, materials, intensities) -> np.ndarray:
     return basis
 
 
+def release_basis() -> None:
+    """Forget the basis :func:`linear_basis` keeps, and with it the trees it was computed for (a
+    tiled stage's last tile: about 1 GB that would otherwise outlive the tile)."""
+    _LAST_BASIS[0] = None
+
+
 def path_products(trees, materials) -> np.ndarray:
     """(N, 3) product of ``r_s`` (reflection) and ``t_s`` (transmission) along each node's path."""
     _check(trees, materials)
@@ -375,17 +381,34 @@ def undetermined_pixels(trees, materials, intensities, undetermined, *, kd_nodes
     (:func:`uncertain_radiance`) counts too, so that a value known only to ±60 % (a faint
     reflection) does not pass for determined.
     """
-    part = accumulate(trees, np.abs(undetermined_radiance(trees, materials, intensities, undetermined,
-                                                          kd_nodes=kd_nodes, textured=textured, guessed=guessed)))
-    if sigma is not None and any(sigma):
-        part = part + accumulate(trees, uncertain_radiance(trees, materials, intensities, sigma, kd_nodes=kd_nodes,
-                                                           textured=textured))
+    part = undetermined_part(trees, materials, intensities, undetermined, kd_nodes=kd_nodes, textured=textured,
+                             guessed=guessed, sigma=sigma)
     if image is None:
         total = render(trees, materials, intensities, kd_nodes=kd_nodes)
     else:
         total = np.asarray(image, dtype=np.float64).reshape(part.shape)
     peak = float(total.max()) if total.size else 0.0
+    return undetermined_decision(part, total, peak, noise=noise, share=share, floor=floor)
+
+
+def undetermined_part(trees, materials, intensities, undetermined, *, kd_nodes=None, textured=None, guessed=None,
+                      sigma=None) -> np.ndarray:
+    """(H, W, 3) the light of each pixel that rests on undetermined parameters, plus the one-sigma
+    of the determined ones when ``sigma`` is given: :func:`undetermined_pixels`' measure, pixel by
+    pixel (a tile of pixels at a time gives the same values)."""
+    part = accumulate(trees, np.abs(undetermined_radiance(trees, materials, intensities, undetermined,
+                                                          kd_nodes=kd_nodes, textured=textured, guessed=guessed)))
+    if sigma is not None and any(sigma):
+        part = part + accumulate(trees, uncertain_radiance(trees, materials, intensities, sigma, kd_nodes=kd_nodes,
+                                                           textured=textured))
+    return part
+
+
+def undetermined_decision(part, total, peak: float, *, noise=None, share: float = UNDETERMINED_SHARE,
+                          floor: float = UNDETERMINED_FLOOR) -> np.ndarray:
+    """(…) bool: where :func:`undetermined_part`'s ``part`` (…, 3) exceeds its limit against the
+    pixels' ``total`` (…, 3) and the whole view's ``peak`` (see :func:`undetermined_pixels`)."""
     limit = np.maximum(share * np.abs(total), floor * peak)
     if noise is not None:
         limit = np.minimum(limit, UNDETERMINED_NOISE * np.asarray(noise, dtype=np.float64) * peak)
-    return np.any(part > limit, axis=2)
+    return np.any(part > limit, axis=-1)

@@ -334,7 +334,8 @@ def _dot(a, b):
     return np.einsum("...i,...i->...", a, b)
 
 
-def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4, task=None) -> Trees:
+def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4, task=None,
+                rows: tuple[int, int] | None = None) -> Trees:
     """Cast the pixel-intensity trees of ``scene`` seen by ``camera`` under point ``lights``.
 
     Parameters
@@ -350,6 +351,10 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         is below this is not followed.
     task : reflab.core.task.Task, optional
         Told after each level (``step``: pause, cancel).
+    rows : (int, int), optional
+        Image rows ``[r0, r1)`` only (a tile of a large photograph): the trees are those rows'
+        own, as a ``width`` x ``r1 - r0`` image whose pixel ``(v - r0) * width + u`` is the
+        photograph's ``v * width + u``; each node is the same as in the whole photograph's trees.
 
     Returns
     -------
@@ -387,7 +392,14 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     paths: list[tuple] = [()]
     path_id = {(): 0}
 
-    origin, direction = camera.pixel_rays()
+    r0, r1 = (0, camera.height) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= r0 < r1 <= camera.height:
+        raise ValueError(f"rows must lie within [0, {camera.height}] with r0 < r1, got {rows!r}")
+    if rows is None:
+        origin, direction = camera.pixel_rays()
+    else:  # the same rays as pixel_rays' rows r0..r1-1
+        v, u = np.mgrid[r0:r1, 0:camera.width]
+        origin, direction = camera.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
     offset = None
     n_pix = len(origin)
     ray_pixel = np.arange(n_pix, dtype=np.int64)
@@ -483,16 +495,41 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     # nothing in view gives an empty, well-formed table
     nodes = {k: np.concatenate([lv[k] for lv in levels]) for k in _ARRAYS} if levels else _empty_nodes(n_lights)
     stats["build_s"] = time.perf_counter() - start
+    key = trees_key(scene, camera, lights, depth, prune_tol)
+    if rows is not None:
+        stats["rows"] = [r0, r1]
+        key = hashlib.sha1(f"{key} rows {r0} {r1}".encode()).hexdigest()
     return Trees(
-        camera.width, camera.height, depth,
+        camera.width, r1 - r0, depth,
         pixel=nodes["pixel"].astype(np.int64), surface=nodes["surface"].astype(np.int32),
         point=nodes["point"], normal=nodes["normal"], view=nodes["view"],
         level=nodes["level"].astype(np.int8), fresnel=nodes["fresnel"],
         path=nodes["path"].astype(np.int32), paths=paths, light_dir=nodes["light_dir"],
         light_dist2=nodes["light_dist2"], visible=nodes["visible"], parent=nodes["parent"].astype(np.int64),
         triangle=nodes["triangle"].astype(np.int64), barycentric=nodes["barycentric"],
-        stats=stats, key=trees_key(scene, camera, lights, depth, prune_tol),
+        stats=stats, key=key,
     )
+
+
+def tile_rows(height: int, width: int, tile_pixels: int) -> list[tuple[int, int]]:
+    """Row ranges ``[r0, r1)`` of at most ``tile_pixels`` pixels each (one row at least): the tiles
+    a large photograph's trees are built in (``build_trees(rows=)``)."""
+    step = max(1, int(tile_pixels) // max(int(width), 1))
+    return [(r, min(r + step, int(height))) for r in range(0, int(height), step)]
+
+
+class TileTask:
+    """The task one tile's :func:`build_trees` sees: its levels report as a fraction of tile
+    ``done`` of ``total``, under ``label``; pause and cancel are the stage's task's."""
+
+    def __init__(self, task, done: int, total: int, label: str):
+        self.task, self.done, self.total, self.label = task, done, total, label
+
+    def check(self) -> None:
+        self.task.check()
+
+    def step(self, done: float, total: float, message: str = "") -> None:
+        self.task.step(self.done + (done / total if total else 0.0), self.total, f"{self.label}: {message}")
 
 
 def _child_paths(parent_path, surface, kind, paths, path_id) -> np.ndarray:

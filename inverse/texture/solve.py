@@ -222,26 +222,41 @@ def build_maps(scene, trees, options: SolverOptions, crop: bool = False) -> dict
     nodes will be looked up in, such as the fit's texture rounds'; a written texture is not
     cropped: other views see more of the surface).
     """
-    maps = {}
+    footprints, regions = {}, {}
     for s, surf in enumerate(scene):
         sel = np.nonzero(trees.surface == s)[0]
         if not surf.textured or len(sel) == 0:
             continue
+        footprints[s] = None if options.texel_size is not None else node_footprints(trees, sel)
+        if crop:
+            regions[s] = (trees.triangle[sel], trees.point[sel])
+    return maps_from_footprints(scene, footprints, options, max(trees.width, trees.height), regions)
+
+
+def node_footprints(trees, sel) -> np.ndarray:
+    """Pixel footprints of the nodes ``sel`` that set their surface's texel size: the reference
+    photograph's when some lie in it (several photographs: texels as fine as the reference sees
+    the surface; further views, farther or more oblique, would coarsen them for every view)."""
+    ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
+    if ref and np.any(trees.pixel[sel] < ref):
+        sel = sel[trees.pixel[sel] < ref]
+    return pixel_footprint(trees.pixel[sel], trees.path[sel], trees.point[sel], trees.width)
+
+
+def maps_from_footprints(scene, footprints: dict, options: SolverOptions, image_size: int,
+                         regions: dict | None = None) -> dict[int, TexelMap]:
+    """The texel atlas of each surface in ``footprints`` (surface -> its nodes' footprints, None
+    with ``options.texel_size``); ``image_size`` the image's larger side (a surface seen in isolated
+    single pixels only gets about one texel per pixel); ``regions`` as :func:`build_maps`' crop."""
+    maps = {}
+    for s, fp in footprints.items():
+        surf = scene[s]
         size = options.texel_size
         if size is None:
-            # Several photographs: texels as fine as the reference photograph sees the surface
-            # (further views, farther or more oblique, would coarsen them for every view).
-            ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
-            if ref and np.any(trees.pixel[sel] < ref):
-                sel_fp = sel[trees.pixel[sel] < ref]
-            else:
-                sel_fp = sel
-            fp = pixel_footprint(trees.pixel[sel_fp], trees.path[sel_fp], trees.point[sel_fp], trees.width)
             size = choose_texel_size(fp, options.texel_scale, options.texel_quantile)
         if size is None:  # isolated single-pixel sightings only: one texel per pixel-ish
-            size = float(np.ptp(surf.mesh.vertices, axis=0).max()) / max(trees.width, trees.height)
-        region = (trees.triangle[sel], trees.point[sel]) if crop else None
-        maps[s] = build_texel_map(s, surf.name, surf.mesh, size, region=region)
+            size = float(np.ptp(surf.mesh.vertices, axis=0).max()) / image_size
+        maps[s] = build_texel_map(s, surf.name, surf.mesh, size, region=(regions or {}).get(s))
     return maps
 
 
@@ -273,54 +288,125 @@ def _compress(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(used), (np.cumsum(used) - 1)[keys]
 
 
-def build_system(trees, materials, intensities, image, maps, options: SolverOptions, exclude=None) -> _System:
-    """Assemble E, b − Q and the per-texel coverage / weight.
+@dataclass
+class TexturedNodes:
+    """What the texture's system needs of the tree nodes on textured surfaces, in pixel order.
 
-    ``exclude`` (H*W bool, optional): pixels left out of the system, as saturated ones are (but
-    not flagged as saturated).
-
-    Vectorised over (node, bilinear corner, band) entries: no Python loop beyond one per
-    textured surface (its bilinear lookup).
+    A tile's trees are reduced to this (:func:`textured_nodes`) and released: about 90 bytes a
+    node against the trees' 2 KB a pixel. Tiles in row order concatenate (:meth:`concatenate`)
+    to the whole photograph's, node for node.
     """
-    import scipy.sparse as sp
 
+    pixel: np.ndarray  # (n,) int64, the photograph's pixel index
+    surface: np.ndarray  # (n,) int32
+    triangle: np.ndarray  # (n,) int64
+    barycentric: np.ndarray  # (n, 2)
+    coef: np.ndarray  # (3, n) E's value per unit bilinear weight
+    seen: np.ndarray  # (3, n) attenuation between camera and node
+
+    def __len__(self) -> int:
+        return len(self.pixel)
+
+    @classmethod
+    def concatenate(cls, parts: list) -> "TexturedNodes":
+        """The parts in order, one field at a time; each part's field is released once copied, so
+        the peak is the whole plus one field, not twice the whole."""
+        fields = {}
+        for k in ("pixel", "surface", "triangle", "barycentric", "coef", "seen"):
+            fields[k] = np.concatenate([getattr(p, k) for p in parts], axis=-1 if k in ("coef", "seen") else 0)
+            for p in parts:
+                setattr(p, k, None)
+        return cls(**fields)
+
+
+def textured_nodes(trees, materials, intensities, textured_surfaces, *, pixel_map=None,
+                   keep=None) -> tuple[TexturedNodes, np.ndarray]:
+    """The trees' nodes on ``textured_surfaces`` and the rest of each pixel's predicted light.
+
+    Parameters
+    ----------
+    textured_surfaces : iterable of int
+        The surfaces whose kd is unknown (their nodes are E's entries; others go to ``Q``).
+    pixel_map : (H·W,) int64, optional
+        The photograph's (or stacked image's) pixel index of each of the trees' pixels (a tile's);
+        default the trees' own.
+    keep : (N,) bool, optional
+        Nodes to reduce (a tile built with an extra row for the footprints keeps its own rows').
+
+    Returns
+    -------
+    nodes : TexturedNodes
+    Q : (H·W, 3) float64
+        Per pixel of the trees, the light of every node but the textured ones (their kd 0).
+    """
     from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
 
     npix = trees.width * trees.height
-    img = np.asarray(image, dtype=np.float64).reshape(npix, 3)
-    sat_level = options.saturation if options.saturation is not None else clip_level(img)
-    saturated = img >= sat_level if sat_level is not None else np.zeros_like(img, dtype=bool)
-
     basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd is slot 0
     atten = path_products(trees, materials)  # (N, 3)
-    offsets, total = {}, 0
-    for s, m in maps.items():
-        offsets[s], total = total, total + m.n_texels
-    textured = np.isin(trees.surface, list(maps))
+    textured = np.isin(trees.surface, list(textured_surfaces))
     kd_table = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials]).astype(np.float64)
     q_nodes = node_radiance(trees, materials, intensities, kd_nodes=np.where(textured[:, None], 0.0, kd_table[trees.surface]),
                             basis=basis)
+    if keep is not None:
+        q_nodes = np.where(np.asarray(keep, dtype=bool)[:, None], q_nodes, 0.0)
+        textured &= keep
     Q = np.stack([np.bincount(trees.pixel, weights=q_nodes[:, c], minlength=npix) for c in range(3)], axis=1)
-
-    # Textured nodes in pixel order, so that the entries below come out sorted by row. An excluded
-    # pixel's nodes only flag the texels a saturated pixel touches: the others are dropped here.
+    # Textured nodes in pixel order, so that E's entries come out sorted by row.
     nodes = np.flatnonzero(textured)
-    if exclude is not None:
-        pix = trees.pixel[nodes]
-        nodes = nodes[~np.asarray(exclude, dtype=bool).reshape(npix)[pix] | saturated[pix].any(axis=1)]
     pix = trees.pixel[nodes]
     if np.any(pix[1:] < pix[:-1]):
         nodes = nodes[np.argsort(pix, kind="stable")]
-    n = len(nodes)
+    pix = trees.pixel[nodes].astype(np.int64)
+    out = TexturedNodes(pix if pixel_map is None else np.asarray(pixel_map)[pix], trees.surface[nodes],
+                        trees.triangle[nodes], trees.barycentric[nodes],
+                        (atten[nodes] * basis[nodes, :, 0]).T, (trees.fresnel[nodes, None] * atten[nodes]).T)
+    return out, Q
+
+
+def build_system(trees, materials, intensities, image, maps, options: SolverOptions, exclude=None) -> _System:
+    """Assemble E, b − Q and the per-texel coverage / weight (:func:`textured_nodes`, then
+    :func:`assemble_system`).
+
+    ``exclude`` (H*W bool, optional): pixels left out of the system, as saturated ones are (but
+    not flagged as saturated).
+    """
+    nodes, Q = textured_nodes(trees, materials, intensities, list(maps))
+    return assemble_system(nodes, Q, image, materials, maps, options, exclude)
+
+
+def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: SolverOptions, exclude=None) -> _System:
+    """E, b − Q and the per-texel coverage / weight from the textured nodes of every pixel.
+
+    ``Q`` (H·W, 3): each pixel's light from everything but the textured nodes; ``image`` the
+    photograph (H, W, 3) or (H·W, 3). Vectorised over (node, bilinear corner, band) entries: no
+    Python loop beyond one per textured surface (its bilinear lookup).
+    """
+    import scipy.sparse as sp
+
+    img = np.asarray(image, dtype=np.float64).reshape(-1, 3)
+    npix = len(img)
+    sat_level = options.saturation if options.saturation is not None else clip_level(img)
+    saturated = img >= sat_level if sat_level is not None else np.zeros_like(img, dtype=bool)
+    offsets, total = {}, 0
+    for s, m in maps.items():
+        offsets[s], total = total, total + m.n_texels
+    kd_table = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials]).astype(np.float64)
+
+    # An excluded pixel's nodes only flag the texels a saturated pixel touches: the others are dropped here.
+    keep = slice(None)
+    if exclude is not None:
+        pix = nodes.pixel
+        keep = ~np.asarray(exclude, dtype=bool).reshape(npix)[pix] | saturated[pix].any(axis=1)
+    pix, surface = nodes.pixel[keep], nodes.surface[keep]
+    n = len(pix)
     idx = np.zeros((n, 4), dtype=np.int64)
     w = np.zeros((n, 4))
     for s, m in maps.items():
-        sel = trees.surface[nodes] == s
-        i, ww = m.bilinear(trees.triangle[nodes[sel]], trees.barycentric[nodes[sel]])
+        sel = surface == s
+        i, ww = m.bilinear(nodes.triangle[keep][sel], nodes.barycentric[keep][sel])
         idx[sel], w[sel] = i + offsets[s], ww
-    coef = (atten[nodes] * basis[nodes, :, 0]).T  # (3, n): E's value per unit bilinear weight
-    seen = (trees.fresnel[nodes, None] * atten[nodes]).T  # attenuation between camera and node
-    pix = trees.pixel[nodes]
+    coef, seen = nodes.coef[:, keep], nodes.seen[:, keep]
     lit = coef > 0
     ok = lit & ~saturated[pix].T  # (3, n)
     if exclude is not None:
@@ -545,7 +631,8 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     order = np.argsort(label, kind="stable")
     rank = np.empty(ncol, dtype=np.int64)
     rank[order] = np.arange(ncol)
-    E = sp.csr_matrix((E.data, rank[E.indices], E.indptr), shape=E.shape)
+    # int32 column indices as scipy keeps them (rank[E.indices] would be int64: twice the bytes)
+    E = sp.csr_matrix((E.data, np.take(rank.astype(E.indices.dtype), E.indices), E.indptr), shape=E.shape)
     pi, pj = rank[pi], rank[pj]
     prior = system.prior[order]
 
@@ -665,7 +752,16 @@ def recover_texture(scene, trees, materials, intensities, image, options: Solver
     maps = build_maps(scene, trees, options) if maps is None else maps
     t_maps = time.perf_counter()
     system = build_system(trees, materials, intensities, image, maps, options, exclude)
-    t_sys = time.perf_counter()
+    return solve_texture(system, maps, materials, options, guess=guess, task=task, perturb=perturb,
+                         times=(t0, t_maps, time.perf_counter()))
+
+
+def solve_texture(system: _System, maps, materials, options: SolverOptions, *, guess=None, task=None, perturb=None,
+                  times=None) -> TextureSolution:
+    """Solve an assembled system (:func:`build_system`, :func:`assemble_system`) into the
+    per-surface textures; ``guess``, ``task`` and ``perturb`` as for :func:`recover_texture`,
+    ``times`` the (start, maps done, system done) perf_counter instants for the stats."""
+    t0, t_maps, t_sys = times if times is not None else (time.perf_counter(),) * 3
     also = None
     if perturb is not None:
         also = system.rhs + np.asarray(perturb, dtype=np.float64).reshape(-1, 3)[system.row_pixel, system.row_band]
@@ -851,22 +947,34 @@ def albedo_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
     return out
 
 
-def guessed_nodes(workspace, scene, trees, textures=None) -> np.ndarray:
-    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½);
-    ``textures`` as for :func:`albedo_nodes`."""
+def guessed_flags(workspace, scene, textures=None) -> dict:
+    """Surface index -> (H, W, 3) float64, 1 on the texels the texture stage flagged
+    :data:`GUESSED` (read from each diagnostics image once; :func:`guessed_nodes` samples it)."""
     from reflab.core.images import read_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    out = np.zeros(len(trees), dtype=bool)
     entries = {item.get("surface"): item for item in read_json(ws.texture_index).get("surfaces", [])
                if isinstance(item, dict)}
-    for s, (m, _, mask) in (load_texture_maps(ws, scene) if textures is None else textures).items():
+    out = {}
+    for s in (load_texture_maps(ws, scene) if textures is None else textures):
         diag = ws.textures / str(entries[scene[s].name].get("files", {}).get("diag", ""))
+        if diag.is_file():
+            flag = (read_image(diag)[:, :, 2].astype(np.int64) & GUESSED) > 0
+            out[s] = np.repeat(flag[:, :, None], 3, axis=2).astype(np.float64)
+    return out
+
+
+def guessed_nodes(workspace, scene, trees, textures=None, flags=None) -> np.ndarray:
+    """(N,) bool: nodes on texels the texture stage flagged :data:`GUESSED` (bilinear weight ≥ ½);
+    ``textures`` as for :func:`albedo_nodes`, ``flags`` :func:`guessed_flags` when the caller
+    has read them already (a render tile by tile)."""
+    textures = load_texture_maps(workspace, scene) if textures is None else textures
+    flags = guessed_flags(workspace, scene, textures) if flags is None else flags
+    out = np.zeros(len(trees), dtype=bool)
+    for s, (m, _, mask) in textures.items():
         sel = np.nonzero(trees.surface == s)[0]
-        if not diag.is_file() or len(sel) == 0:
+        if s not in flags or len(sel) == 0:
             continue
-        flag = (read_image(diag)[:, :, 2].astype(np.int64) & GUESSED) > 0
-        value = sample_texture(m, np.repeat(flag[:, :, None], 3, axis=2).astype(np.float64), mask,
-                               trees.triangle[sel], trees.barycentric[sel])[:, 0]
+        value = sample_texture(m, flags[s], mask, trees.triangle[sel], trees.barycentric[sel])[:, 0]
         out[sel] = np.nan_to_num(value, nan=0.0) >= 0.5
     return out
