@@ -50,6 +50,9 @@ def render_albedo(src: Sources, depth: int) -> dict | None:
     except Exception as err:  # noqa: BLE001 - the report shows what failed and goes on
         return {"error": f"could not render the albedo ({type(err).__name__}: {err})"}
     trees = info["trees"]
+    if trees is None:  # a photograph above --tile-pixels is rendered in tiles, its trees released
+        return {"error": "not compared: the photograph is rendered in tiles (above --tile-pixels), "
+                         "whose trees are not kept for the per-surface comparison"}
     first = trees.level == 1
     surface = np.full(trees.width * trees.height, -1, dtype=np.int64)
     surface[trees.pixel[first]] = trees.surface[first]
