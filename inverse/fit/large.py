@@ -135,7 +135,8 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     pilot = fit(pilot_fac, view_image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
                 textured=textured, names=scene.names, task=task, held=held, uncertainty=False, reject=False)
     # 3. The pixels read: the view's evidence, each at one pixel of its block, and a uniform share.
-    chosen_view, counts = sampling.fit_sample(view.trees, pilot.materials, view.intensities, view_usable, pixels)
+    chosen_view, counts = sampling.fit_sample(view.trees, pilot.materials, view.intensities, view_usable, pixels,
+                                              open_lobes=sampling.open_lobes(pilot))
     rng = np.random.default_rng(sampling.SEED + 3)
     bulk_left = int(sampling.BULK * pixels)
     total = sum(int((~sat).sum()) for sat in saturated)

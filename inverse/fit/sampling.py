@@ -30,6 +30,11 @@ PIXELS = 85_000
 PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
 #: The sampling's seed.
 SEED = 0
+#: Shapes at which a lobe the pilot left undetermined is looked for: where a broad, a glossy or a
+#: sharp lobe would show (its shininess unknown, its highlight may be anywhere among them).
+SHAPES = ({"ns": 8.0, "alpha": 0.3}, {"ns": 64.0, "alpha": 0.1}, {"ns": 512.0, "alpha": 0.02})
+#: ... at this height where the pilot left it at 0 (the weights are shares of each lobe's own light).
+OPEN_KS = 0.1
 
 
 def uniform(mask, count: int, seed: int = SEED) -> np.ndarray:
@@ -96,14 +101,40 @@ def pilot(mask, pixels: int = PIXELS, seed: int = SEED) -> np.ndarray:
     return uniform(mask, max(int(PILOT * pixels), 1), seed)
 
 
-def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: int = SEED) -> tuple[np.ndarray, dict]:
+def open_lobes(result) -> list:
+    """Surfaces whose lobe (any of ks, ns, alpha) a fit left undetermined."""
+    return [s for s, names in enumerate(result.undetermined)
+            if any(str(n).split("[")[0] in ("ks", "ns", "alpha") for n in names)]
+
+
+def shaped(materials, open_lobes, shape) -> list:
+    """``materials`` with the lobes of the surfaces ``open_lobes`` at ``shape`` (:data:`SHAPES`)."""
+    import dataclasses
+
+    out = list(materials)
+    for s in open_lobes:
+        m = materials[s]
+        params = dict(m.params)
+        for name, value in shape.items():
+            if name in params:
+                params[name] = np.asarray(value, dtype=np.float64).reshape(np.shape(params[name]))
+        if "ks" in params and not np.any(params["ks"] > 0):
+            params["ks"] = np.full(np.shape(params["ks"]), OPEN_KS)
+        out[s] = dataclasses.replace(m, params=params)
+    return out
+
+
+def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: int = SEED,
+               open_lobes=()) -> tuple[np.ndarray, dict]:
     """The pixels the fit reads after its pilot: ``mask``'s evidence and a uniform share of the rest.
 
     With ``evidence`` = :data:`EVIDENCE` · ``pixels``, each pixel is kept with probability
     ``min(1, c · w)``, ``w`` its largest share of one term's information (:func:`evidence_weight`)
     and ``c`` such that about ``evidence`` are drawn: every term (a lobe, a reflection, a
     transmission) keeps its strongest pixels, a sharp highlight all of them; then
-    :data:`BULK` · ``pixels`` of the others, uniformly.
+    :data:`BULK` · ``pixels`` of the others, uniformly. The lobes of the surfaces ``open_lobes``
+    (those the pilot left undetermined) are looked for at every shape of :data:`SHAPES` too: a
+    pixel weighs the most it would hold under any of them.
 
     Returns
     -------
@@ -113,7 +144,10 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
     """
     mask = np.asarray(mask, dtype=bool)
     evidence, bulk = int(EVIDENCE * pixels), int(BULK * pixels)
-    w = np.where(mask, evidence_weight(trees, materials, intensities), 0.0)
+    w = evidence_weight(trees, materials, intensities)
+    for shape in SHAPES if len(open_lobes) else ():
+        w = np.maximum(w, evidence_weight(trees, shaped(materials, open_lobes, shape), intensities))
+    w = np.where(mask, w, 0.0)
     total = float(w.sum())
     rng = np.random.default_rng(seed + 1)
     draw = rng.random(len(w))

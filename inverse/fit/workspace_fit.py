@@ -161,7 +161,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     if sampled and not result.message.startswith("stopped"):
         # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
         t3 = time.perf_counter()
-        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable, pixels)
+        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable, pixels,
+                                                  open_lobes=sampling.open_lobes(result))
         sample_report["pilot"] = int(fac.n_rows)
         fac = Factorization(trees, models, intensities, mask=keep)
         t4 = time.perf_counter()
