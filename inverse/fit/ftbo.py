@@ -2,10 +2,12 @@
 
 For fixed θ, the Gram matrices ``G_c = A_cᵀA_c`` and ``h_c = A_cᵀb_c`` reduce the problem to the
 (few) monomial columns. There, ``x`` is the exact bounded least-squares solution for fixed r, t
-(NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its polynomial, alternated to
-convergence. θ (shininess searched in log2) is optimised on top: a coarse global scan per θ (each
-candidate with the exact inner solve), then Levenberg–Marquardt with the envelope-theorem gradient
-and the variable-projection curvature.
+(NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its polynomial; one sweep of
+these block steps picks the binding bounds, projected Newton on all of a band's free linear
+parameters jointly (exact Hessian, cheap in monomial space) converges. θ (shininess searched in
+log2) is optimised on top: a coarse global scan per θ (each candidate with the exact inner solve),
+then Levenberg–Marquardt with the envelope-theorem gradient and the variable-projection curvature,
+corrected by secant information where a fit creeps.
 """
 from __future__ import annotations
 
@@ -395,7 +397,7 @@ class _Inner:
                 step_f = -(Vv[:, keep] / wv[keep]) @ (Vv[:, keep].T @ gf)
             step = np.zeros(n)
             step[fr] = step_f
-            for _ in range(4):
+            for halving in range(4):
                 z_new = np.clip(z + step, 0.0, hi)
                 # Within rounding of a bound is on it (a t of 1e-23 would only trouble later stages).
                 z_new = np.where(z_new < 1e-12, 0.0, np.where(hi - z_new < 1e-12, hi, z_new))
@@ -409,7 +411,7 @@ class _Inner:
                 return False
             gain, E, x_c, s_c = E - E_new, E_new, x_new, s_new
             p.x[:, c], p.s[:, c] = x_c, s_c
-            if gain <= tol * bb + 1e-300:
+            if gain <= tol * bb + 1e-300 and halving == 0:  # a shortened step's small gain proves nothing
                 return True
         return False
 
