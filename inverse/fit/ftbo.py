@@ -2,10 +2,8 @@
 
 For fixed θ, the Gram matrices ``G_c = A_cᵀA_c`` and ``h_c = A_cᵀb_c`` reduce the problem to the
 (few) monomial columns. There, ``x`` is the exact bounded least-squares solution for fixed r, t
-(NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its polynomial; one sweep of
-these block steps picks the binding bounds, projected Newton on all of a band's free linear
-parameters jointly (exact Hessian, cheap in monomial space) converges. θ (shininess searched in
-log2) is optimised on top: a coarse global scan per θ (each candidate with the exact inner solve),
+(NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its polynomial, alternated to
+convergence. θ (shininess searched in log2) is optimised on top: a coarse global scan per θ (each candidate with the exact inner solve),
 then Levenberg–Marquardt with the envelope-theorem gradient and the variable-projection curvature,
 corrected by secant information where a fit creeps.
 """
@@ -63,9 +61,6 @@ POLISH_BELOW = 1e-6
 #: Joint Gauss–Newton steps of the polish at most; it stops at the first that does not halve ε
 #: (at zero residual Gauss–Newton converges quadratically: a slower step is at the rounding floor).
 POLISH_STEPS = 8
-#: Joint Newton steps of the inner solve per band at most (:meth:`_Inner.newton`); from the warm
-#: start of the previous θ it converges in a few.
-NEWTON_STEPS = 20
 
 
 def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True, stop_gain=STOP_GAIN):
@@ -312,115 +307,8 @@ class _Inner:
         if self.eps(c, fac.y(trial.x, trial.s)[c]) < self.eps(c, y):
             p.x[:, c], p.s[:, c] = trial.x[:, c], trial.s[:, c]
 
-    def newton(self, c, p: Params, free: Free, tol: float, max_steps: int = NEWTON_STEPS) -> bool:
-        """Projected Newton on all free linear parameters and factors of band c jointly.
-
-        ε is a polynomial in (x, r, t), so its exact Hessian is cheap in monomial space: the
-        Gauss–Newton block ``DᵀGD`` plus the residual ``Gy − h`` against the second derivatives of
-        the factor products. Parameters on a bound whose gradient points outward are held; a step
-        is kept only when it lowers ε (halved up to three times). Near the solution this converges
-        quadratically where the alternation of exact block minimisers converges linearly (an albedo
-        and the mirror reflecting it are coupled). Returns True once a step gains at most ``tol``
-        times Σ b²; False when no step lowers ε (the caller then alternates).
-        """
-        fac, pb = self.pb.fac, self.pb
-        slots, onehot, col_x = pb.factor_slots, pb.onehot, fac.col_x
-        n_f = p.s.shape[0]
-        fx, fs = np.flatnonzero(free.x[:, c]), np.flatnonzero(free.s[:, c])
-        nx, n = len(fx), len(fx) + len(fs)
-        if n == 0:
-            return True
-        G, h, bb = self.G[c], self.h[c], self.pb.bb[c]
-        hi = np.concatenate([self.upper(p)[fx], np.ones(len(fs))])
-        ox = onehot[:, fx]
-        D_slots = slots.shape[1]
-        rows = np.arange(slots.shape[0])
-        pairs = [(j, k) for j in range(D_slots) for k in range(j + 1, D_slots)]
-
-        def products(s_c):
-            V = np.append(s_c, 1.0)[slots]  # (C, D)
-            pre = np.ones((V.shape[0], D_slots + 1))
-            suf = np.ones((V.shape[0], D_slots + 1))
-            for j in range(D_slots):
-                pre[:, j + 1] = pre[:, j] * V[:, j]
-                suf[:, D_slots - 1 - j] = suf[:, D_slots - j] * V[:, D_slots - 1 - j]
-            return V, pre, suf
-
-        def eps_of(x_c, s_c):
-            _, pre, _ = products(s_c)
-            y = x_c[col_x] * pre[:, -1]
-            return float(y @ (G @ y) - 2.0 * (h @ y) + bb)
-
-        x_c, s_c = p.x[:, c].copy(), p.s[:, c].copy()
-        E = eps_of(x_c, s_c)
-        for _ in range(max_steps):
-            V, pre, suf = products(s_c)
-            prod = pre[:, -1]
-            xcol = x_c[col_x]
-            y = xcol * prod
-            r = G @ y - h  # half the gradient of ε in monomial space
-            dprod = np.zeros((len(rows), n_f + 1))
-            for j in range(D_slots):
-                dprod[rows, slots[:, j]] += pre[:, j] * suf[:, j + 1]
-            Ds = xcol[:, None] * dprod[:, fs]
-            D = np.concatenate([ox * prod[:, None], Ds], axis=1)
-            g = D.T @ r
-            H = D.T @ (G @ D)
-            # The residual's curvature: ∂²y/∂x∂s (one x per column) and ∂²y/∂s∂s' (slot pairs).
-            H[:nx, nx:] += ox.T @ (r[:, None] * dprod[:, fs])
-            if pairs:
-                w = r * xcol
-                Tss = np.zeros((n_f + 1) ** 2)
-                for j, k in pairs:
-                    L2 = pre[:, j] * np.prod(V[:, j + 1:k], axis=1) * suf[:, k + 1]
-                    Tss += np.bincount(slots[:, j] * (n_f + 1) + slots[:, k], weights=w * L2, minlength=(n_f + 1) ** 2)
-                Tss = Tss.reshape(n_f + 1, n_f + 1)
-                H[nx:, nx:] += (Tss + Tss.T)[np.ix_(fs, fs)]
-            H[nx:, :nx] = H[:nx, nx:].T
-            z = np.concatenate([x_c[fx], s_c[fs]])
-            fr = ~(((z <= 0.0) & (g > 0)) | ((z >= hi) & (g < 0)))
-            fr &= np.diag(H) > 0
-            if not fr.any():
-                return True
-            Hf, gf = H[np.ix_(fr, fr)], g[fr]
-            try:
-                step_f = -np.linalg.solve(Hf, gf)
-                if gf @ step_f >= 0.0:  # not a descent direction: Hf is indefinite here
-                    raise np.linalg.LinAlgError
-            except np.linalg.LinAlgError:
-                # The Gauss–Newton block (positive semi-definite) instead, on its range.
-                Hg = (D.T @ (G @ D))[np.ix_(fr, fr)]
-                wv, Vv = np.linalg.eigh(Hg)
-                keep = wv > max(wv.max(), 0.0) * 1e-13
-                if not keep.any():
-                    return False
-                step_f = -(Vv[:, keep] / wv[keep]) @ (Vv[:, keep].T @ gf)
-            step = np.zeros(n)
-            step[fr] = step_f
-            for halving in range(4):
-                z_new = np.clip(z + step, 0.0, hi)
-                # Within rounding of a bound is on it (a t of 1e-23 would only trouble later stages).
-                z_new = np.where(z_new < 1e-12, 0.0, np.where(hi - z_new < 1e-12, hi, z_new))
-                x_new, s_new = x_c.copy(), s_c.copy()
-                x_new[fx], s_new[fs] = z_new[:nx], z_new[nx:]
-                E_new = eps_of(x_new, s_new)
-                if E_new < E:
-                    break
-                step *= 0.25
-            else:
-                return False
-            gain, E, x_c, s_c = E - E_new, E_new, x_new, s_new
-            p.x[:, c], p.s[:, c] = x_c, s_c
-            if gain <= tol * bb + 1e-300 and halving == 0:  # a shortened step's small gain proves nothing
-                return True
-        return False
-
     def solve(self, p: Params, free: Free, tol=1e-15, max_sweeps=200) -> int:
-        """Per band: one sweep of exact block steps, then joint Newton (:meth:`newton`) to convergence.
-
-        The sweep's exact x (NNLS) and factor minimisers pick the bounds that bind; where Newton
-        stalls (a saddle, a degenerate curvature), the alternation goes on to convergence as before.
-        """
+        """Alternate the exact x and factor steps per band until ε stops decreasing."""
         fac = self.pb.fac
         sweeps = 0
         for c in range(BANDS):
@@ -429,9 +317,6 @@ class _Inner:
                 self.x_step(c, p, free)
                 for f in np.flatnonzero(free.s[:, c]):
                     self.s_step(c, f, p)
-                if sweep == 0 and self.newton(c, p, free, tol):
-                    sweeps += 1
-                    break
                 self.joint_step(c, p, free)
                 now = self.eps(c, fac.y(p.x, p.s)[c])
                 sweeps += 1

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
@@ -156,20 +155,6 @@ class Problem:
         self.deadline = None
         #: The stage's :class:`reflab.core.task.Task` (progress, pause, cancel, deadline).
         self.task = ensure(None)
-
-    @cached_property
-    def factor_slots(self) -> np.ndarray:
-        """(C, D) int: column k's factor product is Π_j s[slots[k, j]], a factor repeated by its
-        exponent; the index ``n_factors`` stands for an absent factor (1). F-TBO's inner Newton
-        step differentiates the products twice through these slots."""
-        e = self.fac.exponents
-        n_f = e.shape[1]
-        degree = max(int(e.sum(axis=1).max()) if e.size else 0, 1)
-        slots = np.full((e.shape[0], degree), n_f, dtype=np.int64)
-        for k in np.flatnonzero(e.any(axis=1)):  # once per problem: a loop over the (few) monomials
-            idx = np.repeat(np.arange(n_f), e[k])
-            slots[k, :len(idx)] = idx
-        return slots
 
     def out_of_time(self) -> bool:
         """True once the wall-clock budget of the fit (or the task's) is spent."""
