@@ -3,9 +3,9 @@
 For fixed θ, the Gram matrices ``G_c = A_cᵀA_c`` and ``h_c = A_cᵀb_c`` reduce the problem to the
 (few) monomial columns. There, ``x`` is the exact bounded least-squares solution for fixed r, t
 (NNLS), and each ``r_s`` / ``t_s`` the exact minimiser on [0, 1] of its polynomial, alternated to
-convergence. θ (shininess searched in log2) is optimised on top: a coarse global scan per θ (each candidate with the exact inner solve),
-then Levenberg–Marquardt with the envelope-theorem gradient and the variable-projection curvature,
-corrected by secant information where a fit creeps.
+convergence. θ (shininess searched in log2) is optimised on top: a coarse global scan per θ (each
+candidate with the exact inner solve), then Levenberg–Marquardt with the envelope-theorem gradient
+and the variable-projection curvature, corrected by secant information where a fit creeps.
 """
 from __future__ import annotations
 
@@ -38,7 +38,8 @@ STOP_GAIN = 1e-8
 SEED_STOP_GAIN = 1e-6
 #: Past this many iterations, Levenberg–Marquardt's model learns the curvature that Gauss–Newton
 #: misses from its trials (:func:`_secant_curvature`); a fit that converges sooner keeps the plain
-#: Gauss–Newton path. A textured zoo scene's noise-free pilot otherwise crept for 100 iterations.
+#: Gauss–Newton path. A textured zoo scene's pilot (homogeneous fit, noise estimate at the floor)
+#: otherwise crept for 100 iterations (187 evaluations); it now converges in 32 (56), lower.
 CREEP_ITERATIONS = 20
 #: ... or below this many noise variances (a χ² gain): the step then moves no combination of the
 #: parameters by more than 0.1 of its noise σ, which no later stage can tell from where it is.
