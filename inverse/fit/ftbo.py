@@ -347,9 +347,39 @@ def _evaluator(pb: Problem, free: Free, q):
         pb.evaluations += 1
         E = float(np.sum(res * res)) / pb.norm
         g = 2.0 * grad(res, y)[q] * srch.dtheta_du(cur.theta)[q] / pb.norm
+        g = g + _bound_slope(pb, cur, free, q, A, res)
         return E, g, cur, A, grad, res
 
     return evaluate
+
+
+def _bound_slope(pb: Problem, p: Params, free: Free, q, A, res) -> np.ndarray:
+    """dε/du through the linear parameters held on their θ-dependent upper bound (a Phong ks at 1/L(ns)).
+
+    The envelope theorem's partial derivative holds for bounds that do not move with θ; a ks
+    pressed against ``ub(ns)`` follows it, adding ``∂ε/∂ks · dub/du`` (∂ε/∂ks < 0 there). Without
+    it the gradient points where ε rises (lowering ns lowers the bound) and every damped step
+    fails: Levenberg–Marquardt spent a dozen evaluations per such call to conclude so.
+    """
+    fac, srch = pb.fac, pb.search
+    ub = linear_upper(fac, p.theta)
+    on = free.x & (p.x >= ub[:, None] * (1.0 - 1e-12)) & (ub[:, None] > 0)
+    out = np.zeros(len(q))
+    if not on.any():
+        return out
+    prod = fac.factor_products(p.s)  # (C, 3)
+    M = np.stack([A[c].T @ res[c] for c in range(BANDS)], axis=1)  # ½ ∂ε·norm/∂y per band
+    dx = np.minimum(2.0 * (pb.onehot.T @ (prod * M)) / pb.norm, 0.0)  # ∂ε/∂x, pressing outward only
+    u = srch.to_u(p.theta)
+    for k, qk in enumerate(q):
+        h = 1e-6 * max(1.0, abs(u[qk]))
+        up, dn = u.copy(), u.copy()
+        up[qk], dn[qk] = min(u[qk] + h, srch.hi[qk]), max(u[qk] - h, srch.lo[qk])
+        if up[qk] == dn[qk]:
+            continue
+        dub = (linear_upper(fac, srch.to_theta(up)) - linear_upper(fac, srch.to_theta(dn))) / (up[qk] - dn[qk])
+        out[k] = float(np.sum(np.where(on, dx * dub[:, None], 0.0)))
+    return out
 
 
 def coarse_stride(n_rows: int) -> int:
