@@ -30,3 +30,40 @@ def test_slope_fails_only_when_the_rise_is_first_order_in_the_step():
     assert not _slope_fails([(3e-6 * d * d, d) for d in steps])
     assert not _slope_fails([(3e-6, 5.5)] * 3)
     assert not _slope_fails([(3e-6 * d, d) for d in steps[:2]])
+
+
+def test_theta_gradient_through_a_ks_held_on_its_upper_bound_matches_central_differences():
+    """The lab's box is rendered with ks 6 above its plausible 1/L(30) = 4.53, so the exact inner
+    solve holds it on that θ-dependent bound: the profiled ε's slope in the box's log2 ns must
+    include the bound's pull (the envelope partial alone has it of the wrong size)."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.ftbo import _evaluator
+    from reflab.inverse.fit.problem import Free, Problem, params_of
+    from reflab.inverse.fit.ranges import linear_upper
+    from reflab.inverse.forward.factorization import Factorization
+    from reflab.inverse.forward.models import get_model
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(80, 60, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material.copy() for s in lab.scene]
+    truth[1].params["ks"] = np.full(3, 6.0)
+    fac = Factorization(trees, [get_model(m.brdf) for m in truth], lab.lights.intensities)
+    pb = Problem(fac, render(trees, truth, lab.lights.intensities), [m.transparent for m in truth])
+    p = params_of(fac, truth)
+    p.x = np.minimum(p.x, linear_upper(fac, p.theta)[:, None])
+    free = Free(np.ones_like(p.x, dtype=bool), np.ones_like(p.s, dtype=bool), np.ones_like(p.theta, dtype=bool))
+    q = np.flatnonzero(free.theta)
+    evaluate = _evaluator(pb, free, q)
+    u = pb.search.to_u(p.theta)[q]
+    E, g, cur, *_ = evaluate(u, p)
+    ks = fac.layout.x_offset[1] + list(fac.models[1].linear).index("ks")
+    assert np.allclose(cur.x[ks], linear_upper(fac, cur.theta)[ks])  # held on the bound
+    k = list(q).index(fac.layout.theta_offset[1])
+    h = 1e-4
+    up, dn = u.copy(), u.copy()
+    up[k] += h
+    dn[k] -= h
+    slope = (evaluate(up, cur)[0] - evaluate(dn, cur)[0]) / (2 * h)
+    assert abs(g[k] - slope) <= 1e-3 * abs(slope)
