@@ -11,9 +11,9 @@ its wall time and peak resident memory come from ``os.wait4`` (the child's own r
 A texture above ``--texture-max-mp`` is not run either (its memory, measured at 3 MP and
 extrapolated, would pass the 6 GB a run may take on the shared machine): the render then uses the
 largest texture made before, its texel maps being independent of the photograph's size.
-A fit at a size above ``--fit-max-mp`` is not run (today's fit keeps every pixel's trees, about
-2 KB a pixel: 25 GB at 12 MP, until it fits on a subsample of pixels); the texture and render then
-use fit.json of the same scene's 640x480 fit, said in the table.
+A fit at a size above ``--fit-max-mp`` is not run; the texture and render then use fit.json of the
+same scene's 640x480 fit, said in the table. (The fit reads a sample of the pixels and above 2 MP
+builds trees only for those: docs/fit.md, "Large photographs".)
 
 Coverage: the share of the photograph's pixels that see a surface (a primary ray hits) whose
 albedo the written texture knows (``reflab render --aov albedo`` finite there; untextured surfaces
@@ -128,7 +128,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1,3", help="megapixels, comma-separated, among " + ", ".join(map(str, SIZES)))
     ap.add_argument("--root", default="/tmp/reflab-megapixels")
-    ap.add_argument("--fit-max-mp", type=float, default=2.0,
+    ap.add_argument("--fit-max-mp", type=float, default=30.0,
                     help="largest size (MP) whose fit is run; above it fit.json comes from the 640x480 fit")
     ap.add_argument("--texture-max-mp", type=float, default=3.5,
                     help="largest size (MP) whose texture is run; above it textures/ come from the largest texture "
