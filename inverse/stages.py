@@ -42,9 +42,11 @@ class FitOptions:
                                  "as in the dissertation)", type=nonneg_int)
     single: bool = opt(False, "fit the reference photograph alone, ignoring inputs/ (the dissertation's method)",
                        flag="--single-photograph")
-    pixels: int = opt(85_000, "pixels the fit reads at most: above it, a pilot sample, then the pixels that show "
-                              "lobes, reflections and transmissions and a share of the rest (0 = every pixel)",
-                      type=nonneg_int)
+    pixels: int = opt(85_000, "pixels the fit reads when it samples (above --sample-above, or a photograph above "
+                              "2 MP): a pilot, then the pixels that show lobes, reflections and transmissions and "
+                              "a share of the rest (0 = never sample)", type=nonneg_int)
+    sample_above: float = opt(2.0, "the fit reads every usable pixel of the photographs up to this many megapixels "
+                                   "(all together) and samples only above", unit="MP", type=nonneg_float)
 
 
 @dataclass
@@ -80,7 +82,7 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     report, result = fit_workspace(o.workspace, o.method, o.depth, saturation=o.saturation,
                                    maxiter=o.max_iterations, max_seconds=o.max_seconds,
                                    texture_rounds=o.texture_rounds, progress=on_round, task=task, single=o.single,
-                                   pixels=o.pixels)
+                                   pixels=o.pixels, sample_above=int(round(o.sample_above * 1e6)))
     return FitResult(Workspace(o.workspace).fit, report, result)
 
 

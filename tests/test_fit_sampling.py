@@ -66,7 +66,7 @@ def test_a_sampled_fit_is_honest_and_agrees_with_the_full_one(tmp_path, seed):
     truth, textured = read_json(tmp_path / "truth.json"), [x.textured for x in zoo.scene]
     full = fit(FitOptions(tmp_path, pixels=0)).report
     assert "sampling" not in full
-    sampled = fit(FitOptions(tmp_path, pixels=4000)).report
+    sampled = fit(FitOptions(tmp_path, pixels=4000, sample_above=0.01)).report
     info = sampled["sampling"]
     assert info["of"] == 160 * 120  # nothing saturated
     assert info["evidence"] + info["bulk"] >= sampled["used_pixels"]  # less the outliers left out

@@ -96,7 +96,7 @@ def main(argv=None):
                 clean, truth = _photographs(ts, views), [s.material for s in ts.scene]
             img = clean + (np.random.default_rng(seed).normal(0.0, args.noise * clean.max(), clean.shape) if args.noise else 0.0)
             done = fit_scene(trees, user, intensities, img, np.ones(trees.width * trees.height, dtype=bool),
-                             pixels=args.pixels)
+                             pixels=args.pixels, sample_above=0)
             res, fac = done.result, done.fac
             det, und = rows(res, fac, truth, user)
             if args.verbose:

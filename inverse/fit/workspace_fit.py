@@ -23,7 +23,7 @@ from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, s
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
                   progress=None, task: Task | None = None, single: bool = False,
-                  pixels: int = sampling.PIXELS) -> tuple[dict, FitSolution]:
+                  pixels: int = sampling.PIXELS, sample_above: int = sampling.SAMPLE_ABOVE) -> tuple[dict, FitSolution]:
     """Run the fit stage on a workspace and write its fit.json.
 
     Parameters
@@ -54,6 +54,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     pixels : int
         Pixels the fit reads at most: when the photographs hold more, a pilot sample, then the
         evidence and a share of the others (:mod:`reflab.inverse.fit.sampling`); 0: every pixel.
+    sample_above : int
+        The fit samples only when the photographs hold more usable pixels than this.
 
     Returns
     -------
@@ -92,7 +94,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
-                         task=task, pixels=pixels, scene_file=ws.scene)
+                         task=task, pixels=pixels, sample_above=sample_above, scene_file=ws.scene)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
@@ -127,6 +129,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
 
 def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
               texture_rounds: int = 2, progress=None, task=None, pixels: int = sampling.PIXELS,
+              sample_above: int = sampling.SAMPLE_ABOVE,
               scene_file="scene.json") -> SceneFit:
     """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
     evidence when the photographs hold more than ``pixels`` (:mod:`reflab.inverse.fit.sampling`),
@@ -139,7 +142,7 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     t1 = time.perf_counter()
     models = [get_model(s.material.brdf) for s in scene]
     usable = np.asarray(usable, dtype=bool).reshape(-1)
-    sampled = sampling.needed(usable, pixels)
+    sampled = sampling.needed(usable, pixels, sample_above)
     if sampled:  # the pixels read are too sparse for the noise's 3×3 windows: the usable ones say it
         from reflab.inverse.fit.photograph import remember_noise
 
