@@ -54,13 +54,6 @@ def uniform(mask, count: int, seed: int = SEED) -> np.ndarray:
     return out
 
 
-def evidence_light(trees, materials, intensities) -> np.ndarray:
-    """(H*W,) per pixel, the predicted light (largest band per term) that is not the diffuse light
-    of a directly seen surface (lobes, reflections, transmissions), under ``materials``."""
-    pixel, light, _, _ = _terms(trees, materials, intensities)
-    return np.bincount(pixel, weights=light, minlength=trees.width * trees.height)
-
-
 def evidence_weight(trees, materials, intensities) -> np.ndarray:
     """(H*W,) per pixel, the largest share it holds of any one term's information: per term (each
     surface's lobe, wherever it is seen; each reflected or transmitted path), the pixel's light of

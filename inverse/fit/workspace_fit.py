@@ -52,10 +52,11 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     single : bool
         Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
     pixels : int
-        Pixels the fit reads at most: when the photographs hold more, a pilot sample, then the
-        evidence and a share of the others (:mod:`reflab.inverse.fit.sampling`); 0: every pixel.
+        Pixels the fit reads when it samples (:mod:`reflab.inverse.fit.sampling`: a pilot, then the
+        evidence and a share of the others; a photograph above :data:`reflab.inverse.fit.large.LARGE`
+        pixels through a binned view); 0: it never samples, whatever the photographs' size.
     sample_above : int
-        The fit samples only when the photographs hold more usable pixels than this.
+        The fit samples when the photographs hold more usable pixels than this.
 
     Returns
     -------
@@ -76,7 +77,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     from reflab.inverse.forward.photographs import load_photographs
 
     photos = load_photographs(ws, reference_only=single)
-    if pixels and large.is_large(photos):
+    through_view = bool(pixels) and large.is_large(photos)
+    if through_view:
         # Too large for trees of every pixel: read through a binned view (reflab.inverse.fit.large).
         from reflab.inverse.fit.photograph import read_photograph
         from reflab.inverse.forward.models import get_model
@@ -98,7 +100,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
-    if pixels and large.is_large(photos):  # the reference's own saturation, not the pixels left unread
+    if through_view:  # the reference's own saturation, not the pixels left unread
         ref_image, ref_saturated = read[0]
     else:
         ref_image, ref_saturated = stack.split(image)[0], saturated[stack.pixels(0)]
@@ -132,7 +134,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
               sample_above: int = sampling.SAMPLE_ABOVE,
               scene_file="scene.json") -> SceneFit:
     """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
-    evidence when the photographs hold more than ``pixels`` (:mod:`reflab.inverse.fit.sampling`),
+    evidence when the photographs hold more than ``sample_above`` usable pixels (and more than
+    ``pixels``; :mod:`reflab.inverse.fit.sampling`),
     and the texture rounds when a seen surface is textured. Parameters as :func:`fit_workspace`;
     ``usable`` (H*W,) bool: the pixels the fit may read (not saturated). A scene with no lit
     surface in view raises WorkspaceError naming ``scene_file``.
