@@ -128,10 +128,11 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     # 2. The pilot on the view: a seed.
     pilot_fac = Factorization(view.trees, models, view.intensities, mask=sampling.pilot(view_usable, pixels))
     if pilot_fac.n_columns == 0:
-        from reflab.core.workspace import WorkspaceError
+        from reflab.core.workspace import Workspace, WorkspaceError
 
-        raise WorkspaceError(workspace, "scene.json", "at least one surface seen by the camera and lit by a lamp",
-                             got="no pixel sees a lit surface")
+        # the same one-line error as the fit of a smaller photograph (workspace_fit.fit_scene)
+        raise WorkspaceError(Workspace(workspace).scene, "surfaces", "at least one surface seen by the camera and lit "
+                             "by a lamp", got="no pixel sees a lit surface")
     pilot = fit(pilot_fac, view_image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
                 textured=textured, names=scene.names, task=task, held=held, uncertainty=False, reject=False)
     # 3. The pixels read: the view's evidence, each at one pixel of its block, and a uniform share.
