@@ -1,0 +1,243 @@
+"""A surface declared textured that is printed in a few inks: its albedo one of K colours (issue 35).
+
+A free texture takes up every light seen only on its surface's pixels, so a printed surface's
+lobe and reflection go undetermined. When its photograph shows K ≤ :data:`MAX_INKS` inks, the
+albedo is one of K free colours per pixel instead: K × 3 numbers, not one per texel, and a
+highlight over an ink is then as separable from the albedo as over a uniform surface.
+
+**Which inks.** On the pixels :mod:`reflab.inverse.fit.albedo_model` judges (diffuse-lit, inside
+the outline) each implies an albedo ``a`` with noise ``σ / E``. Their likelihood under K inks is
+a Gaussian mixture with those known variances (:func:`mixture`, by expectation–maximisation):
+the labels are marginalised, not chosen, so that splitting one colour's noise in two buys
+nothing (hard labels would halve a uniform surface's χ² along its noisiest direction). A pixel on
+an ink's edge mixes two inks: it may instead take a free colour of its own at the BIC's price of
+its three values, ``3 ln n``, which caps its cost (:func:`mixture`'s ``penalty``). BIC of K inks:
+``Σ min(−2 log Σ_k π_k N_k, 3 ln n) + (4K − 1) ln n``, against one colour and a free colour per
+block (:func:`reflab.inverse.fit.albedo_model.albedo_evidence` decides).
+
+**The fit** (:func:`label`, :func:`Palette`): every directly seen pixel of the surface — its
+highlight's too — takes the ink its implied albedo is likeliest under (with the current lobe
+subtracted); a pixel whose label differs from a neighbour's, or whose diffuse-lit albedo is on
+no ink, is left out. Nodes seen in a mirror or through glass take the ink of the nearest labelled
+direct node, and their pixel is left out when none is within two node spacings. The fit then runs
+with the surface declared plain and its kd column scaled per node by its ink over the inks' mean
+(``Factorization(albedo=...)``, as the texture rounds scale theirs): kd is a gain on the palette,
+its lobe and reflection fitted and judged from every pixel. The inks are estimated again under the
+fitted lobe and the fit repeated once (:func:`reflab.inverse.fit.albedo_model.select`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Most inks a palette may have (the zoo prints one to four).
+MAX_INKS = 4
+#: Expectation–maximisation iterations at most, and its starts per K (seeded k-means++).
+EM_ITERATIONS = 60
+STARTS = 3
+
+
+def chi2(a, q, inks) -> np.ndarray:
+    """(P, K) χ² of each pixel's albedo ``a`` (P, 3), precisions ``q`` (P, 3), against each ink."""
+    d = a[:, None, :] - np.asarray(inks, dtype=np.float64)[None, :, :]
+    return np.einsum("pc,pkc->pk", q, d * d)
+
+
+def _costs(a, q, inks, weights):
+    """Per pixel the mixture's −2 log-likelihood (up to the models' shared constant) and the
+    responsibilities (P, K)."""
+    logp = np.log(np.maximum(weights, 1e-300))[None, :] - 0.5 * chi2(a, q, inks)
+    top = logp.max(axis=1, keepdims=True)
+    lse = top[:, 0] + np.log(np.exp(logp - top).sum(axis=1))
+    return -2.0 * lse, np.exp(logp - lse[:, None])
+
+
+def mix_chi2(a, q, inks) -> np.ndarray:
+    """(P,) χ² of each pixel's albedo against the nearest mix of two inks, ``(1 − t) u + t v``,
+    ``t`` in [0, 1] (a pixel on an ink's edge); inf with one ink."""
+    inks = np.asarray(inks, dtype=np.float64)
+    best = np.full(len(a), np.inf)
+    for i in range(len(inks)):
+        for j in range(i + 1, len(inks)):
+            d = inks[j] - inks[i]
+            r = a - inks[i]
+            t = np.clip((q * r) @ d / np.maximum(q @ (d * d), 1e-300), 0.0, 1.0)
+            best = np.minimum(best, np.sum(q * (r - t[:, None] * d) ** 2, axis=1))
+    return best
+
+
+def _start(a, q, K, rng) -> np.ndarray:
+    """k-means++ seeds: each further ink a pixel drawn by its χ² to the nearest so far."""
+    w = q.sum(axis=1)
+    inks = [(q * a).sum(axis=0) / np.maximum(q.sum(axis=0), 1e-300)]
+    for _ in range(1, K):
+        d = chi2(a, q, inks).min(axis=1)
+        p = d * (w > 0)
+        if not p.sum() > 0:
+            break
+        inks.append(a[rng.choice(len(a), p=p / p.sum())])
+    return np.array(inks)
+
+
+@dataclass
+class Mixture:
+    """K inks fitted to pixel albedos (:func:`mixture`)."""
+
+    inks: np.ndarray  # (K, 3)
+    weights: np.ndarray  # (K,)
+    sigma: np.ndarray  # (K, 3): each ink's σ, widened by its own misfit over the noise
+    pixels: np.ndarray  # (K,) pixels on each ink
+    labels: np.ndarray  # (P,) the likeliest ink; −1 where a mix of two explains the pixel better
+    misfit: float  # χ² of the pixels on an ink against it, over its degrees of freedom
+    cost: float  # Σ over pixels of the lower of −2 log-likelihood and a mix's χ² + penalty
+
+    @property
+    def count(self) -> int:
+        return len(self.inks)
+
+    def bic(self, n: int) -> float:
+        return self.cost + (4 * self.count - 1) * np.log(n)
+
+    def at_noise(self) -> bool:
+        """The pixels on an ink scatter about it as the noise does: χ² within three standard
+        deviations of its degrees of freedom (a smooth gradient cut into steps does not)."""
+        dof = max(3 * int(self.pixels.sum()) - 3 * self.count, 1)
+        return self.misfit <= 1.0 + 3.0 * np.sqrt(2.0 / dof)
+
+
+def mixture(a, q, K: int, penalty: float, *, inks=None, seed: int = 0) -> Mixture | None:
+    """K inks of the albedos ``a`` (P, 3) with precisions ``q`` (P, 3), by expectation–maximisation.
+
+    Parameters
+    ----------
+    a, q : (P, 3) ndarray
+        Each pixel's implied albedo and its precision per band, ``E² / σ²``.
+    K : int
+        The number of inks.
+    penalty : float
+        The price of a pixel's own mixing parameter (``ln n``): a pixel whose albedo a mix of two
+        inks explains better by more than it (:func:`mix_chi2`) is counted as that mix and
+        informs no ink (an ink's edge).
+    inks : (K, 3) array_like, optional
+        Starting inks (one start); default :data:`STARTS` seeded k-means++ starts, the best kept.
+    seed : int
+
+    Returns
+    -------
+    Mixture or None
+        None when fewer pixels than inks.
+    """
+    a, q = np.asarray(a, dtype=np.float64), np.asarray(q, dtype=np.float64)
+    if len(a) < 2 * K:
+        return None
+    rng = np.random.default_rng(seed)
+    starts = [np.asarray(inks, dtype=np.float64)] if inks is not None else [_start(a, q, K, rng) for _ in range(STARTS)]
+    best = None
+    for mu in starts:
+        if len(mu) < K:
+            continue
+        mu, pi, prev = mu.copy(), np.full(K, 1.0 / K), np.inf
+        for _ in range(EM_ITERATIONS):
+            cost, resp = _costs(a, q, mu, pi)
+            mixed = mix_chi2(a, q, mu) + penalty
+            total = float(np.minimum(cost, mixed).sum())
+            if prev - total <= 1e-9 * max(abs(total), 1.0):
+                break
+            prev = total
+            resp *= (cost <= mixed)[:, None]
+            den = resp.T @ q  # (K, 3)
+            mu = np.where(den > 0, (resp.T @ (q * a)) / np.maximum(den, 1e-300), mu)
+            pi = np.maximum(resp.sum(axis=0), 1e-12)
+            pi /= pi.sum()
+        cost, resp = _costs(a, q, mu, pi)
+        mixed = mix_chi2(a, q, mu) + penalty
+        total = float(np.minimum(cost, mixed).sum())
+        if best is None or total < best[0]:
+            best = (total, mu, pi, cost, resp, mixed)
+    if best is None:
+        return None
+    total, mu, pi, cost, resp, mixed = best
+    on = cost <= mixed
+    resp = resp * on[:, None]
+    labels = np.where(on, np.argmax(resp, axis=1), -1)
+    den = resp.T @ q
+    spread = np.einsum("pk,pc,pkc->kc", resp, q, (a[:, None, :] - mu[None]) ** 2)
+    dof = np.maximum(resp.sum(axis=0) - 1.0, 1.0)[:, None]
+    sigma = np.sqrt(1.0 / np.maximum(den, 1e-300) * np.maximum(spread / dof, 1.0))
+    on_ink = np.flatnonzero(labels >= 0)
+    misfit = float(np.sum(chi2(a[on_ink], q[on_ink], mu)[np.arange(len(on_ink)), labels[on_ink]])
+                   / max(3 * len(on_ink) - 3 * K, 1))
+    return Mixture(mu, pi, sigma, np.bincount(labels[on_ink], minlength=K), labels, misfit, total)
+
+
+
+def best_mixture(a, q, n: int, max_inks: int = MAX_INKS) -> Mixture | None:
+    """The palette of 2 … ``max_inks`` inks with the lowest BIC (``n`` pixel values); None if none fits."""
+    penalty = np.log(n)
+    fits = [m for K in range(2, max_inks + 1) if (m := mixture(a, q, K, penalty)) is not None]
+    return min(fits, key=lambda m: m.bic(n)) if fits else None
+
+
+@dataclass
+class Palette:
+    """The palette surfaces of one fit: each node's albedo over its surface's kd, and the pixels
+    left out (ink edges, mirror views of nothing labelled)."""
+
+    #: (N, 3) per tree node: its ink over its surface's kd on palette surfaces, NaN elsewhere.
+    relative: np.ndarray
+    #: (H*W,) bool: pixels the fit leaves out.
+    leave_out: np.ndarray
+    #: Surface index → (K, 3) inks, the kd they are relative to (3,), their σ (K, 3), pixels per ink (K,).
+    inks: dict
+
+    def merged(self, relative) -> np.ndarray:
+        """``relative`` (a texture's, NaN off its surfaces) with the palette surfaces' filled in."""
+        if relative is None:
+            return self.relative
+        return np.where(np.isnan(relative), self.relative, relative)
+
+
+def label_nodes(trees, s: int, px, labels, leave) -> tuple[np.ndarray, np.ndarray]:
+    """Each node of surface ``s``: its ink (−1 none), and pixels to leave out besides ``leave``.
+
+    ``px`` (P,) pixels seen directly on ``s`` with their ``labels`` (P,); ``leave`` (H*W,) bool
+    those left out already. A direct node takes its pixel's label; any other node (seen in a
+    mirror, through glass, or on the outline) the nearest kept labelled direct node's, and its
+    pixel is left out when that one is more than two node spacings away.
+    """
+    from scipy.spatial import cKDTree
+
+    npix = trees.width * trees.height
+    lab = np.full(npix, -1, dtype=np.int64)
+    lab[px] = labels
+    on = np.flatnonzero(np.asarray(trees.surface) == s)
+    level1 = np.asarray(trees.level)[on] == 1
+    own = lab[trees.pixel[on]]
+    node = np.where(level1, own, -1)
+    src = on[level1 & (own >= 0) & ~leave[trees.pixel[on]]]
+    more = np.zeros(npix, dtype=bool)
+    rest = np.flatnonzero(node < 0)
+    if len(src) < 2:
+        more[trees.pixel[on[rest]]] = True
+        return node, more
+    tree = cKDTree(trees.point[src])
+    spacing = float(np.median(tree.query(trees.point[src], k=2)[0][:, 1]))
+    if len(rest):
+        dist, nearest = tree.query(trees.point[on[rest]])
+        node[rest] = lab[trees.pixel[src[nearest]]]
+        far = dist > 2.0 * max(spacing, 1e-12)
+        more[trees.pixel[on[rest[far]]]] = True
+    return node, more
+
+
+def boundary(px, labels, width: int, height: int) -> np.ndarray:
+    """(P,) bool: a labelled pixel with a 4-neighbour of another label (an ink's edge)."""
+    grid = np.full(width * height, -1, dtype=np.int64)
+    grid[px] = labels
+    out = np.zeros(len(px), dtype=bool)
+    x = px % width
+    for step, inside in ((1, x < width - 1), (-1, x > 0), (width, px < width * (height - 1)), (-width, px >= width)):
+        other = np.where(inside, grid[np.clip(px + step, 0, width * height - 1)], -1)
+        out |= (other >= 0) & (other != labels)
+    return out
