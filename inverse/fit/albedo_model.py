@@ -40,11 +40,6 @@ import numpy as np
 
 from reflab.inverse.fit.palette import best_mixture, sharp, white
 
-#: Fit a surface the evidence calls a palette as one (:func:`_refit`). Off: on the sharp two-ink
-#: shiny box at 160×120 (1 % noise) the palette's fit went to another basin (ks 0.31–0.32 ± 0.002,
-#: ns 34.4 ± 0.7 for 0.3, 40; r 0.02 for 0): the highlight's pixels, labelled under the start's
-#: lobe, take the wrong ink coherently. The evidence (``inks``) is still recorded.
-FIT_PALETTES = False
 #: Block sizes (pixels across) of the free-texture alternatives.
 SCALES = (2, 4, 8)
 #: Second differences needed to measure the noise on a surface's pixels (fewer: nothing judged).
@@ -95,12 +90,13 @@ class AlbedoEvidence:
         return out
 
 
-def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, relative=None):
+def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_share, relative=None, other=False):
     """Per pixel of a textured surface seen directly inside its outline: its index, its surface,
     the albedo it implies, that albedo's weight E², whether diffuse light carries ``min_share`` of
     it (``clean``: judged), and the noise σ per band measured on untextured surfaces' residual
     (None: too few pixels). ``relative`` (N, 3): a palette's albedo per node over its surface's kd
-    (NaN: 1)."""
+    (NaN: 1). ``other``: also the light the model adds to the pixel's diffuse term, per unit albedo
+    (its highlight, reflections), whose height the start's fit may have wrong."""
     from reflab.inverse.forward.rendering import accumulate, linear_basis, node_radiance, path_products
 
     npix = trees.width * trees.height
@@ -145,7 +141,9 @@ def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_shar
         plain &= np.asarray(mask, dtype=bool).reshape(npix)
     q = np.flatnonzero(plain)
     sigma = _local_noise(q, img[q] - model[q], np.ones((len(q), 3)), trees.width, trees.height)
-    return px, first[px], albedo, E[px] ** 2, clean[px], sigma
+    if not other:
+        return px, first[px], albedo, E[px] ** 2, clean[px], sigma
+    return px, first[px], albedo, E[px] ** 2, clean[px], sigma, (model[px] - diffuse[px]) / E[px]
 
 
 def _rss(a, w, groups) -> np.ndarray:
@@ -275,14 +273,15 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
     ``noise``: surface → σ per band; ``previous``: the palette the ``materials`` were fitted
     with, whose judged pixels (lit diffusely under the start's model) judge the inks again. Returns the :class:`~reflab.inverse.fit.palette.Palette` and the new inks.
     """
-    from reflab.inverse.fit.palette import Palette, _costs, boundary, label_nodes, mix_chi2, mixture
+    from reflab.inverse.fit.palette import Palette, _costs, boundary, chi2_along, mix_chi2, mixture, node_weights
 
     npix = trees.width * trees.height
     relative = None if previous is None else previous.relative
-    px, surf, albedo, e2, clean, _ = _pixel_albedo(trees, materials, intensities, image, declared, mask, min_share,
-                                                   relative)
+    px, surf, albedo, e2, clean, _, other = _pixel_albedo(trees, materials, intensities, image, declared, mask,
+                                                          min_share, relative, other=True)
     judged_all = np.zeros(npix, dtype=bool)
     out = np.full((len(trees.pixel), 3), np.nan)
+    node_weights_ = {}
     leave = np.zeros(npix, dtype=bool)
     found, whites = {}, {}
     for s, m in inks.items():
@@ -293,24 +292,47 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
         penalty = np.log(max(3 * int(judged.sum()), 2))
         m = mixture(a[judged], q[judged], m.count, penalty, inks=m.inks) or m
         cost, resp = _costs(a, q, m.inks, m.weights)
-        labels = np.argmax(resp, axis=1)
-        # A diffuse-lit pixel that a mix of two inks explains better is an ink's edge. Under a
+        share = (resp == resp.max(axis=1, keepdims=True)).astype(np.float64)
+        # Under a highlight (or a reflection) the implied albedo is off along the light the model
+        # adds there, by as much as its height is wrong: the ink is the one nearest along that
+        # line. Where no ink is nearer than the rest by the penalty (inks alike), the pixel's
+        # albedo is their mean under its posterior.
+        lit = ~judged
+        along = chi2_along(a[lit], q[lit], m.inks, other[sel][lit])
+        post = np.log(np.maximum(m.weights, 1e-300))[None, :] - 0.5 * along
+        post = np.exp(post - post.max(axis=1, keepdims=True))
+        post /= post.sum(axis=1, keepdims=True)
+        best = np.sort(along, axis=1)
+        sure = np.ones(len(a), dtype=bool)
+        sure[lit] = best[:, 1] - best[:, 0] >= penalty
+        share[lit] = np.where(sure[lit][:, None], (post == post.max(axis=1, keepdims=True)).astype(np.float64), post)
+        labels = np.where(sure, np.argmax(share, axis=1), -1)
+        # A diffuse-lit pixel that a mix of two inks explains better is an ink's edge; under a
         # highlight the lobe (the start's fitted against one colour) is not trusted to tell: there
-        # a pixel is left out where a neighbour's label differs.
+        # a surely labelled pixel is left out where a surely labelled neighbour's label differs.
         mixed = cost > mix_chi2(a, q, m.inks) + penalty
-        off = np.where(judged, mixed, boundary(px[sel], labels, trees.width, trees.height))
+        off = np.where(judged, mixed, sure & boundary(px[sel], labels, trees.width, trees.height))
+        if previous is not None:
+            # Under the fitted lobe every kept pixel's albedo is its ink's: the inks from all of them.
+            m = dataclasses.replace(m, inks=m.inks.copy())
+            for k in range(m.count):
+                on_k = ~off & sure & (labels == k)
+                if on_k.any():
+                    m.inks[k] = (q[on_k] * a[on_k]).sum(axis=0) / np.maximum(q[on_k].sum(axis=0), 1e-300)
         judged_all[px[sel][judged]] = True
         leave[px[sel][off]] = True
-        node, more = label_nodes(trees, s, px[sel][~off], labels[~off], leave)
+        node, more = node_weights(trees, s, px[sel][~off], share[~off], sure[~off], leave)
         leave |= more
         whites[s] = (white(px[sel][judged], a[judged], q[judged], m, trees.width, trees.height)
                      and sharp(px[sel][judged], m, trees.width, trees.height))
         kd_ref = (m.pixels @ m.inks) / max(int(m.pixels.sum()), 1)
         on = np.flatnonzero(np.asarray(trees.surface) == s)
-        out[on] = np.where(node[:, None] >= 0, m.inks[np.maximum(node, 0)] / np.maximum(kd_ref, 1e-6), 1.0)
+        node[leave[trees.pixel[on]]] = 0.0
+        out[on] = np.where(node.sum(axis=1, keepdims=True) > 0, (node @ m.inks) / np.maximum(kd_ref, 1e-6), 1.0)
+        node_weights_[s] = (node, on)
         found[s] = m
     return Palette(out, leave, {s: (m.inks, (m.pixels @ m.inks) / max(int(m.pixels.sum()), 1), m.sigma, m.pixels)
-                                for s, m in found.items()}, whites, judged_all), found
+                                for s, m in found.items()}, whites, judged_all, node_weights_), found
 
 
 def _with_kd(materials, palette) -> list:
@@ -384,7 +406,8 @@ def _refit(trees, scene, models, intensities, image, start, found, models_of, *,
         left = None if max_seconds is None else max(max_seconds - (again.time_s - start.time_s), 1e-3)
         again = _continued(again, fit(fac, image, materials, method, textured=list(textured), names=scene.names,
                                       scan=False, maxiter=maxiter, max_seconds=left, task=task, held=held,
-                                      uncertainty=last and final, reject=final))
+                                      uncertainty=last and final, reject=final,
+                                      nuisance=None if palette is None else palette.nuisance))
         materials = again.materials
     return scene, again, palette
 
@@ -431,10 +454,6 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
                             min_share=min_share)
     evidence = {scene.names[s]: e.to_json() for s, e in found.items()}
     models_of = {s: e.model for s, e in found.items()}
-    if not FIT_PALETTES:
-        for s in [s for s, m in models_of.items() if m == "palette"]:
-            models_of[s] = "texture"
-            evidence[scene.names[s]].update(model="texture", palette_fitted=False)
     while True:
         done = _refit(trees, scene, models, intensities, image, start, found, models_of, mask=mask, method=method,
                       maxiter=maxiter, max_seconds=max_seconds, task=task, held=held, min_share=min_share)

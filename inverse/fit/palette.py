@@ -48,6 +48,17 @@ def chi2(a, q, inks) -> np.ndarray:
     return np.einsum("pc,pkc->pk", q, d * d)
 
 
+def chi2_along(a, q, inks, d) -> np.ndarray:
+    """(P, K) χ² of each albedo ``a`` against each ink with any multiple of ``d`` (P, 3) (the light
+    a pixel's model adds, per unit albedo) taken away: the distance from the ink to the line."""
+    r = a[:, None, :] - np.asarray(inks, dtype=np.float64)[None, :, :]
+    qd = q * d
+    dd = np.sum(qd * d, axis=1)
+    proj = np.einsum("pc,pkc->pk", qd, r)
+    return np.einsum("pc,pkc->pk", q, r * r) - np.divide(proj ** 2, dd[:, None], out=np.zeros_like(proj),
+                                                         where=dd[:, None] > 0)
+
+
 def _costs(a, q, inks, weights):
     """Per pixel the mixture's −2 log-likelihood (up to the models' shared constant) and the
     responsibilities (P, K)."""
@@ -233,6 +244,8 @@ class Palette:
     white: dict
     #: (H*W,) bool: the pixels that judged the inks (diffuse-lit under the start's model).
     judged: np.ndarray
+    #: Surface index → (N_s, K) each of its nodes' share of each ink (zeros: none), and its nodes (N_s,).
+    weights: dict
 
     def merged(self, relative) -> np.ndarray:
         """``relative`` (a texture's, NaN off its surfaces) with the palette surfaces' filled in."""
@@ -240,38 +253,116 @@ class Palette:
             return self.relative
         return np.where(np.isnan(relative), self.relative, relative)
 
+    def nuisance(self, pb, p, materials, res):
+        """``extra`` for :func:`reflab.inverse.fit.uncertainty.sigmas`: the inks' uncertainty profiled out.
 
-def label_nodes(trees, s: int, px, labels, leave) -> tuple[np.ndarray, np.ndarray]:
-    """Each node of surface ``s``: its ink (−1 none), and pixels to leave out besides ``leave``.
+        The fit holds each palette's inks at their estimate and fits its kd as one gain per band
+        on all of them, so every σ would take the inks' ratios as known. Here each ink but the
+        most seen one is a free nuisance per band (that one is the gain's): its columns ``J_ink``
+        (each labelled node's diffuse light per unit albedo) are projected off the fitted
+        parameters', the Schur complement ``− C D⁻¹ Cᵀ`` with ``C = JᵀW J_ink``,
+        ``D = J_inkᵀW J_ink`` added to the normal matrix and ``− C D⁻¹ g_ink`` to each tile's
+        score. None when no ink is free.
+        """
+        from reflab.inverse.fit.problem import materials_of
+        from reflab.inverse.fit.uncertainty import row_jacobian
+        from reflab.inverse.forward.rendering import linear_basis, path_products
 
-    ``px`` (P,) pixels seen directly on ``s`` with their ``labels`` (P,); ``leave`` (H*W,) bool
-    those left out already. A direct node takes its pixel's label; any other node (seen in a
-    mirror, through glass, or on the outline) the nearest kept labelled direct node's, and its
-    pixel is left out when that one is more than two node spacings away.
+        fac = pb.fac
+        tr = fac.trees
+        row_of = np.full(fac.width * fac.height, -1, dtype=np.int64)
+        row_of[fac.rows] = np.arange(fac.n_rows)
+        lay = fac.layout
+        cols, nodes = [], []
+        shares = []
+        for s, (inks, kd_ref, _, pixels) in self.inks.items():
+            share, idx = self.weights[s]
+            order = np.argsort(pixels)[::-1]
+            for k in order[1:]:  # the most seen ink goes with the gain
+                sel = (share[:, k] > 0) & (row_of[tr.pixel[idx]] >= 0)
+                if sel.any():
+                    j = lay.x_offset[s] + fac.models[s].linear.index("kd")
+                    nodes.append(idx[sel])
+                    shares.append(share[sel, k])
+                    cols.append((len(cols), p.x[j] / np.maximum(kd_ref, 1e-12)))
+        if not cols:
+            return None
+        mats = materials_of(fac, p, materials)
+        every = np.concatenate(nodes)
+        e = linear_basis(tr, mats, fac._args[0])[every, :, 0] * path_products(tr, mats)[every]  # (m, 3)
+        e = e * np.concatenate(shares)[:, None]
+        rows_all = row_of[tr.pixel[every]]
+        used, local = np.unique(rows_all, return_inverse=True)
+        n_ink = len(cols)
+        J_ink = np.zeros((3, len(used), n_ink))
+        start = 0
+        for (k, gain), on in zip(cols, nodes):
+            sl = slice(start, start + len(on))
+            for c in range(3):
+                J_ink[c, :, k] += np.bincount(local[sl], weights=e[sl, c] * gain[c], minlength=len(used))
+            start += len(on)
+
+        def extra(free, weights, tiles):
+            tile, n_tiles = tiles
+            J = row_jacobian(pb, p, free, used)  # (3, m, n)
+            n = J.shape[2]
+            H, scores = np.zeros((n, n)), np.zeros((n, n_tiles))
+            for c in range(3):
+                Ji = J_ink[c]
+                C = weights[c] * (J[c].T @ Ji)  # (n, K')
+                D = weights[c] * (Ji.T @ Ji)
+                g = np.zeros((n_ink, n_tiles))
+                np.add.at(g.T, tile[used], Ji * (weights[c] * res[c, used])[:, None])
+                X = C @ np.linalg.pinv(D)
+                H -= X @ C.T
+                scores -= X @ g
+            return H, scores
+
+        return extra
+
+
+def node_weights(trees, s: int, px, weights, sure, leave) -> tuple[np.ndarray, np.ndarray]:
+    """Each node of surface ``s``: its share of each ink (zeros: none), and pixels to leave out
+    besides ``leave``.
+
+    ``px`` (P,) kept pixels seen directly on ``s``, ``weights`` (P, K) their share of each ink
+    (one-hot where the label is ``sure``, else the posterior); ``leave`` (H*W,) bool those left
+    out already. A direct node takes its pixel's weights; any other node (seen in a mirror,
+    through glass, or on the outline) the ink of the nearest surely labelled direct node, and its
+    pixel is left out when that one is more than two node spacings away or the four nearest
+    disagree (an ink's edge); a direct node without a label of its own (the outline) is left out.
     """
     from scipy.spatial import cKDTree
 
-    npix = trees.width * trees.height
+    npix, K = trees.width * trees.height, weights.shape[1]
+    grid = np.zeros((npix, K))
+    grid[px] = weights
+    has = np.zeros(npix, dtype=bool)
+    has[px] = True
     lab = np.full(npix, -1, dtype=np.int64)
-    lab[px] = labels
+    lab[px[sure]] = np.argmax(weights[sure], axis=1)
     on = np.flatnonzero(np.asarray(trees.surface) == s)
     level1 = np.asarray(trees.level)[on] == 1
-    own = lab[trees.pixel[on]]
-    node = np.where(level1, own, -1)
-    src = on[level1 & (own >= 0) & ~leave[trees.pixel[on]]]
+    mine = level1 & has[trees.pixel[on]] & ~leave[trees.pixel[on]]
+    out = np.where(mine[:, None], grid[trees.pixel[on]], 0.0)
+    src = on[level1 & (lab[trees.pixel[on]] >= 0) & ~leave[trees.pixel[on]]]
     more = np.zeros(npix, dtype=bool)
-    rest = np.flatnonzero(node < 0)
+    rest = np.flatnonzero(~mine)
     if len(src) < 2:
         more[trees.pixel[on[rest]]] = True
-        return node, more
+        return out, more
     tree = cKDTree(trees.point[src])
     spacing = float(np.median(tree.query(trees.point[src], k=2)[0][:, 1]))
     if len(rest):
-        dist, nearest = tree.query(trees.point[on[rest]])
-        node[rest] = lab[trees.pixel[src[nearest]]]
-        far = dist > 2.0 * max(spacing, 1e-12)
+        k = min(4, len(src))
+        dist, nearest = tree.query(trees.point[on[rest]], k=k)
+        near = lab[trees.pixel[src[nearest]]]  # (R, k)
+        out[rest, near[:, 0]] = 1.0
+        # Far from every labelled node, or near an ink's edge (its nearest labels differ): out.
+        far = (dist[:, 0] > 2.0 * max(spacing, 1e-12)) | np.any(near != near[:, :1], axis=1)
+        far |= level1[rest]  # the outline: a pixel mixing two surfaces, its ink a guess
         more[trees.pixel[on[rest[far]]]] = True
-    return node, more
+    return out, more
 
 
 def boundary(px, labels, width: int, height: int) -> np.ndarray:

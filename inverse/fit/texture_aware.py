@@ -372,7 +372,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                      maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
                      held=held, guessed=guessed, reject=False, structure=start.structure,
                      still_held=None if best_round == 0 else result.free,
-                     uncertainty=last, colour=colour)
+                     uncertainty=last, colour=colour, nuisance=None if palette is None else palette.nuisance)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0
