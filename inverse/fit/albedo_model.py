@@ -237,7 +237,7 @@ def albedo_evidence(trees, materials, intensities, image, textured, noise=None, 
         inks = best_mixture(a, w / var, n) if palettes else None
         delta_p = inks.bic(n) - min(bic_u, bic[b]) if inks is not None else float("nan")
         held_ = (inks is not None and inks.at_noise() and white(px[sel], a, w / var, inks, trees.width, trees.height)
-                 and sharp(px[sel], inks, trees.width, trees.height))
+                 and sharp(px[sel], a, w / var, inks, trees.width, trees.height))
         model = "palette" if delta_p < 0 and held_ else "uniform" if delta < 0 else "texture"
         out[int(s)] = AlbedoEvidence(model, int(sel.sum()), chi2_u, float(np.sum(rss[b] / var)), b, blocks[b],
                                      float(delta), colour, [float(v) for v in np.sqrt(var)], inks, float(delta_p))
@@ -324,7 +324,7 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
         node, more = node_weights(trees, s, px[sel][~off], share[~off], sure[~off], leave)
         leave |= more
         whites[s] = (white(px[sel][judged], a[judged], q[judged], m, trees.width, trees.height)
-                     and sharp(px[sel][judged], m, trees.width, trees.height))
+                     and sharp(px[sel][judged], a[judged], q[judged], m, trees.width, trees.height))
         kd_ref = (m.pixels @ m.inks) / max(int(m.pixels.sum()), 1)
         on = np.flatnonzero(np.asarray(trees.surface) == s)
         node[leave[trees.pixel[on]]] = 0.0

@@ -214,12 +214,28 @@ def white(px, a, q, mix: Mixture, width: int, height: int) -> bool:
     return num / np.sqrt(max(den0 * den1, 1e-300)) <= 3.0 / np.sqrt(pairs)
 
 
-def sharp(px, mix: Mixture, width: int, height: int) -> bool:
-    """The inks meet at sharp edges: the pixels a mix of two explains (:func:`mix_chi2`) are at most
-    :data:`SHARP` of the pixels on an ink's edge. A print whose colours grade into each other over
-    pixels (a soft two-colour pattern cut into steps) is not a palette: its steps carry no edge."""
+def sharp(px, a, q, mix: Mixture, width: int, height: int) -> bool:
+    """The inks meet at sharp edges. A pixel next to another ink's pixel has its own ink's albedo,
+    as one inside its ink's region does: per ink, the two means agree (χ² within three standard
+    deviations of its degrees of freedom); and the pixels a mix of two explains
+    (:func:`mix_chi2`) are at most :data:`SHARP` of those on an ink's edge. A print whose colours
+    grade into each other over pixels (soft edges, a soft two-colour pattern cut into steps) pulls
+    each ink's edge toward its neighbour's and is not a palette."""
     on = mix.labels >= 0
-    return int((~on).sum()) <= SHARP * int(boundary(px[on], mix.labels[on], width, height).sum())
+    edge = boundary(px[on], mix.labels[on], width, height)
+    if int((~on).sum()) > SHARP * int(edge.sum()):
+        return False
+    a, q, labels = a[on], q[on], mix.labels[on]
+    chi, dof = 0.0, 0
+    for k in range(mix.count):
+        e, i = (labels == k) & edge, (labels == k) & ~edge
+        if e.sum() < 2 or i.sum() < 2:
+            continue
+        we, wi = q[e].sum(axis=0), q[i].sum(axis=0)
+        me, mi = (q[e] * a[e]).sum(axis=0) / we, (q[i] * a[i]).sum(axis=0) / wi
+        chi += float(np.sum((me - mi) ** 2 / (1.0 / we + 1.0 / wi)))
+        dof += 3
+    return dof == 0 or chi <= dof + 3.0 * np.sqrt(2.0 * dof)
 
 
 def best_mixture(a, q, n: int, max_inks: int = MAX_INKS) -> Mixture | None:
