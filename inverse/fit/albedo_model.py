@@ -403,13 +403,68 @@ def _refit(trees, scene, models, intensities, image, start, found, models_of, *,
             materials = _with_kd(materials, palette)
         fac = Factorization(trees, models, intensities, mask=mask if palette is None else mask & ~palette.leave_out,
                             albedo=None if palette is None else palette.relative)
+        kw = dict(textured=list(textured), names=scene.names, scan=False, maxiter=maxiter, task=task, held=held,
+                  reject=False, uncertainty=False, nuisance=None if palette is None else palette.nuisance)
         left = None if max_seconds is None else max(max_seconds - (again.time_s - start.time_s), 1e-3)
-        again = _continued(again, fit(fac, image, materials, method, textured=list(textured), names=scene.names,
-                                      scan=False, maxiter=maxiter, max_seconds=left, task=task, held=held,
-                                      uncertainty=last and final, reject=final,
-                                      nuisance=None if palette is None else palette.nuisance))
+        # What the start found without signal or held stays so on the surfaces whose flags did not
+        # change (their holding rounds would find it again); the changed ones start anew.
+        structure, still = _anew(fac, start.structure, plain), _anew(fac, start.free, plain)
+        if k:
+            structure, still = again.structure, again.free
+        again = _continued(again, fit(fac, image, materials, method, max_seconds=left, structure=structure,
+                                      still_held=still, **kw))
+        if final and not again.message.startswith("stopped"):
+            # The start's outliers are out already; those the refit's flags no longer excuse (a
+            # surface's diffuse light is no longer free texture) go in one pass, and the refit
+            # from there keeps what it held (its holding rounds would find it again).
+            bad = _outliers(fac, image, again, textured)
+            if len(bad):
+                left = None if max_seconds is None else max(max_seconds - (again.time_s - start.time_s), 1e-3)
+                more = fit(fac.without(bad), image, again.materials, method, max_seconds=left,
+                           **kw | dict(structure=again.structure, still_held=again.free))
+                again = _continued(_rejected(again, bad, trees.width), more)
+        if final and last:  # no texture round follows: the σ now
+            done = again.stats["complete"]()
+            again = dataclasses.replace(done, trace=again.trace, time_s=again.time_s, evaluations=again.evaluations,
+                                        iterations=again.iterations)
         materials = again.materials
     return scene, again, palette
+
+
+def _anew(fac, free, surfaces):
+    """``free`` (a :class:`~reflab.inverse.fit.problem.Free`) with every parameter of ``surfaces``
+    free where the system has a column for it (their r and t where some path meets them)."""
+    out = free.copy()
+    lay = fac.layout
+    for s in surfaces:
+        out.x[lay.x_offset[s]:lay.x_offset[s + 1]] = True
+        out.theta[lay.theta_offset[s]:lay.theta_offset[s + 1]] = True
+        for f in (2 * s, 2 * s + 1):
+            out.s[f] = bool(fac.exponents[:, f].any())
+    return out
+
+
+def _outliers(fac, image, result, textured) -> np.ndarray:
+    """Flat pixel indices the refit ``result`` calls outliers (:func:`reflab.inverse.fit.diagnosis.outliers`),
+    none when more than :data:`~reflab.inverse.fit.diagnosis.REJECT_SHARE` of the pixels (a misfit, not outliers)."""
+    from reflab.inverse.fit.diagnosis import REJECT_SHARE, outliers
+    from reflab.inverse.fit.problem import Problem
+
+    pb = Problem(fac, image, [m.transparent for m in result.materials])
+    A = fac.matrices(result.params.theta)
+    bad = outliers(pb, result.params, A, pb.residual(A, fac.y(result.params.x, result.params.s)), textured)
+    return bad if len(bad) <= REJECT_SHARE * fac.n_rows else np.zeros(0, dtype=np.int64)
+
+
+def _rejected(result, bad, width: int):
+    """``result`` with the flat pixels ``bad`` listed among its rejected outliers (as [x, y])."""
+    from reflab.inverse.fit.diagnosis import REJECT_SIGMAS
+
+    rejected = result.stats.get("rejected", {"count": 0, "pixels": []})
+    pixels = list(rejected["pixels"]) + [[int(i % width), int(i // width)] for i in bad]
+    return dataclasses.replace(result, stats={**result.stats, "rejected": {**rejected, "count": len(pixels),
+                                                                           "pixels": pixels,
+                                                                           "threshold_sigmas": REJECT_SIGMAS}})
 
 
 def select(trees, scene, models, intensities, image, start, *, mask, method, maxiter=None, max_seconds=None,
