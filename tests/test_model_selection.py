@@ -108,7 +108,7 @@ def test_a_faint_print_called_uniform_stays_honest():
     two colours ± 0.04 about one) is called uniform (one colour) or a palette (two inks, its
     highlight's pixels, whose inks the noise cannot tell apart, at their posterior mean); what the
     model leaves in the residual widens the robust σ, so every determined value, the lobe among
-    them, stays within 3σ + 2 % (measured: a palette, within 1.9σ)."""
+    them, stays within 3σ + 2 % (measured: a palette, within 1.8σ)."""
     from reflab.hardware.sim.scenes import _mean, _pattern
 
     ts = build("shiny_box", W, H)

@@ -1,34 +1,41 @@
-"""Which albedo model a surface declared textured gets: one colour, or a free texture (issue 35).
+"""Which albedo model a surface declared textured gets: one colour, a few inks, or a free texture (issue 35).
 
 A surface marked ``textured`` in scene.json gets a free albedo per texel in the texture rounds
 (:mod:`reflab.inverse.fit.texture_aware`), which absorbs any light seen only on its pixels: its
 own lobe and reflection are then reported undetermined, even when its photograph shows one
-colour under a white highlight and the colours would determine them. Here the photograph
-decides. After the homogeneous fit, on every pixel where the diffuse light of one directly seen
-textured surface carries almost all the predicted light (the pixels the texture rounds recover
-texture from), the albedo that pixel implies is
+colour (or a few inks) under a white highlight and the colours would determine them. Here the
+photograph decides. After the homogeneous fit, on every pixel where the diffuse light of one
+directly seen textured surface carries almost all the predicted light (the pixels the texture
+rounds recover texture from), the albedo that pixel implies is
 
     a = kd + (image − model) / E,    its noise σ / E,
 
 ``E`` the light per unit albedo there (path product × the diffuse basis) and ``σ`` the
-photograph's noise per band: the smaller of the fit's image-wide estimate (fit.json's ``noise``)
-and the one measured on those very pixels from the second differences of their albedos
-(:func:`_local_noise`). Texture inflates both, each elsewhere: the image-wide one counts a fine
-texture anywhere in view as noise (twice the true σ on two_textured at 80×60, which called its
-two-ink box uniform), the local one the surface's own fine print (shiny_box at 80×60: 1.9×). Two models of those albedos are compared by the Bayesian information criterion,
-``χ² + k ln n`` (``n`` the pixel values, ``k`` the free parameters):
+photograph's noise per band: the smallest of the fit's image-wide estimate (fit.json's
+``noise``), the one measured on those very pixels from the second differences of their albedos
+(:func:`_local_noise`) and the same measured on the fit's residual inside untextured surfaces.
+Texture inflates each, each elsewhere: the image-wide one counts a fine texture anywhere in view
+as noise (twice the true σ on two_textured at 80×60, which called its two-ink box uniform), the
+local one the surface's own fine print (shiny_box at 80×60: 1.9×). Models of those albedos are
+compared by the Bayesian information criterion, ``χ² + k ln n`` (``n`` the pixel values, ``k``
+the free parameters):
 
 - **uniform**: one colour (3 parameters);
 - **texture**: a free colour per block of ``b × b`` pixels (3 per block), for each block size of
   :data:`SCALES` (a texel of the rounds is :data:`~reflab.inverse.fit.texture_aware.TEXEL_SCALE`
   = 2 pixel footprints across; coarser blocks see smooth textures whose contrast per texel is
-  under the noise); the best of them.
+  under the noise); the best of them;
+- **palette**: 2 … 4 inks, a Gaussian mixture with a mix of two inks allowed per pixel at its
+  price (:mod:`reflab.inverse.fit.palette`), chosen only when its inks hold: misfit at the
+  noise, white residuals, sharp edges.
 
 A surface whose uniform model has the lower BIC is fitted as homogeneous (its kd a free
-parameter, its lobe and reflection fitted with the rest, every σ from every pixel); the user's
-flag still rules the texture stage. Nothing here is tuned: a texture whose contrast stays within
-the noise over every block size is called uniform, and the misfit it leaves counts in the robust
-σ (:mod:`reflab.inverse.fit.uncertainty`) like any other. Pixels on a surface's outline are left
+parameter, its lobe and reflection fitted with the rest, every σ from every pixel); a palette
+likewise, its kd a gain on its inks (:func:`select`); the user's flag still rules the texture
+stage. Nothing here is tuned but the palette's share of mixed edge pixels
+(:data:`~reflab.inverse.fit.palette.SHARP`): a texture whose contrast stays within the noise over every block
+size is called uniform, and the misfit it leaves counts in the robust σ
+(:mod:`reflab.inverse.fit.uncertainty`) like any other. Pixels on a surface's outline are left
 out: an edge pixel's mix of two surfaces is no albedo.
 """
 from __future__ import annotations

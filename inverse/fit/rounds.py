@@ -256,6 +256,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     their bands' fitted values (``guessed``): reported determined when their σ resolves them, like
     a fitted value (a lobe one band-shared height, fitted the round before). ``colour``: lobes
     estimated from the texture's colours (:mod:`reflab.inverse.fit.dichromatic`), whose σ their ks and θ take.
+    ``nuisance``: as :func:`fit` takes it, profiled out of the σ from every pixel.
     """
     t0 = time.perf_counter()
     fac = pb.fac
