@@ -237,3 +237,19 @@ def test_smooth_and_full_colour_prints_are_no_palette(name, surface):
     found = albedo_evidence(trees, start.materials, ts.lights.intensities, image, [s.textured for s in user],
                             start.stats["noise"])
     assert found[user.names.index(surface)].model == "texture"
+
+
+def test_the_report_lists_a_palette_with_its_inks():
+    """The report's fit section: a palette surface's row names the model and its inks ± σ."""
+    from reflab.app.report.sections.fit import _albedo_models
+    from reflab.app.report.sections.section import Section
+
+    sec = Section("fit", "Fit")
+    _albedo_models(sec, [{"name": "box", "albedo_model": "palette", "albedo_evidence": {
+        "pixels": 1201, "delta_bic": 72762.0, "block_px": 2, "blocks": 300, "noise": [0.002, 0.002, 0.002],
+        "delta_bic_palette": -32026.0, "inks": [[0.648, 0.248, 0.197], [0.197, 0.45, 0.7]],
+        "inks_sigma": [[0.0014, 0.0015, 0.0017], [0.0014, 0.0015, 0.0017]]}}])
+    (table,) = [b for b in sec.blocks if b["kind"] == "table"]
+    row = table["rows"][0]
+    assert row[1] == "palette" and table["head"][-1] == "best palette: inks ± σ"
+    assert row[-1] == "2: [0.648, 0.248, 0.197] ± [0.0014, 0.0015, 0.0017]; [0.197, 0.45, 0.7] ± [0.0014, 0.0015, 0.0017] (ΔBIC -32026)"

@@ -2,6 +2,8 @@
 re-rendered model against the photograph."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from reflab.app.report import figures as F
@@ -169,7 +171,8 @@ def _albedo_models(sec: Section, items: list) -> None:
             palette = f"{len(inks)}: " + "; ".join(
                 num(c, 3) + (f" ± {num(e, 2)}" if isinstance(sig, list) and i < len(sig) else "")
                 for i, (c, e) in enumerate(zip(inks, sig if isinstance(sig, list) else [None] * len(inks))))
-            palette += f" (ΔBIC {num(ev.get('delta_bic_palette'), 4)})"
+            d = ev.get("delta_bic_palette")
+            palette += f" (ΔBIC {num(int(round(d)) if isinstance(d, (int, float)) and math.isfinite(d) else d)})"
         rows.append([str(s.get("name")), str(model), num(ev.get("pixels")), num(ev.get("delta_bic"), 4),
                      f"{num(ev.get('block_px'))} px ({num(ev.get('blocks'))} blocks)", num(ev.get("noise"), 3),
                      palette])
