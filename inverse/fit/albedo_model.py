@@ -54,6 +54,8 @@ MIN_DOF = 30
 #: A pixel counts when directly seen textured diffuse light carries at least this share of its
 #: predicted light in every band (the texture rounds' :data:`~reflab.inverse.fit.texture_aware.MIN_SHARE`).
 MIN_SHARE = 0.9
+#: Palette passes: the inks estimated under the current lobe, then the fit on them.
+PASSES = 2
 
 
 @dataclass
@@ -398,7 +400,7 @@ def _refit(trees, scene, models, intensities, image, start, found, models_of, *,
         materials = [dataclasses.replace(m, params=dict(m.params) | {n: np.zeros(3) for n in ("r", "t")
                                                                        if n in m.params and n not in given[i]})
                      if i in inks else m for i, m in enumerate(materials)]
-    palette, again, passes = None, start, 2 if inks else 1
+    palette, again, passes = None, start, PASSES if inks else 1
     for k in range(passes):
         final = k == passes - 1
         if inks:  # the inks under the current lobe, each pixel's label, then the fit on them
@@ -413,9 +415,11 @@ def _refit(trees, scene, models, intensities, image, start, found, models_of, *,
         kw = dict(textured=list(textured), names=scene.names, scan=False, maxiter=maxiter, task=task, held=held,
                   reject=False, uncertainty=False, nuisance=None if palette is None else palette.nuisance)
         left = None if max_seconds is None else max(max_seconds - (again.time_s - start.time_s), 1e-3)
-        # What the start found without signal or held stays so on the surfaces whose flags did not
-        # change (their holding rounds would find it again); the changed ones start anew.
-        structure, still = _anew(fac, start.structure, plain), _anew(fac, start.free, plain)
+        # What the start found without signal or held stays so on the surfaces whose light the
+        # changed flags do not touch (their holding rounds would find it again); the changed ones,
+        # and those seen in the same pixels (a mirror showing one), start anew.
+        touched = _sharing(trees, plain)
+        structure, still = _anew(fac, start.structure, touched), _anew(fac, start.free, touched)
         if k:
             structure, still = again.structure, again.free
         again = _continued(again, fit(fac, image, materials, method, max_seconds=left, structure=structure,
@@ -436,6 +440,14 @@ def _refit(trees, scene, models, intensities, image, start, found, models_of, *,
                                         iterations=again.iterations)
         materials = again.materials
     return scene, again, palette
+
+
+def _sharing(trees, surfaces) -> list:
+    """``surfaces`` and every surface with a node in a pixel where one of them has one."""
+    on = np.isin(trees.surface, surfaces)
+    hit = np.zeros(trees.width * trees.height, dtype=bool)
+    hit[trees.pixel[on]] = True
+    return sorted(set(int(v) for v in np.unique(trees.surface[hit[trees.pixel]])) | set(int(v) for v in surfaces))
 
 
 def _anew(fac, free, surfaces):
@@ -529,11 +541,19 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     scene, again, palette = done
     if palette is not None:
         for s, (ink, kd_ref, sig, _) in palette.inks.items():
-            gain = np.asarray(again.materials[s]["kd"], dtype=np.float64) / np.maximum(kd_ref, 1e-12)
+            kd = np.asarray(again.materials[s]["kd"], dtype=np.float64)
+            gain = kd / np.maximum(kd_ref, 1e-12)
+            # Each ink's σ: its estimate's, and the gain's (kd's σ) where the refit has it already.
+            j = sum(len(m.linear) for m in models[:s]) + models[s].linear.index("kd")
+            rel = np.asarray(again.sigma.x[j], dtype=np.float64) / np.maximum(kd, 1e-12)
+            rel = np.where(np.isfinite(rel), rel, 0.0)
+            inks_sig = np.sqrt((sig * gain) ** 2 + (ink * gain * rel) ** 2)
+            nodes = palette.weights[s][1]
             evidence[scene.names[s]].update({"inks": [[round(float(v), 6) for v in c * gain] for c in ink],
-                                             "inks_sigma": [[float(f"{v:.4g}") for v in c * gain] for c in sig],
+                                             "inks_sigma": [[float(f"{v:.4g}") for v in c] for c in inks_sig],
                                              "ink_pixels": [int(v) for v in palette.inks[s][3]],
-                                             "left_out": int(np.sum(palette.leave_out))})
+                                             "left_out": int(len(np.unique(trees.pixel[nodes][palette.leave_out[
+                                                 trees.pixel[nodes]]])))})
     return scene, again, evidence, palette
 
 

@@ -361,8 +361,11 @@ def node_weights(trees, s: int, px, weights, sure, leave) -> tuple[np.ndarray, n
     (one-hot where the label is ``sure``, else the posterior); ``leave`` (H*W,) bool those left
     out already. A direct node takes its pixel's weights; any other node (seen in a mirror,
     through glass, or on the outline) the ink of the nearest surely labelled direct node, and its
-    pixel is left out when that one is more than two node spacings away or the four nearest
-    disagree (an ink's edge); a direct node without a label of its own (the outline) is left out.
+    pixel is left out when that one is farther than its own nearest labelled neighbour (outside
+    the labelled nodes' sampling) or the four nearest disagree (an ink's edge); a direct node
+    without a label of its own (the outline) is left out. Measured on floor_mirror's floor in two
+    sharp inks, 80×60: seven mirror nodes up to two median spacings from a labelled node of
+    the other ink put the mirror's r at 0.81 for 0.85 (0.85 without them).
     """
     from scipy.spatial import cKDTree
 
@@ -384,14 +387,16 @@ def node_weights(trees, s: int, px, weights, sure, leave) -> tuple[np.ndarray, n
         more[trees.pixel[on[rest]]] = True
         return out, more
     tree = cKDTree(trees.point[src])
-    spacing = float(np.median(tree.query(trees.point[src], k=2)[0][:, 1]))
+    spacing = tree.query(trees.point[src], k=2)[0][:, 1]  # each labelled node's own spacing
     if len(rest):
         k = min(4, len(src))
-        dist, nearest = tree.query(trees.point[on[rest]], k=k)
+        dist, nearest = np.atleast_2d(*tree.query(trees.point[on[rest]], k=k)) if k == 1 else \
+            tree.query(trees.point[on[rest]], k=k)
         near = lab[trees.pixel[src[nearest]]]  # (R, k)
         out[rest, near[:, 0]] = 1.0
-        # Far from every labelled node, or near an ink's edge (its nearest labels differ): out.
-        far = (dist[:, 0] > 2.0 * max(spacing, 1e-12)) | np.any(near != near[:, :1], axis=1)
+        # Outside the labelled nodes' sampling (farther from the nearest than its own neighbour:
+        # an ink's edge may pass between), or near an ink's edge (the nearest labels differ): out.
+        far = (dist[:, 0] > spacing[nearest[:, 0]]) | np.any(near != near[:, :1], axis=1)
         far |= level1[rest]  # the outline: a pixel mixing two surfaces, its ink a guess
         more[trees.pixel[on[rest[far]]]] = True
     return out, more
