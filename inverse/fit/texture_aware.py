@@ -271,10 +271,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     held : list of set of str, optional
         Per surface, the names given in scene.json (held; :func:`reflab.inverse.fit.rounds.fit`).
     select_models : bool
-        First ask the photograph whether each textured surface's albedo is one colour
-        or a few inks (:mod:`reflab.inverse.fit.albedo_model`); those that are are refitted as
-        homogeneous (a palette's kd scaled per node by its ink) and get no texture here (``stats["albedo_models"]`` says what each got). When none is left
-        textured in view, the refit is the result and no round runs.
+        First ask the photograph whether each textured surface's albedo is one colour or a few
+        inks (:mod:`reflab.inverse.fit.albedo_model`); those that are are refitted as homogeneous
+        (a palette's kd scaled per node by its ink) and get no texture here
+        (``stats["albedo_models"]`` says what each got). When none is left textured in view, the
+        refit is the result and no round runs.
 
     view : (Trees, image, noise), optional
         Where the rounds recover their texture, when not from ``trees`` and ``image`` themselves:
@@ -302,7 +303,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     _leave_out(mask, start, trees.width)
     albedo_models, palette = {}, None
     if select_models:
-        # Surfaces whose photograph shows one colour are fitted as homogeneous (albedo_model).
+        # Surfaces whose photograph shows one colour or a few inks are fitted as such (albedo_model).
         scene, start, albedo_models, palette = select(trees, scene, models, intensities, image, start, mask=mask,
                                                       method=method, maxiter=maxiter, max_seconds=max_seconds,
                                                       task=task, held=held, min_share=min_share)
