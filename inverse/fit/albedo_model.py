@@ -282,7 +282,7 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
     ``noise``: surface → σ per band; ``previous``: the palette the ``materials`` were fitted
     with, whose judged pixels (lit diffusely under the start's model) judge the inks again. Returns the :class:`~reflab.inverse.fit.palette.Palette` and the new inks.
     """
-    from reflab.inverse.fit.palette import Palette, _costs, boundary, chi2_along, mix_chi2, mixture, node_weights
+    from reflab.inverse.fit.palette import Palette, boundary, chi2_along, mix_chi2, mixture, mixture_costs, node_weights
 
     npix = trees.width * trees.height
     relative = None if previous is None else previous.relative
@@ -300,7 +300,7 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
             judged = previous.judged[px[sel]]
         penalty = np.log(max(3 * int(judged.sum()), 2))
         m = mixture(a[judged], q[judged], m.count, penalty, inks=m.inks) or m
-        cost, resp = _costs(a, q, m.inks, m.weights)
+        cost, resp = mixture_costs(a, q, m.inks, m.weights)
         share = (resp == resp.max(axis=1, keepdims=True)).astype(np.float64)
         # Under a highlight (or a reflection) the implied albedo is off along the light the model
         # adds there, by as much as its height is wrong: the ink is the one nearest along that

@@ -5,25 +5,27 @@ lobe and reflection go undetermined. When its photograph shows K ≤ :data:`MAX_
 albedo is one of K free colours per pixel instead: K × 3 numbers, not one per texel, and a
 highlight over an ink is then as separable from the albedo as over a uniform surface.
 
-**Which inks.** On the pixels :mod:`reflab.inverse.fit.albedo_model` judges (diffuse-lit, inside
-the outline) each implies an albedo ``a`` with noise ``σ / E``. Their likelihood under K inks is
-a Gaussian mixture with those known variances (:func:`mixture`, by expectation–maximisation):
-the labels are marginalised, not chosen, so that splitting one colour's noise in two buys
-nothing (hard labels would halve a uniform surface's χ² along its noisiest direction). A pixel on
-an ink's edge mixes two inks: it may instead take a free colour of its own at the BIC's price of
-its three values, ``3 ln n``, which caps its cost (:func:`mixture`'s ``penalty``). BIC of K inks:
-``Σ min(−2 log Σ_k π_k N_k, 3 ln n) + (4K − 1) ln n``, against one colour and a free colour per
-block (:func:`reflab.inverse.fit.albedo_model.albedo_evidence` decides).
+**Which inks** (:func:`best_mixture`). On the pixels :mod:`reflab.inverse.fit.albedo_model`
+judges (diffuse-lit, inside the outline) each implies an albedo ``a`` with noise ``σ / E``. Their
+likelihood under K inks is a Gaussian mixture with those known variances (:func:`mixture`, by
+expectation–maximisation): the labels are marginalised, not chosen, so that splitting one
+colour's noise in two buys nothing (hard labels would halve a uniform surface's χ² along its
+noisiest direction). A pixel on an ink's edge mixes two inks: it may instead be a mix
+``(1 − t) u + t v`` (:func:`mix_chi2`) at the price of its own ``t``, ``ln n``. BIC of K inks:
+``Σ min(−2 log Σ_k π_k N_k, χ²_mix + ln n) + (4K − 1) ln n``, against one colour and a free
+colour per block (:func:`reflab.inverse.fit.albedo_model.albedo_evidence` decides), and only when
+the inks hold: their misfit at the noise (:meth:`Mixture.at_noise`), their residuals white
+(:func:`white`), their edges sharp (:func:`sharp`).
 
-**The fit** (:func:`label`, :func:`Palette`): every directly seen pixel of the surface — its
-highlight's too — takes the ink its implied albedo is likeliest under (with the current lobe
-subtracted); a pixel whose label differs from a neighbour's, or whose diffuse-lit albedo is on
-no ink, is left out. Nodes seen in a mirror or through glass take the ink of the nearest labelled
-direct node, and their pixel is left out when none is within two node spacings. The fit then runs
-with the surface declared plain and its kd column scaled per node by its ink over the inks' mean
-(``Factorization(albedo=...)``, as the texture rounds scale theirs): kd is a gain on the palette,
-its lobe and reflection fitted and judged from every pixel. The inks are estimated again under the
-fitted lobe and the fit repeated once (:func:`reflab.inverse.fit.albedo_model.select`).
+**The fit** (:func:`reflab.inverse.fit.albedo_model.select`): every directly seen pixel takes an
+ink — under a highlight the one nearest along the light the model adds there
+(:func:`chi2_along`), the posterior mean where the inks are too alike to tell — and ink edges,
+mixes and the outline are left out; nodes seen in a mirror or through glass take the ink of the
+nearest labelled direct node (:func:`node_weights`). The fit then runs with the surface declared
+plain and its kd column scaled per node by its ink over the inks' mean (:class:`Palette`,
+``Factorization(albedo=...)``, as the texture rounds scale theirs): kd is a gain on the palette,
+its lobe and reflection fitted and judged from every pixel, the inks' own uncertainty profiled
+out of every σ (:meth:`Palette.nuisance`).
 """
 from __future__ import annotations
 
@@ -62,7 +64,7 @@ def chi2_along(a, q, inks, d) -> np.ndarray:
                                                          where=dd[:, None] > 0)
 
 
-def _costs(a, q, inks, weights):
+def mixture_costs(a, q, inks, weights):
     """Per pixel the mixture's −2 log-likelihood (up to the models' shared constant) and the
     responsibilities (P, K)."""
     logp = np.log(np.maximum(weights, 1e-300))[None, :] - 0.5 * chi2(a, q, inks)
@@ -159,7 +161,7 @@ def mixture(a, q, K: int, penalty: float, *, inks=None, seed: int = 0, iteration
             continue
         mu, pi, prev = mu.copy(), np.full(K, 1.0 / K), np.inf
         for _ in range(iterations):
-            cost, resp = _costs(a, q, mu, pi)
+            cost, resp = mixture_costs(a, q, mu, pi)
             mixed = mix_chi2(a, q, mu) + penalty
             total = float(np.minimum(cost, mixed).sum())
             if prev - total <= 1e-9 * max(abs(total), 1.0):
@@ -170,7 +172,7 @@ def mixture(a, q, K: int, penalty: float, *, inks=None, seed: int = 0, iteration
             mu = np.where(den > 0, (resp.T @ (q * a)) / np.maximum(den, 1e-300), mu)
             pi = np.maximum(resp.sum(axis=0), 1e-12)
             pi /= pi.sum()
-        cost, resp = _costs(a, q, mu, pi)
+        cost, resp = mixture_costs(a, q, mu, pi)
         mixed = mix_chi2(a, q, mu) + penalty
         total = float(np.minimum(cost, mixed).sum())
         if best is None or total < best[0]:
@@ -390,8 +392,7 @@ def node_weights(trees, s: int, px, weights, sure, leave) -> tuple[np.ndarray, n
     spacing = tree.query(trees.point[src], k=2)[0][:, 1]  # each labelled node's own spacing
     if len(rest):
         k = min(4, len(src))
-        dist, nearest = np.atleast_2d(*tree.query(trees.point[on[rest]], k=k)) if k == 1 else \
-            tree.query(trees.point[on[rest]], k=k)
+        dist, nearest = tree.query(trees.point[on[rest]], k=k)  # k ≥ 2: (R, k) each
         near = lab[trees.pixel[src[nearest]]]  # (R, k)
         out[rest, near[:, 0]] = 1.0
         # Outside the labelled nodes' sampling (farther from the nearest than its own neighbour:
