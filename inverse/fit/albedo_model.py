@@ -280,7 +280,8 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
 
     ``inks``: surface → :class:`~reflab.inverse.fit.palette.Mixture` (the starting inks);
     ``noise``: surface → σ per band; ``previous``: the palette the ``materials`` were fitted
-    with, whose judged pixels (lit diffusely under the start's model) judge the inks again. Returns the :class:`~reflab.inverse.fit.palette.Palette` and the new inks.
+    with, whose judged pixels (lit diffusely under the start's model) judge the inks again.
+    Returns the :class:`~reflab.inverse.fit.palette.Palette` and the new inks.
     """
     from reflab.inverse.fit.palette import Palette, boundary, chi2_along, mix_chi2, mixture, mixture_costs, node_weights
 
@@ -301,7 +302,7 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
         penalty = np.log(max(3 * int(judged.sum()), 2))
         m = mixture(a[judged], q[judged], m.count, penalty, inks=m.inks) or m
         cost, resp = mixture_costs(a, q, m.inks, m.weights)
-        share = (resp == resp.max(axis=1, keepdims=True)).astype(np.float64)
+        share = np.eye(m.count)[np.argmax(resp, axis=1)]
         # Under a highlight (or a reflection) the implied albedo is off along the light the model
         # adds there, by as much as its height is wrong: the ink is the one nearest along that
         # line. Where no ink is nearer than the rest by the penalty (inks alike), the pixel's
@@ -314,7 +315,7 @@ def _palette(trees, materials, intensities, image, declared, inks: dict, noise: 
         best = np.sort(along, axis=1)
         sure = np.ones(len(a), dtype=bool)
         sure[lit] = best[:, 1] - best[:, 0] >= penalty
-        share[lit] = np.where(sure[lit][:, None], (post == post.max(axis=1, keepdims=True)).astype(np.float64), post)
+        share[lit] = np.where(sure[lit][:, None], np.eye(m.count)[np.argmax(post, axis=1)], post)
         labels = np.where(sure, np.argmax(share, axis=1), -1)
         # A diffuse-lit pixel that a mix of two inks explains better is an ink's edge; under a
         # highlight the lobe (the start's fitted against one colour) is not trusted to tell: there
