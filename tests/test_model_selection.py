@@ -273,4 +273,5 @@ def test_the_report_lists_a_palette_with_its_inks():
     (table,) = [b for b in sec.blocks if b["kind"] == "table"]
     row = table["rows"][0]
     assert row[1] == "palette" and table["head"][-1] == "best palette: inks ± σ"
-    assert row[-1] == "2: [0.648, 0.248, 0.197] ± [0.0014, 0.0015, 0.0017]; [0.197, 0.45, 0.7] ± [0.0014, 0.0015, 0.0017] (ΔBIC -32026)"
+    assert row[-1] == ("2: [0.648, 0.248, 0.197] ± [0.0014, 0.0015, 0.0017]; "
+                       "[0.197, 0.45, 0.7] ± [0.0014, 0.0015, 0.0017] (ΔBIC -32026)")

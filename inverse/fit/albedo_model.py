@@ -115,7 +115,8 @@ def _pixel_albedo(trees, materials, intensities, image, textured, mask, min_shar
     if relative is not None:
         kd_nodes = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)[trees.surface]
         kd_nodes = kd_nodes * np.where(np.isfinite(relative), relative, 1.0)
-    model = accumulate(trees, node_radiance(trees, materials, intensities, kd_nodes=kd_nodes, basis=basis)).reshape(npix, 3)
+    model = accumulate(trees, node_radiance(trees, materials, intensities, kd_nodes=kd_nodes, basis=basis))
+    model = model.reshape(npix, 3)
     coef = path_products(trees, materials) * basis[:, :, 0]  # light per unit albedo (kd in slot 0)
     level1 = np.asarray(trees.level) == 1
     first = np.full(npix, -1, dtype=np.int64)  # the surface each pixel sees directly

@@ -126,7 +126,8 @@ class Mixture:
         return self.misfit <= 1.0 + 3.0 * np.sqrt(2.0 / dof)
 
 
-def mixture(a, q, K: int, penalty: float, *, inks=None, seed: int = 0, iterations: int = EM_ITERATIONS) -> Mixture | None:
+def mixture(a, q, K: int, penalty: float, *, inks=None, seed: int = 0,
+            iterations: int = EM_ITERATIONS) -> Mixture | None:
     """K inks of the albedos ``a`` (P, 3) with precisions ``q`` (P, 3), by expectation–maximisation.
 
     Parameters
