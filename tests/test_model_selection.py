@@ -105,9 +105,10 @@ def test_a_printed_surface_keeps_its_texture(name, surface):
 
 def test_a_faint_print_called_uniform_stays_honest():
     """A print whose contrast is within the noise at every block size (shiny_box's pattern, its
-    two colours ± 0.04 about one) is called uniform and fitted as one colour; what the print leaves
-    in the residual widens the robust σ, so every determined value, its kd against the mean of the
-    whole print, stays within 3σ + 2 % (measured: within 2.7σ)."""
+    two colours ± 0.04 about one) is called uniform (one colour) or a palette (two inks, its
+    highlight's pixels, whose inks the noise cannot tell apart, at their posterior mean); what the
+    model leaves in the residual widens the robust σ, so every determined value, the lobe among
+    them, stays within 3σ + 2 % (measured: a palette, within 1.8σ)."""
     from reflab.hardware.sim.scenes import _mean, _pattern
 
     ts = build("shiny_box", W, H)
@@ -116,9 +117,9 @@ def test_a_faint_print_called_uniform_stays_honest():
     ts.scene[1].material.params["kd"] = _mean(ts.scene[1].mesh, ts.textures[1])
     image, _ = _photograph(ts)
     res, fac, user = _fit(ts, image)
-    assert res.stats["albedo_models"]["box"]["model"] == "uniform"
+    assert res.stats["albedo_models"]["box"]["model"] in ("uniform", "palette")  # two faint inks: either
     rows = determined(res, fac, [s.material for s in ts.scene], user)
-    assert {"kd[0]", "ks[0]", "ns"} <= {r[1] for r in rows if r[0] == 1}
+    assert {"ks[0]", "ns"} <= {r[1] for r in rows if r[0] == 1}
     bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3])]
     assert not bad, bad
 
@@ -137,7 +138,7 @@ def test_the_uniform_model_is_a_chi_square_against_the_noise():
         n = 3 * e.pixels
         assert e.pixels > 100
         if printed:
-            assert e.chi2_uniform > 5 * n and e.model == "texture"
+            assert e.chi2_uniform > 5 * n and e.model != "uniform"
         else:
             assert np.allclose(e.noise, sigma, rtol=0.1), (e.noise, sigma)
             assert abs(e.chi2_uniform - n) < 4 * np.sqrt(2 * n) + 0.05 * n, (e.chi2_uniform, n)
@@ -161,7 +162,116 @@ def test_fit_json_says_which_albedo_model_each_textured_surface_got(tmp_path):
     box = surfaces["box"]
     assert box["albedo_model"] == "uniform"
     assert set(box["albedo_evidence"]) == {"pixels", "chi2_uniform", "chi2_texture", "block_px", "blocks",
-                                           "delta_bic", "colour", "noise"}
+                                           "delta_bic", "colour", "noise", "chi2_palette", "delta_bic_palette",
+                                           "inks", "inks_sigma", "ink_pixels", "mixed_pixels", "ink_misfit"}
     assert box["albedo_evidence"]["delta_bic"] < 0 and "albedo_models" not in report
     assert not {"ks", "ns"} & set(box["undetermined"])
     assert report["texture_rounds"]["rounds"] == []  # nothing left textured: no round
+
+
+def _two_inks(ts, surface=1, scale=0.03, inks=((0.65, 0.25, 0.2), (0.2, 0.45, 0.7))):
+    """``ts`` (shiny_box by default) with a surface printed in two inks with sharp edges (the
+    design's pattern thresholded)."""
+    from reflab.hardware.sim.scenes import _mean, _pattern
+
+    a, b = (np.array(c, dtype=np.float64) for c in inks)
+
+    def tex(p):
+        w = _pattern(p, scale, (np.zeros(3), np.ones(3)))[:, 0]
+        return np.where((w > 0.5)[:, None], b, a)
+
+    ts.textures[surface] = tex
+    ts.scene[surface].material.params["kd"] = _mean(ts.scene[surface].mesh, tex)
+    return ts
+
+
+@pytest.mark.parametrize("size", [(80, 60), (160, 120)])
+def test_a_two_ink_print_shows_as_a_palette(size):
+    """The shiny box printed in two inks with sharp edges: the evidence after the homogeneous fit
+    is a palette of two inks (lower BIC than one colour or a free texture), each ink within 3σ
+    of the truth."""
+    ts = _two_inks(build("shiny_box", *size))
+    image, _ = _photograph(ts)
+    start, _, user, trees, _, _ = _start(ts, image)
+    found = albedo_evidence(trees, start.materials, ts.lights.intensities, image, [s.textured for s in user],
+                            start.stats["noise"])
+    e = found[user.names.index("box")]
+    assert e.model == "palette" and e.delta_bic_palette < 0 and e.palette.count == 2
+    inks, sig = e.palette.inks, e.palette.sigma
+    true = np.array([[0.65, 0.25, 0.2], [0.2, 0.45, 0.7]])
+    order = np.argsort(inks[:, 0])[::-1]
+    assert np.all(np.abs(inks[order] - true) <= 3 * sig[order]), (inks, sig)
+
+
+@pytest.mark.parametrize("size", [(80, 60), (160, 120)])
+def test_a_two_ink_print_is_fitted_as_a_palette(size):
+    """The issue's test: the sharp two-ink box declared textured is fitted as a palette; its lobe
+    (undetermined or from colours under a free texture) and reflection determined, the lobe within
+    3σ of the truth, the inks within 3σ, every determined value within 3σ + 2 %."""
+    ts = _two_inks(build("shiny_box", *size))
+    image, _ = _photograph(ts)
+    res, fac, user = _fit(ts, image)
+    chosen = res.stats["albedo_models"]["box"]
+    assert chosen["model"] == "palette", chosen
+    inks, sig = np.array(chosen["inks"]), np.array(chosen["inks_sigma"])
+    true = np.array([[0.65, 0.25, 0.2], [0.2, 0.45, 0.7]])
+    order = np.argsort(inks[:, 0])[::-1]
+    assert inks.shape == (2, 3) and np.all(np.abs(inks[order] - true) <= 3 * sig[order]), (inks, sig)
+    box = user.names.index("box")
+    assert not {"ks", "ns", "r"} & set(res.undetermined[box]), res.undetermined[box]
+    assert "colour_lobes" not in res.stats  # judged from its pixels, not from the texture's colours
+    rows = determined(res, fac, [s.material for s in ts.scene], user)
+    assert {"ks[0]", "ks[1]", "ks[2]", "ns", "r[0]"} <= {r[1] for r in rows if r[0] == box}
+    bad = [r for r in rows if abs(r[2] - r[3]) > 3 * r[4] + 0.02 * abs(r[3])]
+    assert not bad, bad
+    lobe = [r for r in rows if r[0] == box and r[1] in ("ks[0]", "ks[1]", "ks[2]", "ns")]
+    assert all(abs(r[2] - r[3]) <= 3 * r[4] for r in lobe), lobe
+
+
+def test_a_palette_seen_in_a_mirror():
+    """floor_mirror's floor printed in its two inks with sharp edges: a palette; the floor nodes
+    seen in the mirror take the ink of the nearest labelled direct node, so the mirror's r is
+    judged against the inks: within 3σ of the truth (0.85), the floor's lobe determined, every
+    determined value within 3σ + 2 %. (Holding the mirror's values the start held for want of a
+    texture put r at 0.78 ± 0.035; seven mirror nodes across an ink's edge from their nearest
+    labelled node, at 0.81.)"""
+    ts = _two_inks(build("floor_mirror", W, H), 0, 0.04, ((0.8, 0.7, 0.5), (0.15, 0.3, 0.35)))
+    image, _ = _photograph(ts, seed=2)
+    res, fac, user = _fit(ts, image)
+    assert res.stats["albedo_models"]["floor"]["model"] == "palette"
+    floor, mirror = user.names.index("floor"), user.names.index("mirror")
+    assert not {"ks", "ns"} & set(res.undetermined[floor]) and "r" not in res.undetermined[mirror]
+    rows = determined(res, fac, [s.material for s in ts.scene], user)
+    r = [row for row in rows if row[0] == mirror and row[1].startswith("r[")]
+    assert len(r) == 3 and all(abs(v - t) <= 3 * sg for _, _, v, t, sg in r), r
+    bad = [row for row in rows if abs(row[2] - row[3]) > 3 * row[4] + 0.02 * abs(row[3])]
+    assert not bad, bad
+
+
+@pytest.mark.parametrize("name, surface", [("print_can", "can"), ("shiny_box", "box")])
+def test_smooth_and_full_colour_prints_are_no_palette(name, surface):
+    """A full-colour print and a soft two-colour pattern that grades between its colours over
+    pixels (shiny_box's own) keep their free texture at 160×120."""
+    ts = build(name, 160, 120)
+    image, _ = _photograph(ts)
+    start, _, user, trees, _, _ = _start(ts, image)
+    found = albedo_evidence(trees, start.materials, ts.lights.intensities, image, [s.textured for s in user],
+                            start.stats["noise"])
+    assert found[user.names.index(surface)].model == "texture"
+
+
+def test_the_report_lists_a_palette_with_its_inks():
+    """The report's fit section: a palette surface's row names the model and its inks ± σ."""
+    from reflab.app.report.sections.fit import _albedo_models
+    from reflab.app.report.sections.section import Section
+
+    sec = Section("fit", "Fit")
+    _albedo_models(sec, [{"name": "box", "albedo_model": "palette", "albedo_evidence": {
+        "pixels": 1201, "delta_bic": 72762.0, "block_px": 2, "blocks": 300, "noise": [0.002, 0.002, 0.002],
+        "delta_bic_palette": -32026.0, "inks": [[0.648, 0.248, 0.197], [0.197, 0.45, 0.7]],
+        "inks_sigma": [[0.0014, 0.0015, 0.0017], [0.0014, 0.0015, 0.0017]]}}])
+    (table,) = [b for b in sec.blocks if b["kind"] == "table"]
+    row = table["rows"][0]
+    assert row[1] == "palette" and table["head"][-1] == "best palette: inks ± σ"
+    assert row[-1] == ("2: [0.648, 0.248, 0.197] ± [0.0014, 0.0015, 0.0017]; "
+                       "[0.197, 0.45, 0.7] ± [0.0014, 0.0015, 0.0017] (ΔBIC -32026)")

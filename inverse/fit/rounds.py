@@ -53,7 +53,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         maxiter: int | None = None, max_seconds: float | None = None, textured=None,
         names=None, scan: bool = True, task: Task | None = None, held=None, reject: bool = True,
         structure: Free | None = None, uncertainty: bool = True, guessed=None, still_held: Free | None = None,
-        colour=None) -> FitSolution:
+        colour=None, nuisance=None) -> FitSolution:
     """Fit every determinable photometric parameter from one image.
 
     Parameters
@@ -109,6 +109,10 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         Surface index → :class:`reflab.inverse.fit.dichromatic.ColourLobe`: textured lobes estimated from the
         texture's colours, held (in ``guessed``) at that estimate; their ks and θ get its σ, and
         are reported determined when it resolves them. Listed in ``stats["colour_lobes"]``.
+    nuisance : callable, optional
+        ``nuisance(pb, p, materials, res)`` → an ``extra`` for :func:`reflab.inverse.fit.uncertainty.sigmas`
+        or None: parameters held in the fit whose uncertainty every σ profiles out (a palette's
+        inks, :meth:`reflab.inverse.fit.palette.Palette.nuisance`).
     uncertainty : bool
         False: return at once with σ = inf and what the holding rounds held as undetermined;
         ``stats["complete"]()`` then computes the robust σ, the undetermined values and the
@@ -214,7 +218,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
                                   task=task, held=held, guessed=guessed, passes=REJECT_PASSES if reject is True else int(reject),
                                   max_seconds=None if max_seconds is None else max_seconds - fitted,
-                                  uncertainty=uncertainty)
+                                  uncertainty=uncertainty, nuisance=nuisance)
     stats = {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
              "noise": [float(v) for v in pb.noise], "scan_evaluations": pb.scan_evaluations,
              "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}
@@ -231,19 +235,19 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
                 spent = time.perf_counter() - t_polish
                 pb.phases["refinement"] += spent
             return _complete(pb, q, init, free, found, res_q, A_q, materials, textured, names, method, trace, rounds,
-                             nit, msg, fitted + spent, stats, sigma_free, grey, colour)
+                             nit, msg, fitted + spent, stats, sigma_free, grey, colour, nuisance)
 
         return FitSolution(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace,
                          undetermined_names(fac, free, materials), rounds, pb.evaluations, iterations, message,
                          {**stats, "status": "ok", "warnings": [], "phases_s": {k: round(v, 6) for k, v in pb.phases.items()},
                           "complete": complete}, found)
     return _complete(pb, p, init, free, found, res, A, materials, textured, names, method, trace, rounds, iterations,
-                     message, fitted, stats, sigma_free, grey, colour)
+                     message, fitted, stats, sigma_free, grey, colour, nuisance)
 
 
 def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res, A, materials, textured, names,
               method, trace, rounds, iterations, message, fitted, stats, sigma_free: Free | None = None,
-              grey: Free | None = None, colour=None) -> FitSolution:
+              grey: Free | None = None, colour=None, nuisance=None) -> FitSolution:
     """The fit's robust σ, its undetermined values and its diagnosis, once its parameters are fitted.
 
     ``sigma_free``: what every σ counts free, ``free`` and the parameters held at a guess (by the
@@ -252,11 +256,12 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     their bands' fitted values (``guessed``): reported determined when their σ resolves them, like
     a fitted value (a lobe one band-shared height, fitted the round before). ``colour``: lobes
     estimated from the texture's colours (:mod:`reflab.inverse.fit.dichromatic`), whose σ their ks and θ take.
+    ``nuisance``: as :func:`fit` takes it, profiled out of the σ from every pixel.
     """
     t0 = time.perf_counter()
     fac = pb.fac
     sf = free if sigma_free is None else sigma_free
-    sig = sigmas(pb, p, sf, res)
+    sig = sigmas(pb, p, sf, res, extra=None if nuisance is None else nuisance(pb, p, materials, res))
     lay = fac.layout
     absorbed, anywhere = texture_absorbed(fac, p, materials, textured)
     if absorbed.any():

@@ -271,10 +271,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     held : list of set of str, optional
         Per surface, the names given in scene.json (held; :func:`reflab.inverse.fit.rounds.fit`).
     select_models : bool
-        First ask the photograph whether each textured surface's albedo is one colour
-        (:mod:`reflab.inverse.fit.albedo_model`); those that are are refitted as homogeneous and
-        get no texture here (``stats["albedo_models"]`` says what each got). When none is left
-        textured in view, the refit is the result and no round runs.
+        First ask the photograph whether each textured surface's albedo is one colour or a few
+        inks (:mod:`reflab.inverse.fit.albedo_model`); those that are are refitted as homogeneous
+        (a palette's kd scaled per node by its ink) and get no texture here
+        (``stats["albedo_models"]`` says what each got). When none is left textured in view, the
+        refit is the result and no round runs.
 
     view : (Trees, image, noise), optional
         Where the rounds recover their texture, when not from ``trees`` and ``image`` themselves:
@@ -300,13 +301,15 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     n_pix = trees.width * trees.height
     mask = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix).copy()
     _leave_out(mask, start, trees.width)
-    albedo_models = {}
+    albedo_models, palette = {}, None
     if select_models:
-        # Surfaces whose photograph shows one colour are fitted as homogeneous (albedo_model).
-        scene, start, albedo_models = select(trees, scene, models, intensities, image, start, mask=mask,
-                                             method=method, maxiter=maxiter, max_seconds=max_seconds,
-                                             task=task, held=held, min_share=min_share)
+        # Surfaces whose photograph shows one colour or a few inks are fitted as such (albedo_model).
+        scene, start, albedo_models, palette = select(trees, scene, models, intensities, image, start, mask=mask,
+                                                      method=method, maxiter=maxiter, max_seconds=max_seconds,
+                                                      task=task, held=held, min_share=min_share)
         _leave_out(mask, start, trees.width)  # the refit's outliers too
+        if palette is not None:  # a palette's ink edges stay out, its inks scale its kd (albedo_model)
+            mask &= ~palette.leave_out
     rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
     textured = np.array([s.textured for s in scene], dtype=bool)
     if not np.isin(trees.surface, np.flatnonzero(textured)).any():  # every one uniform: no round
@@ -358,7 +361,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         relative_view = relative if view is None else deattenuated(relative_albedo(view_trees, textured, tex),
                                                                    view_trees, textured, tex)
         t1 = time.perf_counter()
-        fac = Factorization(trees, models, intensities, mask=mask, albedo=relative)
+        fac = Factorization(trees, models, intensities, mask=mask,
+                            albedo=relative if palette is None else palette.merged(relative))
         # σ only for the last round (the one kept, unless its texture went wrong: see below). After
         # a kept round, what it held stays held: its holding rounds would find it again (same
         # fit.json on the 640×480 benchmark scenes, 0.2 s less a round), and the σ still counts it
@@ -369,7 +373,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                      maxiter=maxiter, max_seconds=None if left is None else max(left - (t1 - t0), 1e-3), task=task,
                      held=held, guessed=guessed, reject=False, structure=start.structure,
                      still_held=None if best_round == 0 else result.free,
-                     uncertainty=last, colour=colour)
+                     uncertainty=last, colour=colour, nuisance=None if palette is None else palette.nuisance)
         t2 = time.perf_counter()
         trace += [[elapsed + (t1 - t0) + t, rms] for t, rms in result.trace]
         elapsed += t2 - t0

@@ -2,6 +2,8 @@
 re-rendered model against the photograph."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from reflab.app.report import figures as F
@@ -163,15 +165,27 @@ def _albedo_models(sec: Section, items: list) -> None:
         model, ev = s.get("albedo_model"), as_dict(s.get("albedo_evidence"))
         if model is None:
             continue
+        inks, sig = ev.get("inks"), ev.get("inks_sigma")
+        palette = "–"
+        if isinstance(inks, list) and inks:
+            palette = f"{len(inks)}: " + "; ".join(
+                num(c, 3) + (f" ± {num(e, 2)}" if isinstance(sig, list) and i < len(sig) else "")
+                for i, (c, e) in enumerate(zip(inks, sig if isinstance(sig, list) else [None] * len(inks))))
+            d = ev.get("delta_bic_palette")
+            palette += f" (ΔBIC {num(int(round(d)) if isinstance(d, (int, float)) and math.isfinite(d) else d)})"
         rows.append([str(s.get("name")), str(model), num(ev.get("pixels")), num(ev.get("delta_bic"), 4),
-                     f"{num(ev.get('block_px'))} px ({num(ev.get('blocks'))} blocks)", num(ev.get("noise"), 3)])
+                     f"{num(ev.get('block_px'))} px ({num(ev.get('blocks'))} blocks)", num(ev.get("noise"), 3),
+                     palette])
     if rows:
-        sec.table(["surface", "albedo fitted as", "pixels", "ΔBIC", "best texture model", "noise σ per band"], rows,
+        sec.table(["surface", "albedo fitted as", "pixels", "ΔBIC", "best texture model", "noise σ per band",
+                   "best palette: inks ± σ"], rows,
                   "Surfaces declared textured, as their photograph shows them (docs/fit.md, \"Model selection\"): "
                   "\"uniform\" when one colour explains their diffuse-lit pixels better than a free colour per block "
                   "(BIC(uniform) − BIC(texture) = ΔBIC < 0): fitted as homogeneous, their lobe and reflection "
-                  "judged like an untextured surface's; \"texture\": a free texture, as declared. The texture stage "
-                  "textures both.")
+                  "judged like an untextured surface's; \"palette\" when two to four inks with sharp edges do "
+                  "better than both (the palette's ΔBIC < 0, its residuals at the noise): each pixel's albedo one "
+                  "of them, the lobe and reflection judged from every pixel; \"texture\": a free texture, as "
+                  "declared. The texture stage textures all three.")
 
 
 def method_name(fit: dict):
