@@ -105,8 +105,10 @@ def basis_on(model, theta, geometry, intensities) -> np.ndarray:
 def _weighted(weight, intensities, g) -> np.ndarray:
     """``Σ_k weight · intensity_k[c] · g`` per node: (n, 3, L) from g per (node, light) (n·K, L)."""
     n, k = weight.shape
-    # optimize: contracted pairwise (3x faster than the three-operand loop at 640x480).
-    return np.einsum("nk,kc,nkl->ncl", weight, intensities, g.reshape(n, k, -1), optimize=True)
+    # One (3 x K)(K x L) product per node, batched: 10x faster than einsum's pairwise contraction
+    # ("nk,kc,nkl->ncl", optimize=True), which was a sixth of a 12 MP texture's time.
+    wc = weight[:, :, None] * np.asarray(intensities, dtype=np.float64)[None]  # (n, K, 3)
+    return np.matmul(wc.transpose(0, 2, 1), g.reshape(n, k, -1))
 
 
 def _surface_geometry(trees, idx) -> tuple:
@@ -343,12 +345,21 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
         for j, name in enumerate(model.nonlinear):
             st[s, j] = sig(s, name, 1)[0]
         sf[s] = [sig(s, "r", 3), sig(s, "t", 3)]
-    basis, dbasis = linear_basis_and_grad(trees, materials, intensities, grad=bool(st.any()))
+    basis = linear_basis(trees, materials, intensities)  # the kept one: a tiled texture's tile asked for it already
     prod = path_products(trees, materials)
     var = ((basis * sx[trees.surface]) ** 2).sum(axis=2) * prod**2
-    if dbasis is not None:
-        dtheta = np.einsum("nclp,ncl->ncp", dbasis, x) * st[trees.surface][:, None, :]
-        var += (dtheta**2).sum(axis=2) * prod**2
+    # θ's part on the surfaces whose θ has a σ only (a 12 MP texture: the derivatives of every
+    # node took a sixth of its time, most of them on a Lambertian ground with no θ).
+    for s, idx in _groups(trees):
+        if not st[s].any():
+            continue
+        model = get_model(materials[s].brdf)
+        L, P, k = model.n_linear, model.n_nonlinear, trees.n_lights
+        normal, light, view, weight = _surface_geometry(trees, idx)
+        _, dg = model.g_and_dg(np.broadcast_to(model.theta_of(materials[s]), (len(idx) * k, P)), normal, light, view)
+        dbasis = _weighted(weight, intensities, dg.reshape(len(idx) * k, L * P)).reshape(len(idx), 3, L, P)
+        dtheta = np.einsum("nclp,ncl->ncp", dbasis, x[idx, :, :L]) * st[s, :P]
+        var[idx] += (dtheta**2).sum(axis=2) * prod[idx] ** 2
     # d(path product)/d(factor) · σ, one distinct path at a time: the product of the path's other
     # factors times the factor's exponent and power below (a zero factor's branch still counts).
     dpath = np.zeros((len(trees.paths), 3))
