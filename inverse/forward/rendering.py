@@ -12,6 +12,7 @@ and a pixel's value is the sum over its nodes. ``materials`` is the list of
 """
 from __future__ import annotations
 
+import threading
 from collections import Counter
 
 import numpy as np
@@ -134,11 +135,12 @@ def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> Non
     basis[idx, :, :L] = _weighted(weight, intensities, g)
 
 
-#: The last :func:`linear_basis` as one (trees, key, basis) tuple (read and replaced whole, so
-#: threads never see a mix): a texture round asks for the same one up to three times (direct
+#: The last :func:`linear_basis` of each thread as one (trees, key, basis) tuple (``.value``,
+#: read and replaced whole): a texture round asks for the same one up to three times (direct
 #: share, texture system, texture test), 60 ms each at 640×480; the next asks for one where only
-#: a few small surfaces' θ moved (a matte ground, a mirror, a pane keep theirs).
-_LAST_BASIS: list = [None]
+#: a few small surfaces' θ moved (a matte ground, a mirror, a pane keep theirs). Per thread: a
+#: tiled texture reduces two tiles at once, each asking for its own tile's basis three times.
+_LAST_BASIS = threading.local()
 
 
 def linear_basis(trees, materials, intensities) -> np.ndarray:
@@ -151,7 +153,7 @@ def linear_basis(trees, materials, intensities) -> np.ndarray:
     _check(trees, materials)
     surfaces = tuple((m.brdf, get_model(m.brdf).theta_of(m).tobytes()) for m in materials)
     key = (surfaces, np.asarray(intensities, dtype=np.float64).tobytes())
-    last = _LAST_BASIS[0]
+    last = getattr(_LAST_BASIS, "value", None)
     if last is not None and last[0] is trees and last[1] == key:
         return last[2]
     if last is not None and last[0] is trees and last[1][1] == key[1] and len(last[1][0]) == len(surfaces):
@@ -164,14 +166,14 @@ def linear_basis(trees, materials, intensities) -> np.ndarray:
     else:
         basis = linear_basis_and_grad(trees, materials, intensities, grad=False)[0]
     basis.flags.writeable = False
-    _LAST_BASIS[0] = (trees, key, basis)
+    _LAST_BASIS.value = (trees, key, basis)
     return basis
 
 
 def release_basis() -> None:
-    """Forget the basis :func:`linear_basis` keeps, and with it the trees it was computed for (a
-    tiled stage's last tile: about 1 GB that would otherwise outlive the tile)."""
-    _LAST_BASIS[0] = None
+    """Forget the basis :func:`linear_basis` keeps in this thread, and with it the trees it was
+    computed for (a tiled stage's last tile: about 1 GB that would otherwise outlive the tile)."""
+    _LAST_BASIS.value = None
 
 
 def path_products(trees, materials) -> np.ndarray:

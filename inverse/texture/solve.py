@@ -436,18 +436,31 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
     indptr = np.zeros(n_rows + 1, dtype=np.int32 if nnz < 2**31 else np.int64)
     row_ids, col_global = np.empty(n_rows, dtype=np.int64), np.empty(n_cols, dtype=np.int64)
     coverage, weight = np.empty(3 * total), np.empty(3 * total)
-    at = row = col = 0
+    band_nnz = [int(e.row_nnz.sum()) for e in bands]
+    band_at = np.concatenate([[0], np.cumsum(band_nnz)])
+    band_col = np.concatenate([[0], np.cumsum([len(e.col_texels) for e in bands])])
+    row = 0
     for b, e in enumerate(bands):
-        r, k = len(e.row_pixels), len(e.col_texels)
-        indptr[row + 1:row + r + 1] = np.cumsum(e.row_nnz) + at
+        r, k, col = len(e.row_pixels), len(e.col_texels), band_col[b]
+        indptr[row + 1:row + r + 1] = np.cumsum(e.row_nnz) + band_at[b]
+        row_ids[row:row + r], col_global[col:col + k] = e.row_pixels + b * npix, e.col_texels + b * total
+        row += r
+    # Entries a chunk of nodes at a time, each chunk's structure worked out once for the bands
+    # that share it.
+    for e in {id(e): e for e in bands}.values():
+        same = [b for b in range(3) if bands[b] is e]
+        at = 0
         for a in range(0, n, CHUNK):
             wk = e.wk[a:a + CHUNK].ravel()
             flat = np.flatnonzero(wk)  # node (pixel order), then corner: row order
-            m = len(flat)
-            np.multiply(coef[b][flat // 4 + a], wk[flat], out=data[at:at + m])
-            np.add(e.col_rank[idx[a:a + CHUNK].ravel()[flat]], col, out=indices[at:at + m], casting="unsafe")
+            m, node, wv = len(flat), flat // 4 + a, wk[flat]
+            cols = e.col_rank[idx[a:a + CHUNK].ravel()[flat]]
+            for b in same:
+                o = band_at[b] + at
+                np.multiply(coef[b][node], wv, out=data[o:o + m])
+                np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
             at += m
-        row_ids[row:row + r], col_global[col:col + k] = e.row_pixels + b * npix, e.col_texels + b * total
+    for b, e in enumerate(bands):
         # Entries with zero weight add nothing: the sums over every corner are those over the entries.
         # A shared band's coverage is band 0's (same entries, same weights): a copy, not a count
         # over every texel again (a floor 20 times larger than its view: 1.4 M texels).
@@ -455,7 +468,6 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
                                                np.bincount(idx.ravel(), weights=e.wk.ravel(), minlength=total))
         weight[b * total:(b + 1) * total] = np.bincount(idx.ravel(), weights=(e.wk * seen[b][:, None]).ravel(),
                                                         minlength=total)
-        row, col = row + r, col + k
     n_bad = sum(e.n_bad for e in bands)
     del bands
     saturated_touch = np.zeros(3 * total, dtype=bool)
@@ -714,10 +726,12 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     del colnorm2
     # Jacobi: unknowns y = z / scale, so that the normal matrix has a unit diagonal; the scaling
     # is applied to the vectors, E keeps its values (one copy of it, not a scaled second one).
-    ar = np.arange(ncol)
-    li, lj = np.concatenate([ar, pi, pj]), np.concatenate([ar, pj, pi])
-    lap = sp.csr_matrix((np.concatenate([lap_diag, -mu, -mu]) * scale[li] * scale[lj], (li, lj)), shape=(ncol, ncol))
-    del ar, li, lj, mu, lap_diag, pi, pj
+    # L's diagonal as a vector, its off-diagonal (the smoothness pairs, both ways) as a matrix.
+    diag = lap_diag * scale * scale
+    off = -mu * scale[pi] * scale[pj]
+    pairs = sp.coo_matrix((np.concatenate([off, off]), (np.concatenate([pi, pj]), np.concatenate([pj, pi]))),
+                          shape=(ncol, ncol)).tocsr()
+    del off, mu, lap_diag, pi, pj
     ET = E.T  # CSC view of the same arrays
     f64 = E.dtype == np.float64
     # What needs E in float64 is done before it turns float32: the right-hand sides, the warm
@@ -737,7 +751,7 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     del den, Etrhs
     lo, hi = options.bounds
     # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
-    r0 = b - (scale * (ET @ (E @ prior.astype(E.dtype))) + lap @ (prior / scale))
+    r0 = b - (scale * (ET @ (E @ prior.astype(E.dtype))) + diag * (prior / scale) + pairs @ (prior / scale))
     stop = np.add.reduceat(r0 * r0, np.concatenate([[0], np.cumsum(sizes)[:-1]])) * options.tol**2
     g0 = max(float(r0 @ r0), 1e-300)
     del r0
@@ -747,9 +761,8 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     F = np.float32
     _to_float32(E)
     ET = E.T
-    s32 = scale.astype(F)
-    lap = lap.astype(F)
-    apply = lambda p: s32 * (ET @ (E @ (s32 * p))) + lap @ p  # noqa: E731
+    s32, d32, pairs = scale.astype(F), diag.astype(F), pairs.astype(F)
+    apply = lambda p: s32 * (ET @ (E @ (s32 * p))) + d32 * p + pairs @ p  # noqa: E731
 
     def bounded(b, y, stop, steps):
         """CG, then up to four active-set rounds (violators fixed at their bound, the rest re-solved warm)."""
