@@ -36,8 +36,9 @@ def _groups(trees) -> list:
     """(surface index, node indices) for each surface that has nodes (sorted once per trees)."""
     def groups():
         order = np.argsort(trees.surface, kind="stable")
-        surfaces, starts = np.unique(trees.surface[order], return_index=True)
-        return list(zip(surfaces.tolist(), np.split(order, starts[1:])))
+        count = np.bincount(trees.surface) if len(trees.surface) else np.zeros(0, dtype=np.int64)
+        parts = np.split(order, np.cumsum(count)[:-1])  # np.unique's hashing took 0.2 s a 0.5 MP tile
+        return [(s, part) for s, part in enumerate(parts) if len(part)]
 
     return derived(trees, "surface groups", (trees.surface,), groups)
 

@@ -908,8 +908,9 @@ def solve_texture(system: _System, maps, materials, options: SolverOptions, *, g
         # Known, amplified, clipped and guessed texels are columns of the system, saturated ones
         # touch a saturated pixel: the rest keep the defaults. A map can be far larger than what
         # the image sees (a floor under a small view: 1.4 M texels, 56 k known).
-        act = np.union1d(column_texel[(column_texel >= off) & (column_texel < off + n)] - off,
-                         np.flatnonzero(saturated3[:, sl].any(axis=0)))
+        act = saturated3[:, sl].any(axis=0)
+        act[column_texel[(column_texel >= off) & (column_texel < off + n)] - off] = True
+        act = np.flatnonzero(act)
         kn3, w3 = known3[:, sl][:, act], weight3[:, sl]
         known = kn3.all(axis=0)
         mean = np.asarray(materials[s]["kd"], float)
