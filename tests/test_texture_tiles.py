@@ -119,8 +119,8 @@ def test_cancel_between_tiles_leaves_nothing_half_written(zoo, tmp_path, monkeyp
     texture(TextureOptions(root))
     before = {p.name: p.read_bytes() for p in ws.textures.iterdir()}
     caches = sorted(ws.root.rglob("trees-*.npz"))
-    # Two tiles are reduced at once (tiles.TILE_WORKERS; which of them speaks first is the
-    # threads' race), one at a time the order is fixed: no tile after the cancelled one starts.
+    # With two workers (tiles.TILE_WORKERS) two tiles are reduced at once and which speaks first
+    # is the threads' race; one at a time (the default) the order is fixed: no later tile starts.
     for workers in (2, 1):
         monkeypatch.setattr(tiles, "TILE_WORKERS", workers)
         seen = []

@@ -26,8 +26,10 @@ from reflab.inverse.texture.solve import (SolverOptions, TextureSolution, Textur
                                           maps_from_footprints, solve_texture, textured_nodes)
 from reflab.inverse.texture.texels import pixel_footprint
 
-#: Tiles reduced at once (threads): two cores.
-TILE_WORKERS = 2
+#: Tiles reduced at once (threads). One: on this shared 2-core machine at a load of 10, two
+#: workers gave the 3 MP tiles in 34.0 and 40.8 s against 37.8 and 33.4 s for one, and a
+#: second tile's trees in memory (+0.4 GB at 3 MP, +1.2 GB at 12 MP: over the 8 GB bar).
+TILE_WORKERS = 1
 
 def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, depth: int, tile_pixels: int,
                   uncertainty=None, task=None, log=None) -> tuple[TextureSolution, dict]:
@@ -120,19 +122,21 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
 
     parts, footprints = [], {s: ([], []) for s in textured}  # surface -> (reference's, further photographs')
     build_s, n_nodes = 0.0, 0
-    # Two tiles at a time: much of a tile's work (ray casting, numpy's large operations) runs
-    # without the GIL, so the second core works on the next tile; the tiles are taken back in order.
-    pool = ThreadPoolExecutor(max(1, min(TILE_WORKERS, len(tiles))))
+    # With TILE_WORKERS > 1, tiles are reduced that many at a time in threads, taken back in order.
+    workers = max(1, min(TILE_WORKERS, len(tiles)))
+    pool = ThreadPoolExecutor(workers) if workers > 1 else None
     try:
-        futures = deque(pool.submit(reduce_tile, k) for k in range(len(tiles)))
-        for i, _, _ in tiles:
-            nodes, fps, n_keep, seconds = futures.popleft().result()  # dropped: only parts keeps the nodes
+        futures = deque(pool.submit(reduce_tile, k) for k in range(len(tiles))) if pool else None
+        for k, (i, _, _) in enumerate(tiles):
+            # popleft: the future is dropped, only parts keeps the nodes
+            nodes, fps, n_keep, seconds = futures.popleft().result() if pool else reduce_tile(k)
             parts.append(nodes)
             for s, fp in fps.items():
                 footprints[s][0 if i == 0 else 1].append(fp)
             n_nodes, build_s = n_nodes + n_keep, build_s + seconds
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)  # a cancel or an error: no further tile starts
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)  # a cancel or an error: no further tile starts
     if task is not None:
         task.step(len(tiles), len(tiles), "texture: the system")
     footprint = {}
