@@ -148,7 +148,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     t_maps = time.perf_counter()
     nodes = TexturedNodes.concatenate(parts) if parts else None
     del parts
-    system = assemble_system(nodes, Q, flat, materials, maps, solver, padding)
+    system = assemble_system(nodes, Q, flat, materials, maps, solver, padding, release=True)
     del nodes, Q
     result = solve_texture(system, maps, materials, solver, guess=guess, task=task,
                            times=(t0, t_maps, time.perf_counter()))
