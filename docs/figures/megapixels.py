@@ -8,9 +8,12 @@ box, a glass cylinder and a mirror box under two lamps; the workspace holds what
 ``python -m reflab.app.cli STAGE WORKSPACE`` in a fresh process with the trees cache emptied;
 its wall time and peak resident memory come from ``os.wait4`` (the child's own rusage).
 
-A texture above ``--texture-max-mp`` is not run either (its memory, measured at 3 MP and
-extrapolated, would pass the 6 GB a run may take on the shared machine): the render then uses the
-largest texture made before, its texel maps being independent of the photograph's size.
+A texture above ``--texture-max-mp`` (default 12.5: the 12 MP texture peaks at 6.7 GB, the 24 MP
+one extrapolates to 12.5 GB, more than a run may take on the shared machine) is not run: the
+render then uses the largest texture made before, its texel maps being independent of the
+photograph's size. ``--reuse`` keeps a size's workspace (photograph, fit.json) from an earlier run
+under the same ``--root``, ``--stages`` picks the stages after the fit (``--stages texture,albedo``:
+the texture and its coverage).
 A fit at a size above ``--fit-max-mp`` is not run; the texture and render then use fit.json of the
 same scene's 640x480 fit, said in the table. (The fit reads a sample of the pixels and above 2 MP
 builds trees only for those: docs/fit.md, "Large photographs".)
