@@ -436,15 +436,13 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
                                             for b in (1, 2)]
     del w
     # E's arrays filled in place, chunk by chunk, 32-bit indices (as scipy keeps them).
-    nnz = sum(int(e.row_nnz.sum()) for e in bands)
-    n_rows, n_cols = sum(len(e.row_pixels) for e in bands), sum(len(e.col_texels) for e in bands)
+    band_at = np.concatenate([[0], np.cumsum([int(e.row_nnz.sum()) for e in bands])])
+    band_col = np.concatenate([[0], np.cumsum([len(e.col_texels) for e in bands])])
+    nnz, n_rows, n_cols = int(band_at[-1]), sum(len(e.row_pixels) for e in bands), int(band_col[-1])
     data, indices = np.empty(nnz), np.empty(nnz, dtype=np.int32)
     indptr = np.zeros(n_rows + 1, dtype=np.int32 if nnz < 2**31 else np.int64)
     row_ids, col_global = np.empty(n_rows, dtype=np.int64), np.empty(n_cols, dtype=np.int64)
     coverage, weight = np.empty(3 * total), np.empty(3 * total)
-    band_nnz = [int(e.row_nnz.sum()) for e in bands]
-    band_at = np.concatenate([[0], np.cumsum(band_nnz)])
-    band_col = np.concatenate([[0], np.cumsum([len(e.col_texels) for e in bands])])
     row = 0
     for b, e in enumerate(bands):
         r, k, col = len(e.row_pixels), len(e.col_texels), band_col[b]
