@@ -184,3 +184,42 @@ def test_bad_inputs_are_named():
         recover_texture(lab.scene, trees, materials, lab.lights.intensities, bad)
     with pytest.raises(ValueError, match="prior"):
         recover_texture(lab.scene, trees, materials, lab.lights.intensities, image, SolverOptions(prior=-1))
+
+
+@pytest.mark.parametrize("clip", [False, True])
+def test_the_system_and_texture_do_not_depend_on_the_chunk(monkeypatch, clip):
+    # E is written, renumbered and summed a chunk of nodes (or entries, or rows) at a time
+    # (solve.CHUNK): with chunks of 7, every boundary falls inside some node's four corners or a
+    # pixel's nodes, and the system must be the one-chunk system entry for entry. ``clip``: band 0
+    # alone saturates in places, so the bands do not share their entries' structure.
+    import reflab.inverse.texture.solve as solve_mod
+
+    lab, trees, materials, image = _setup(96, 72)
+    options = SolverOptions()
+    if clip:
+        level = float(np.quantile(image[:, :, 0], 0.9))
+        image = image.copy()
+        image[:, :, 0] = np.minimum(image[:, :, 0], level)
+        options = SolverOptions(saturation=level)
+        saturated = (image >= level).reshape(-1, 3).sum(axis=0)
+        assert saturated[0] > 100 and saturated[0] != saturated[1]
+    maps = build_maps(lab.scene, trees, options)
+    guess = np.zeros(96 * 72, dtype=bool)
+    guess[::3] = True
+    runs = []
+    for chunk in (1 << 21, 7):
+        monkeypatch.setattr(solve_mod, "CHUNK", chunk)
+        system = build_system(trees, materials, lab.lights.intensities, image, maps, options)
+        E = system.E.copy()  # the solve renumbers and rounds it in place
+        runs.append((E, system, recover_texture(lab.scene, trees, materials, lab.lights.intensities, image, options,
+                                                guess=guess, maps=maps)))
+    (E1, s1, r1), (E2, s2, r2) = runs
+    assert E1.nnz == E2.nnz > 10_000
+    for name in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(E1, name), getattr(E2, name)), name
+    for name in ("rhs", "row_pixel", "row_band", "coverage", "weight", "saturated_touch"):
+        assert np.array_equal(getattr(s1, name), getattr(s2, name)), name
+    assert r1.stats["texels_guessed"] == r2.stats["texels_guessed"] > 0
+    for s in r1.kd:
+        assert np.array_equal(r1.mask[s], r2.mask[s]) and np.array_equal(r1.flags[s], r2.flags[s])
+        np.testing.assert_allclose(r2.kd[s], r1.kd[s], rtol=0, atol=1e-4)  # column sums add in another order

@@ -111,17 +111,25 @@ def _cancel_at_tile(k: int, seen: list) -> Task:
     return task
 
 
-def test_cancel_between_tiles_leaves_nothing_half_written(zoo, tmp_path):
+def test_cancel_between_tiles_leaves_nothing_half_written(zoo, tmp_path, monkeypatch):
+    import reflab.inverse.texture.tiles as tiles
+
     root, _ = zoo
     ws = Workspace(root)
     texture(TextureOptions(root))
     before = {p.name: p.read_bytes() for p in ws.textures.iterdir()}
     caches = sorted(ws.root.rglob("trees-*.npz"))
-    seen = []
-    with pytest.raises(Cancelled):
-        texture(TextureOptions(root, tile_pixels=TINY), _cancel_at_tile(4, seen))
-    assert any("tile 3 of 10" in m for m in seen) and not any("tile 5 of" in m for m in seen)
-    assert {p.name: p.read_bytes() for p in ws.textures.iterdir()} == before  # the earlier texture, whole
+    # With two workers (tiles.TILE_WORKERS) two tiles are reduced at once and which speaks first
+    # is the threads' race; one at a time (the default) the order is fixed: no later tile starts.
+    for workers in (2, 1):
+        monkeypatch.setattr(tiles, "TILE_WORKERS", workers)
+        seen = []
+        with pytest.raises(Cancelled):
+            texture(TextureOptions(root, tile_pixels=TINY), _cancel_at_tile(4, seen))
+        assert any("tile 4 of 10" in m for m in seen) and not any("tile 10 of" in m for m in seen)
+        if workers == 1:
+            assert any("tile 3 of 10" in m for m in seen) and not any("tile 5 of" in m for m in seen)
+        assert {p.name: p.read_bytes() for p in ws.textures.iterdir()} == before  # the earlier texture, whole
     assert not [p for p in root.rglob(".*") if p.is_file()]  # no temporary file of an atomic write
     assert sorted(ws.root.rglob("trees-*.npz")) == caches  # tiled trees are not cached
 

@@ -8,9 +8,12 @@ box, a glass cylinder and a mirror box under two lamps; the workspace holds what
 ``python -m reflab.app.cli STAGE WORKSPACE`` in a fresh process with the trees cache emptied;
 its wall time and peak resident memory come from ``os.wait4`` (the child's own rusage).
 
-A texture above ``--texture-max-mp`` is not run either (its memory, measured at 3 MP and
-extrapolated, would pass the 6 GB a run may take on the shared machine): the render then uses the
-largest texture made before, its texel maps being independent of the photograph's size.
+A texture above ``--texture-max-mp`` (default 12.5: the 12 MP texture peaks at 6.7 GB, the 24 MP
+one extrapolates to 12.5 GB, more than a run may take on the shared machine) is not run: the
+render then uses the largest texture made before, its texel maps being independent of the
+photograph's size. ``--reuse`` keeps a size's workspace (photograph, fit.json) from an earlier run
+under the same ``--root``, ``--stages`` picks the stages after the fit (``--stages texture,albedo``:
+the texture and its coverage).
 A fit at a size above ``--fit-max-mp`` is not run; the texture and render then use fit.json of the
 same scene's 640x480 fit, said in the table. (The fit reads a sample of the pixels and above 2 MP
 builds trees only for those: docs/fit.md, "Large photographs".)
@@ -95,7 +98,8 @@ def run_stage(args: list, log: Path) -> dict:
         _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     return {"rc": proc.returncode, "wall_s": round(time.perf_counter() - t0, 2),
-            "peak_gb": round(usage.ru_maxrss / 2**20, 2)}  # ru_maxrss is in KB on Linux
+            "peak_gb": round(usage.ru_maxrss / 2**20, 2),  # ru_maxrss is in KB on Linux
+            "load_after": round(os.getloadavg()[0], 1)}  # 1-minute load average when it ended (a shared machine)
 
 
 def coverage(ws: Path, albedo: Path) -> dict:
@@ -130,9 +134,14 @@ def main(argv=None):
     ap.add_argument("--root", default="/tmp/reflab-megapixels")
     ap.add_argument("--fit-max-mp", type=float, default=30.0,
                     help="largest size (MP) whose fit is run; above it fit.json comes from the 640x480 fit")
-    ap.add_argument("--texture-max-mp", type=float, default=3.5,
+    ap.add_argument("--texture-max-mp", type=float, default=12.5,
                     help="largest size (MP) whose texture is run; above it textures/ come from the largest texture "
                          "run before (texel maps do not depend on the photograph's size): render only")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep a size's workspace (photograph and fit.json) from an earlier run under --root: "
+                         "time only the stages after it (fit too when there is no fit.json)")
+    ap.add_argument("--stages", default="texture,render,albedo",
+                    help="which of texture, render, albedo to run after the fit (comma-separated)")
     ap.add_argument("--json")
     ap.add_argument("--tile-pixels", type=int, help="the texture's and render's --tile-pixels (default theirs)")
     args = ap.parse_args(argv)
@@ -150,10 +159,14 @@ def main(argv=None):
         log = root / f"{width}x{height}.log"
         log.unlink(missing_ok=True)
         t0 = time.perf_counter()
-        write_workspace(ws, width, height)
+        reuse = args.reuse and (ws / "input.exr").is_file()
+        if not reuse:
+            write_workspace(ws, width, height)
         row = {"size": f"{width}x{height}", "megapixels": round(width * height / 1e6, 2),
-               "write_s": round(time.perf_counter() - t0, 1)}
-        if width * height / 1e6 <= args.fit_max_mp:
+               "write_s": "reused" if reuse else round(time.perf_counter() - t0, 1)}
+        if reuse and (ws / "fit.json").is_file():
+            row["fit"] = "not run: fit.json of an earlier run (--reuse)"
+        elif width * height / 1e6 <= args.fit_max_mp:
             row["fit"] = run_stage(["fit", str(ws)], log)
         else:
             if small is None:
@@ -164,8 +177,10 @@ def main(argv=None):
             shutil.copy(small / "fit.json", ws / "fit.json")
             row["fit"] = "not run: fit.json of the 640x480 fit"
         tile = [] if args.tile_pixels is None else ["--tile-pixels", str(args.tile_pixels)]
+        wanted = args.stages.split(",")
         stages = [("texture", tile), ("render", tile), ("albedo", ["--aov", "albedo", "-o", str(ws / "albedo.exr"), *tile])]
-        if width * height / 1e6 > args.texture_max_mp:
+        stages = [st for st in stages if st[0] in wanted]
+        if width * height / 1e6 > args.texture_max_mp and "texture" in wanted:
             done = sorted((p for p in root.glob("ws-*x*") if (p / "textures" / "index.json").is_file() and p != ws
                            and not (p / "textures-from.txt").is_file()), key=lambda p: int(p.name[3:].split("x")[0]))
             if not done:
@@ -173,13 +188,15 @@ def main(argv=None):
             shutil.copytree(done[-1] / "textures", ws / "textures")
             (ws / "textures-from.txt").write_text(f"{done[-1]}\n")  # a copy: not a texture made at this size
             row["texture"] = f"not run: textures/ of the {done[-1].name[3:]} run"
-            stages = stages[1:]
+            stages = [st for st in stages if st[0] != "texture"]
         for stage, extra in stages:
             shutil.rmtree(ws / "cache", ignore_errors=True)
             row[stage] = run_stage(["render" if stage == "albedo" else stage, str(ws), *extra], log)
         fit = json.loads((ws / "fit.json").read_text())
         index = json.loads((ws / "textures" / "index.json").read_text())
-        row.update(coverage(ws, ws / "albedo.exr"), fit_status=fit.get("status"),
+        if "albedo" in wanted:  # else albedo.exr may be an earlier texture's
+            row.update(coverage(ws, ws / "albedo.exr"))
+        row.update(fit_status=fit.get("status"),
                    texels_known=index["stats"]["texels_known"], texture_tiles=index.get("tiles", {}).get("count", 1),
                    texture_unknowns=index["stats"]["unknowns"], texture_nonzeros=index["stats"]["nonzeros"],
                    load_average=round(os.getloadavg()[0], 1))

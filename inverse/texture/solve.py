@@ -37,6 +37,9 @@ from reflab.inverse.texture.texels import TexelMap, build_texel_map, choose_texe
 
 #: Flag bits of the per-texel diagnostics.
 AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
+#: Nodes (or entries of E) per chunk of the passes that would otherwise make temporaries as large
+#: as E itself (a 12 MP photograph: 150 M entries, 1.2 GB per float64 array).
+CHUNK = 1 << 21
 
 
 @dataclass
@@ -266,8 +269,8 @@ class _System:
     E: object  # scipy.sparse.csr_matrix, rows = (band, pixel), cols = (band, texel) compressed
     rhs: np.ndarray
     row_pixel: np.ndarray  # (R,) pixel of each row
-    row_band: np.ndarray
-    col_global: np.ndarray  # (C,) band * n_texels + global texel index, increasing
+    row_band: np.ndarray  # (R,) int8
+    col_global: np.ndarray  # (C,) band * n_texels + global texel index, increasing until solve() renumbers
     prior: np.ndarray  # (C,) homogeneous kd of each column
     coverage: np.ndarray  # (3 * n_texels,) over all texels
     weight: np.ndarray
@@ -375,12 +378,16 @@ def build_system(trees, materials, intensities, image, maps, options: SolverOpti
     return assemble_system(nodes, Q, image, materials, maps, options, exclude)
 
 
-def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: SolverOptions, exclude=None) -> _System:
+def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: SolverOptions, exclude=None, *,
+                    release: bool = False) -> _System:
     """E, b − Q and the per-texel coverage / weight from the textured nodes of every pixel.
 
     ``Q`` (H·W, 3): each pixel's light from everything but the textured nodes; ``image`` the
     photograph (H, W, 3) or (H·W, 3). Vectorised over (node, bilinear corner, band) entries: no
-    Python loop beyond one per textured surface (its bilinear lookup).
+    Python loop beyond one per textured surface (its bilinear lookup) and one per chunk of
+    :data:`CHUNK` nodes where E's arrays are filled, so that no temporary holds every entry.
+    ``release``: the caller hands ``nodes`` over, whose fields are dropped once used (a 12 MP
+    texture's triangles and barycentric points: 0.35 GB less at the peak).
     """
     import scipy.sparse as sp
 
@@ -394,58 +401,87 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
     kd_table = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials]).astype(np.float64)
 
     # An excluded pixel's nodes only flag the texels a saturated pixel touches: the others are dropped here.
-    keep = slice(None)
+    excluded = None
     if exclude is not None:
-        pix = nodes.pixel
-        keep = ~np.asarray(exclude, dtype=bool).reshape(npix)[pix] | saturated[pix].any(axis=1)
-    pix, surface = nodes.pixel[keep], nodes.surface[keep]
+        excluded = np.asarray(exclude, dtype=bool).reshape(npix)
+        keep = ~excluded[nodes.pixel] | saturated[nodes.pixel].any(axis=1)
+        nodes = TexturedNodes(nodes.pixel[keep], nodes.surface[keep], nodes.triangle[keep], nodes.barycentric[keep],
+                              nodes.coef[:, keep], nodes.seen[:, keep])
+    pix, surface = nodes.pixel, nodes.surface
     n = len(pix)
     idx = np.zeros((n, 4), dtype=np.int64)
     w = np.zeros((n, 4))
     for s, m in maps.items():
-        sel = surface == s
-        i, ww = m.bilinear(nodes.triangle[keep][sel], nodes.barycentric[keep][sel])
-        idx[sel], w[sel] = i + offsets[s], ww
-    coef, seen = nodes.coef[:, keep], nodes.seen[:, keep]
+        sel = np.flatnonzero(surface == s)
+        for a in range(0, len(sel), CHUNK):  # the lookup's temporaries are a dozen arrays a node
+            part = sel[a:a + CHUNK]
+            i, ww = m.bilinear(nodes.triangle[part], nodes.barycentric[part])
+            idx[part], w[part] = i + offsets[s], ww
+    del surface
+    if release:
+        nodes.triangle = nodes.barycentric = nodes.surface = None
+    coef, seen = nodes.coef, nodes.seen
     lit = coef > 0
     ok = lit & ~saturated[pix].T  # (3, n)
-    if exclude is not None:
-        ok &= ~np.asarray(exclude, dtype=bool).reshape(npix)[pix][None, :]
+    if excluded is not None:
+        ok &= ~excluded[pix][None, :]
 
     # E band by band (rows band * npix + pixel, columns band * total + texel, both in increasing
     # order). When every band keeps the same nodes (none saturated or unlit in one band alone: the
     # usual case) the entries' structure is the same in each band: worked out once, each band
     # taking its own values (640x480 textured scene: 0.55 -> 0.25 s).
     shared = bool(np.array_equal(ok[0], ok[1]) and np.array_equal(ok[0], ok[2]))
-    bands = [_band_entries(ok[0], idx, w, pix, total, options.min_coverage)]
-    bands += [bands[0]] * 2 if shared else [_band_entries(ok[b], idx, w, pix, total, options.min_coverage) for b in (1, 2)]
-    # E's arrays filled in place, 32-bit indices (as scipy keeps them): no concatenated copies.
-    nnz = sum(len(e[0]) for e in bands)
-    n_rows, n_cols = sum(len(e[5]) for e in bands), sum(len(e[3]) for e in bands)
+    bands = [_band_structure(ok[0], idx, w, pix, total, options.min_coverage)]
+    bands += [bands[0]] * 2 if shared else [_band_structure(ok[b], idx, w, pix, total, options.min_coverage)
+                                            for b in (1, 2)]
+    del w
+    # E's arrays filled in place, chunk by chunk, 32-bit indices (as scipy keeps them).
+    band_at = np.concatenate([[0], np.cumsum([int(e.row_nnz.sum()) for e in bands])])
+    band_col = np.concatenate([[0], np.cumsum([len(e.col_texels) for e in bands])])
+    nnz, n_rows, n_cols = int(band_at[-1]), sum(len(e.row_pixels) for e in bands), int(band_col[-1])
     data, indices = np.empty(nnz), np.empty(nnz, dtype=np.int32)
     indptr = np.zeros(n_rows + 1, dtype=np.int32 if nnz < 2**31 else np.int64)
     row_ids, col_global = np.empty(n_rows, dtype=np.int64), np.empty(n_cols, dtype=np.int64)
     coverage, weight = np.empty(3 * total), np.empty(3 * total)
-    at = row = col = 0
-    for b, (wv, node, texel, col_texels, col_rank, row_pixels, row_rank, _) in enumerate(bands):
-        m, r, k = len(wv), len(row_pixels), len(col_texels)
-        np.multiply(coef[b][node], wv, out=data[at:at + m])
-        np.add(col_rank, col, out=indices[at:at + m], casting="unsafe")
-        indptr[row + 1:row + r + 1] = np.cumsum(np.bincount(row_rank, minlength=r)) + at
-        row_ids[row:row + r], col_global[col:col + k] = row_pixels + b * npix, col_texels + b * total
+    row = 0
+    for b, e in enumerate(bands):
+        r, k, col = len(e.row_pixels), len(e.col_texels), band_col[b]
+        indptr[row + 1:row + r + 1] = np.cumsum(e.row_nnz) + band_at[b]
+        row_ids[row:row + r], col_global[col:col + k] = e.row_pixels + b * npix, e.col_texels + b * total
+        row += r
+    # Entries a chunk of nodes at a time, each chunk's structure worked out once for the bands
+    # that share it.
+    for e in {id(e): e for e in bands}.values():
+        same = [b for b in range(3) if bands[b] is e]
+        at = 0
+        for a in range(0, n, CHUNK):
+            wk = e.wk[a:a + CHUNK].ravel()
+            flat = np.flatnonzero(wk)  # node (pixel order), then corner: row order
+            m, node, wv = len(flat), flat // 4 + a, wk[flat]
+            cols = e.col_rank[idx[a:a + CHUNK].ravel()[flat]]
+            for b in same:
+                o = band_at[b] + at
+                np.multiply(coef[b][node], wv, out=data[o:o + m])
+                np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
+            at += m
+    for b, e in enumerate(bands):
+        # Entries with zero weight add nothing: the sums over every corner are those over the entries.
         # A shared band's coverage is band 0's (same entries, same weights): a copy, not a count
         # over every texel again (a floor 20 times larger than its view: 1.4 M texels).
         coverage[b * total:(b + 1) * total] = (coverage[:total] if shared and b else
-                                               np.bincount(texel, weights=wv, minlength=total))
-        weight[b * total:(b + 1) * total] = np.bincount(texel, weights=wv * seen[b][node], minlength=total)
-        at, row, col = at + m, row + r, col + k
-    n_bad = sum(e[7] for e in bands)
+                                               np.bincount(idx.ravel(), weights=e.wk.ravel(), minlength=total))
+        weight[b * total:(b + 1) * total] = np.bincount(idx.ravel(), weights=(e.wk * seen[b][:, None]).ravel(),
+                                                        minlength=total)
+    n_bad = sum(e.n_bad for e in bands)
+    del bands
     saturated_touch = np.zeros(3 * total, dtype=bool)
     band, node = np.nonzero(lit & saturated[pix].T)
     saturated_touch[(idx[node] + (band * total)[:, None]).ravel()] = True
+    del idx
     E = sp.csr_matrix((data, indices, indptr), shape=(n_rows, n_cols))
     E.sum_duplicates()  # a pixel seeing one texel twice (two paths) gets one entry
-    row_band, row_pixel = row_ids // npix, row_ids % npix
+    row_band, row_pixel = (row_ids // npix).astype(np.int8), row_ids % npix
+    del row_ids
     rhs = img[row_pixel, row_band] - Q[row_pixel, row_band]
 
     surf_of = np.zeros(total, dtype=np.int64)
@@ -456,18 +492,26 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
                    saturated_touch, offsets, total, int(np.count_nonzero(saturated)), n_bad)
 
 
-def _band_entries(ok, idx, w, pix, total: int, min_coverage: float) -> tuple:
+class _BandStructure(NamedTuple):
+    """One band's entries of E (:func:`_band_structure`)."""
+
+    wk: np.ndarray  # (n, 4) each node's renormalised bilinear weights; 0 where no entry
+    col_texels: np.ndarray  # distinct texels of the entries, increasing
+    col_rank: np.ndarray  # (total,) each texel's rank among them (-1: none)
+    row_pixels: np.ndarray  # distinct pixels of the rows, increasing (two nodes of one pixel share a row)
+    row_nnz: np.ndarray  # entries per row
+    n_bad: int  # pixels dropped: their node keeps less than half its weight
+
+
+def _band_structure(ok, idx, w, pix, total: int, min_coverage: float) -> _BandStructure:
     """One band's entries of E: the nodes ``ok`` keeps (in pixel order), their bilinear texels
     ``idx`` and weights ``w`` (n, 4).
 
     Texels that carry less than ``min_coverage`` pixels of weight are not modelled: each node's
     weights are renormalised over its supported texels, and a pixel whose node keeps less than
     half its weight is dropped. This removes the near-null columns at the edges of what the image
-    sees, which would otherwise dominate the solver's iterations.
-
-    Returns (weight, node, texel) per entry, in row order; the distinct texels (increasing) and
-    each entry's rank among them; the distinct pixels of the rows (increasing; two nodes of one
-    pixel, two paths, share a row) and each entry's row; the number of pixels dropped.
+    sees, which would otherwise dominate the solver's iterations. Node-sized arrays only: E's
+    entries are written from ``wk`` chunk by chunk (:func:`assemble_system`).
     """
     wk = np.where(ok[:, None] & (w > 0), w, 0.0)
     supported = np.bincount(idx.ravel(), weights=wk.ravel(), minlength=total) >= min_coverage
@@ -477,19 +521,19 @@ def _band_entries(ok, idx, w, pix, total: int, min_coverage: float) -> tuple:
     bad_pixel[pix[ok & (kept < 0.5)]] = True
     good = ok & ~bad_pixel[pix]
     wk *= np.where(good, 1.0 / np.maximum(kept, 1e-300), 0.0)[:, None]
-    flat = np.flatnonzero(wk)  # node (pixel order), then corner
-    node = flat // 4
-    texel = idx.ravel()[flat]
-    col_texels, col_rank = _compress(texel, total)
-    has = np.zeros(len(pix), dtype=bool)
-    has[node] = True
+    entry = wk != 0
+    used = np.zeros(total, dtype=bool)
+    for a in range(0, len(pix), CHUNK):
+        used[idx[a:a + CHUNK][entry[a:a + CHUNK]]] = True
+    col_rank = np.cumsum(used) - 1
+    count = entry.sum(axis=1)
+    has = count > 0
     keys = pix[has]
     first = np.ones(len(keys), dtype=bool)
     first[1:] = keys[1:] != keys[:-1]
-    rank = np.zeros(len(pix), dtype=np.int64)
-    rank[has] = np.cumsum(first) - 1
-    return (wk.ravel()[flat], node, texel, col_texels, col_rank, keys[first], rank[node],
-            int(np.count_nonzero(bad_pixel)))
+    starts = np.flatnonzero(first)
+    row_nnz = np.add.reduceat(count[has], starts) if len(starts) else np.zeros(0, dtype=np.int64)
+    return _BandStructure(wk, np.flatnonzero(used), col_rank, keys[starts], row_nnz, int(np.count_nonzero(bad_pixel)))
 
 
 def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
@@ -604,6 +648,37 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([label, label + len(sizes), label + 2 * len(sizes)]), np.tile(sizes, 3)
 
 
+def _renumber_columns(system: _System, order: np.ndarray) -> np.ndarray:
+    """Renumber the system's columns in place, new column ``k`` being old column ``order[k]``:
+    E's column indices rewritten a chunk at a time (no second copy of E), ``col_global`` and
+    ``prior`` permuted with them. Returns each old column's new number."""
+    E = system.E
+    rank = np.empty(len(order), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    rank_i, ind = rank.astype(E.indices.dtype), E.indices
+    for a in range(0, len(ind), CHUNK):
+        ind[a:a + CHUNK] = rank_i[ind[a:a + CHUNK]]
+    E.has_sorted_indices = False  # and so not canonical: scipy must not trust its cached flags
+    system.col_global, system.prior = system.col_global[order], system.prior[order]
+    return rank
+
+
+def _column_sums(E, values) -> np.ndarray:
+    """Per column of E, the sum of ``values(data)`` over its entries, a chunk of entries at a time."""
+    out = np.zeros(E.shape[1])
+    for a in range(0, E.nnz, CHUNK):
+        out += np.bincount(E.indices[a:a + CHUNK], weights=values(E.data[a:a + CHUNK]), minlength=E.shape[1])
+    return out
+
+
+def _to_float32(E) -> None:
+    """E's values as float32, in place of the float64 ones (the iteration's matrix: one copy of E)."""
+    data = np.empty(E.nnz, dtype=np.float32)
+    for a in range(0, E.nnz, CHUNK):
+        data[a:a + CHUNK] = E.data[a:a + CHUNK]
+    E.data = data
+
+
 def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -> tuple[np.ndarray, dict]:
     """Solve the bounded, regularised system by connected components; returns (z per column, stats).
 
@@ -617,6 +692,10 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     optional): a second right-hand side solved with the same setup, warm from the first's
     solution and to a 10x looser gradient (a perturbed photograph:
     :func:`recover_texture`'s ``perturb``); its solution is ``stats["also"]``.
+
+    The system is changed in place, so that a photograph's E exists once: its columns are
+    renumbered component by component (``col_global`` and ``prior`` follow; ``z`` is in that
+    order) and its values become float32.
     """
     import scipy.sparse as sp
 
@@ -629,41 +708,65 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     label, sizes = _band_components(system, pi, pj)
     # Unknowns renumbered component by component: per-component sums become contiguous segments.
     order = np.argsort(label, kind="stable")
-    rank = np.empty(ncol, dtype=np.int64)
-    rank[order] = np.arange(ncol)
-    # int32 column indices as scipy keeps them (rank[E.indices] would be int64: twice the bytes)
-    E = sp.csr_matrix((E.data, np.take(rank.astype(E.indices.dtype), E.indices), E.indptr), shape=E.shape)
+    del label
+    rank = _renumber_columns(system, order)
     pi, pj = rank[pi], rank[pj]
-    prior = system.prior[order]
+    del rank
+    prior = system.prior
 
-    colnorm2 = np.bincount(E.indices, weights=E.data * E.data, minlength=ncol)
+    colnorm2 = _column_sums(E, lambda d: np.square(d, dtype=np.float64))
     # The prior's weight is relative to the data a texel would have if seen directly: a texel seen
     # only through an attenuation a gets (1/a)² times more, so faint reflections and sheets lean
     # on the homogeneous kd instead of making the system ill-conditioned.
-    cov, wt = system.coverage[system.col_global[order]], system.weight[system.col_global[order]]
+    cov, wt = system.coverage[system.col_global], system.weight[system.col_global]
     amp = np.divide(cov, wt, out=np.ones(ncol), where=wt > 0)
+    del cov, wt
     prior_w = options.prior * np.maximum(amp, 1.0) ** 2 * colnorm2
+    del amp
     # Smoothness rows sqrt(μ c_a c_b) (z_a − z_b): relative to the two texels' data (c² = column norm²).
     mu = options.smoothness * np.sqrt(colnorm2[pi] * colnorm2[pj])
     lap_diag = prior_w + np.bincount(pi, mu, minlength=ncol) + np.bincount(pj, mu, minlength=ncol)
     scale = 1.0 / np.sqrt(np.maximum(colnorm2 + lap_diag, 1e-300))
-    # Jacobi: unknowns y = z / scale, so that the normal matrix has a unit diagonal.
+    del colnorm2
+    # Jacobi: unknowns y = z / scale, so that the normal matrix has a unit diagonal; the scaling
+    # is applied to the vectors, E keeps its values (one copy of it, not a scaled second one).
+    # L's diagonal as a vector, its off-diagonal (the smoothness pairs, both ways) as a matrix.
+    diag = lap_diag * scale * scale
+    off = -mu * scale[pi] * scale[pj]
+    pairs = sp.coo_matrix((np.concatenate([off, off]), (np.concatenate([pi, pj]), np.concatenate([pj, pi]))),
+                          shape=(ncol, ncol)).tocsr()
+    del off, mu, lap_diag, pi, pj
+    ET = E.T  # CSC view of the same arrays
+    f64 = E.dtype == np.float64
+    # What needs E in float64 is done before it turns float32: the right-hand sides, the warm
+    # start's ratio and the stopping level (gradient at the homogeneous kd).
+    Etrhs = scale * (ET @ system.rhs) if f64 else scale * (ET @ system.rhs.astype(np.float32))
+    b = Etrhs + scale * prior_w * prior
+    b_also = None
+    if also is not None:
+        also = np.asarray(also, dtype=np.float64)
+        b_also = scale * (ET @ (also if f64 else also.astype(np.float32))) + scale * prior_w * prior
+    del prior_w
+    # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
+    row_sum = E @ np.ones(ncol, dtype=E.dtype)
+    den = scale * (ET @ row_sum)
+    del row_sum
+    ratio = np.divide(Etrhs, den, out=prior.copy(), where=den > 0)
+    del den, Etrhs
+    lo, hi = options.bounds
+    # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
+    r0 = b - (scale * (ET @ (E @ prior.astype(E.dtype))) + diag * (prior / scale) + pairs @ (prior / scale))
+    stop = np.add.reduceat(r0 * r0, np.concatenate([[0], np.cumsum(sizes)[:-1]])) * options.tol**2
+    g0 = max(float(r0 @ r0), 1e-300)
+    del r0
     # The iteration runs in float32 (half the memory traffic of its sparse products), its
     # scalars in float64: the albedo agrees with a float64 run within 5e-5 (RMS 1e-6, measured
     # at 320x240 and 640x480), far below the stopping level's effect.
     F = np.float32
-    Es = sp.csr_matrix(((E.data * scale[E.indices]).astype(F), E.indices, E.indptr), shape=E.shape)
-    EsT = Es.T
-    ar = np.arange(ncol)
-    li, lj = np.concatenate([ar, pi, pj]), np.concatenate([ar, pj, pi])
-    lap = sp.csr_matrix(((np.concatenate([lap_diag, -mu, -mu]) * scale[li] * scale[lj]).astype(F), (li, lj)), shape=(ncol, ncol))
-    apply = lambda p: EsT @ (Es @ p) + lap @ p  # noqa: E731
-    Etrhs = EsT @ system.rhs
-    b = Etrhs + scale * prior_w * prior
-    lo, hi = options.bounds
-    # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
-    r0 = b - apply(prior / scale)
-    stop = np.add.reduceat(r0 * r0, np.concatenate([[0], np.cumsum(sizes)[:-1]])) * options.tol**2
+    _to_float32(E)
+    ET = E.T
+    s32, d32, pairs = scale.astype(F), diag.astype(F), pairs.astype(F)
+    apply = lambda p: s32 * (ET @ (E @ (s32 * p))) + d32 * p + pairs @ p  # noqa: E731
 
     def bounded(b, y, stop, steps):
         """CG, then up to four active-set rounds (violators fixed at their bound, the rest re-solved warm)."""
@@ -683,25 +786,17 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
             free = np.where(viol, 0.0, 1.0) if free is None else np.where(viol, 0.0, free)
         return np.clip(y * scale, lo, hi), iters, rounds
 
-    # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
-    den = EsT @ np.asarray(E.sum(axis=1)).ravel()
-    ratio = np.divide(Etrhs, den, out=prior.copy(), where=den > 0)
     steps = []  # (perf_counter, squared normal-equation residual) per CG iteration, every round
     solved, iters, rounds = bounded(b, np.clip(ratio, lo, hi) / scale, stop, steps)
-    out = np.empty(ncol)
-    out[order] = solved
-    g0 = max(float(r0 @ r0), 1e-300)
     stats = {"components": int(len(sizes)), "largest_component": int(sizes.max()), "iterations": iters,
              "active_set_rounds": rounds, "solve_s": time.perf_counter() - t0,
              # The CG's error against its run time (the report's error-vs-time plot): seconds since
              # the solve began, normal-equation residual relative to the homogeneous kd's (tol's scale).
              "trace": [[round(t - t0, 6), float(np.sqrt(g / g0))] for t, g in steps],
              "trace_quantity": "relative residual"}
-    if also is not None:
-        b_also = EsT @ np.asarray(also, dtype=np.float64) + scale * prior_w * prior
-        stats["also"] = np.empty(ncol)
-        stats["also"][order] = bounded(b_also, solved / scale, stop * 100.0, [])[0]
-    return out, stats
+    if b_also is not None:
+        stats["also"] = bounded(b_also, solved / scale, stop * 100.0, [])[0]
+    return solved, stats
 
 
 def recover_texture(scene, trees, materials, intensities, image, options: SolverOptions | None = None,
@@ -756,6 +851,22 @@ def recover_texture(scene, trees, materials, intensities, image, options: Solver
                          times=(t0, t_maps, time.perf_counter()))
 
 
+def _guessed_columns(E, on_guess) -> np.ndarray:
+    """(C,) bool: columns of E with more than half their weight (|E|) in the rows ``on_guess``
+    ((R,) bool), summed in float64 a chunk of rows at a time."""
+    R, C = E.shape
+    guessed, whole = np.zeros(C), np.zeros(C)
+    step = max(1, CHUNK // 4)
+    for a in range(0, R, step):
+        r1 = min(a + step, R)
+        lo, hi = E.indptr[a], E.indptr[r1]
+        cols, v = E.indices[lo:hi], np.abs(E.data[lo:hi], dtype=np.float64)
+        flag = np.repeat(on_guess[a:r1], np.diff(E.indptr[a:r1 + 1]))
+        guessed += np.bincount(cols, weights=np.where(flag, v, 0.0), minlength=C)
+        whole += np.bincount(cols, weights=v, minlength=C)
+    return guessed > 0.5 * whole
+
+
 def solve_texture(system: _System, maps, materials, options: SolverOptions, *, guess=None, task=None, perturb=None,
                   times=None) -> TextureSolution:
     """Solve an assembled system (:func:`build_system`, :func:`assemble_system`) into the
@@ -765,14 +876,20 @@ def solve_texture(system: _System, maps, materials, options: SolverOptions, *, g
     also = None
     if perturb is not None:
         also = system.rhs + np.asarray(perturb, dtype=np.float64).reshape(-1, 3)[system.row_pixel, system.row_band]
+    total = system.n_texels
+    # Guessed texels need E's float64 values and columns as assembled: before the solve changes them.
+    guessed3 = np.zeros(3 * total, dtype=bool)
+    if guess is not None and system.E.shape[1]:
+        on_guess = np.asarray(guess, dtype=bool).reshape(-1)[system.row_pixel]
+        guessed3[system.col_global] = _guessed_columns(system.E, on_guess)
+    guessed3 = guessed3.reshape(3, total)
     z, stats = solve(system, maps, options, task, also=also)
     z_perturbed = stats.pop("also", None)
 
-    resid = system.E @ z - system.rhs if len(z) else np.zeros(0)
+    resid = system.E @ z.astype(system.E.dtype) - system.rhs if len(z) else np.zeros(0)
     count = np.bincount(system.row_band, minlength=3)
     rms = np.sqrt(np.bincount(system.row_band, weights=resid * resid, minlength=3) / np.maximum(count, 1)).tolist()
     # Per-texel arrays as (band, texel) views: each surface is a contiguous slice of texels.
-    total = system.n_texels
     full = np.full(3 * total, np.nan)
     full[system.col_global] = z
     full_perturbed = None
@@ -784,12 +901,6 @@ def solve_texture(system: _System, maps, materials, options: SolverOptions, *, g
     clipped = np.zeros(3 * total, dtype=bool)
     clipped[system.col_global] = (z <= lo) | (z >= hi)
     known3 = (system.coverage >= options.min_coverage).reshape(3, total)
-    guessed3 = np.zeros(3 * total, dtype=bool)
-    if guess is not None and len(z):
-        on_guess = np.asarray(guess, dtype=bool).reshape(-1)[system.row_pixel].astype(np.float64)
-        weights = abs(system.E).T
-        guessed3[system.col_global] = weights @ on_guess > 0.5 * (weights @ np.ones_like(on_guess))
-    guessed3 = guessed3.reshape(3, total)
     weight3, coverage3 = system.weight.reshape(3, total), system.coverage.reshape(3, total)
     full, clipped, saturated3 = full.reshape(3, total), clipped.reshape(3, total), system.saturated_touch.reshape(3, total)
 
@@ -801,8 +912,9 @@ def solve_texture(system: _System, maps, materials, options: SolverOptions, *, g
         # Known, amplified, clipped and guessed texels are columns of the system, saturated ones
         # touch a saturated pixel: the rest keep the defaults. A map can be far larger than what
         # the image sees (a floor under a small view: 1.4 M texels, 56 k known).
-        act = np.union1d(column_texel[(column_texel >= off) & (column_texel < off + n)] - off,
-                         np.flatnonzero(saturated3[:, sl].any(axis=0)))
+        act = saturated3[:, sl].any(axis=0)
+        act[column_texel[(column_texel >= off) & (column_texel < off + n)] - off] = True
+        act = np.flatnonzero(act)
         kn3, w3 = known3[:, sl][:, act], weight3[:, sl]
         known = kn3.all(axis=0)
         mean = np.asarray(materials[s]["kd"], float)

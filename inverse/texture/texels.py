@@ -97,8 +97,10 @@ class TexelMap:
         """Continuous atlas coordinates (N, 2) = (col, row) of points given by triangle and
         Open3D barycentric ``(u, v)`` (point = (1-u-v) v0 + u v1 + v v2), as the trees store them."""
         uv = np.asarray(barycentric, dtype=np.float64).reshape(-1, 2)
-        bary = np.concatenate([1.0 - uv.sum(1, keepdims=True), uv], axis=1)
-        return np.einsum("nk,nkc->nc", bary, self.tri_uv[np.asarray(triangle, np.int64)])
+        t = self.tri_uv[np.asarray(triangle, np.int64)]
+        u, v = uv[:, :1], uv[:, 1:]
+        # Spelled out: einsum("nk,nkc->nc") took 4x longer (a 12 MP texture: 9 s of lookups).
+        return (1.0 - u - v) * t[:, 0] + u * t[:, 1] + v * t[:, 2]
 
     def texel_coords(self, points: np.ndarray) -> np.ndarray:
         """Continuous atlas coordinates (N, 2) of arbitrary points (N, 3), via the nearest triangle."""
@@ -169,12 +171,22 @@ def bilinear_weights(coords: np.ndarray, width: int, height: int) -> tuple[np.nd
     """
     c = np.clip(coords[:, 0], 0.0, width - 1.0)
     r = np.clip(coords[:, 1], 0.0, height - 1.0)
-    c0 = np.minimum(np.floor(c), max(width - 2, 0)).astype(np.int64)
-    r0 = np.minimum(np.floor(r), max(height - 2, 0)).astype(np.int64)
+    c0 = np.minimum(np.floor(c), max(width - 2, 0))
+    r0 = np.minimum(np.floor(r), max(height - 2, 0))
     fc, fr = c - c0, r - r0
-    c1, r1 = np.minimum(c0 + 1, width - 1), np.minimum(r0 + 1, height - 1)
-    index = np.stack([r0 * width + c0, r0 * width + c1, r1 * width + c0, r1 * width + c1], axis=1)
-    weight = np.stack([(1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr], axis=1)
+    c0, r0 = c0.astype(np.int64), r0.astype(np.int64)
+    # Written into the outputs' columns (no stacked temporaries); a 1-texel-wide atlas repeats its texel.
+    index, weight = np.empty((len(c), 4), dtype=np.int64), np.empty((len(c), 4))
+    right, down = (c0 + 1 <= width - 1), width * (r0 + 1 <= height - 1)
+    np.add(r0 * width, c0, out=index[:, 0])
+    np.add(index[:, 0], right, out=index[:, 1])
+    np.add(index[:, 0], down, out=index[:, 2])
+    np.add(index[:, 2], right, out=index[:, 3])
+    gc, gr = 1 - fc, 1 - fr
+    np.multiply(gc, gr, out=weight[:, 0])
+    np.multiply(fc, gr, out=weight[:, 1])
+    np.multiply(gc, fr, out=weight[:, 2])
+    np.multiply(fc, fr, out=weight[:, 3])
     return index, weight
 
 
