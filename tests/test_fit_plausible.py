@@ -25,7 +25,7 @@ def _by_quadrature(a_hat, s, top=LOBE_ALBEDO, absent=ABSENT):
 
 
 @pytest.mark.parametrize("a_hat, s", [(0.0, 0.001), (0.0, 0.05), (0.2, 0.01), (0.01, 0.02), (0.3, 0.5), (0.45, 0.2),
-                                      (0.0, 3.0)])
+                                      (0.0, 3.0), (0.7, 0.1)])
 def test_lobe_evidence_is_the_posterior_under_the_field_prior(a_hat, s):
     evidence, mean = lobe_evidence([a_hat], [s])
     want_evidence, want_mean = _by_quadrature(a_hat, s)
@@ -106,6 +106,8 @@ def test_floor_mirror_with_seven_photographs_renders_as_the_true_materials(tmp_p
     # Not the broad lobe the photographs rule out: a lobe as broad as ns 8 of its albedo would
     # show in every photograph of the mirror.
     assert m["ns"] > 8 or m["ks"][0] * float(phong_lobe_albedo(m["ns"])) < 0.01, m
+    basis = report["plausible_lobes"]["mirror"]  # and fit.json says what the value rests on
+    assert basis["ns"] == m["ns"] and basis["ks"] == pytest.approx(m["ks"][0]) and basis["basis"] in ("prior", "none")
     for s in report["surfaces"]:  # what the fit calls determined is within 3σ + 2 % of the truth
         surface = lab.scene[lab.scene.names.index(s["name"])]
         for name, sig in s["sigma"].items():

@@ -6,7 +6,8 @@ one-sigma exceeds :data:`RESOLVE` of their scale (a hidden highlight, ks ≈ 0 l
 held at their initial value round by round (:func:`unresolved`), and so are values the user gave
 (:func:`hold`); all are named in fit.json's ``undetermined`` (:func:`undetermined_names`). On
 textured scenes only the pixels that a free texture cannot explain inform the other parameters
-(:func:`texture_absorbed`).
+(:func:`texture_absorbed`). A lobe the image leaves open is reported at the value the data and a
+prior over the field's lobes agree on (:func:`plausible_lobes`).
 """
 from __future__ import annotations
 
@@ -312,7 +313,7 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
 
 
 def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free: Free, res, materials=None,
-                    textured=None, fitted: Free | None = None) -> tuple[Params, list, Free]:
+                    textured=None, fitted: Free | None = None) -> tuple[Params, dict, Free]:
     """Every lobe the data leave open at the value they and the prior over the field's lobes agree on.
 
     A lobe is open when its ks is undetermined (``loose``, or held by the holding rounds: not in
@@ -342,14 +343,19 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
     and only :func:`reflab.inverse.fit.ranges.plausible` moves it, off a bound. Images of more
     than :data:`reflab.inverse.fit.ftbo.COARSE_MIN_ROWS` pixels are weighed on F-TBO's coarse
     subsample (:func:`reflab.inverse.fit.ftbo.coarse_problem`), its χ² and information scaled to
-    the full image. σ is not touched: the values stay undetermined.
+    the full image. σ is not touched: the values stay undetermined. They are values to report and
+    render, not to start a fit from (a lobe bounded near 0 shows no shininess): a fit that seeds
+    another runs without σ and never comes here.
 
     Returns
     -------
     p : Params
         A copy with the lobes moved (and the linear parameters refitted to them).
-    moved : list
-        ``(surface, name)`` of the lobe values moved (``"ks"``, ``"ns"``, ``"alpha"``).
+    moved : dict
+        Surface index → what fit.json's ``plausible_lobes`` says of each lobe moved: its shape
+        (``ns`` or ``alpha``), ``ks``, ``albedo`` and ``basis`` — ``"photographs"`` (they pin
+        its albedo to a tenth of the prior's range), ``"none"`` (they pin it within a σ of 0),
+        ``"prior"`` (they bound a lobe of that shape more loosely: the prior shapes the value).
     handled : Free
         The lobes weighed, ks and shape: :func:`reflab.inverse.fit.ranges.plausible` leaves them alone.
     """
@@ -357,14 +363,14 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
     handled = Free(np.zeros_like(free.x), np.zeros_like(free.s), np.zeros_like(free.theta))
     lobes = _open_lobes(pb.fac, free, loose, sigma_free, fitted)
     if not lobes:
-        return p.copy(), [], handled
+        return p.copy(), {}, handled
     from reflab.inverse.fit.ftbo import coarse_problem, ftbo
 
     fac = pb.fac
     small = coarse_problem(pb) or pb
     scale = pb.fac.n_rows / max(small.fac.n_rows, 1)  # the full image's χ² and information per the subsample's
     masks = (texture_absorbed(small.fac, p, materials, textured) if textured is not None and any(textured) else None)
-    p, moved = p.copy(), []
+    p, moved = p.copy(), {}
     for s, k, q, bands, open_shape in lobes:
         model, name = fac.models[s], fac.models[s].nonlinear[0]
         own = textured is not None and bool(textured[s])
@@ -381,7 +387,7 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
             shapes += [float(v) for v in np.append(SHAPE_GRID[name], INITIAL[name]) if lo <= v <= hi]
         best = max((_weigh(small, p, lin, k, q, value, bands, keep, scale, model, name, res) for value in shapes),
                    key=lambda w: w[0])
-        _, value, ks = best
+        _, value, ks, record = best
         cur = p.copy()
         cur.theta[q] = value
         # One grey lobe (the field's lobes are the lamp's colour): in every band, unless the data
@@ -390,10 +396,8 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
         held = Free(lin.x.copy(), lin.s, lin.theta)
         held.x[k] = False
         cur = ftbo(pb, cur, held, 0.0, [], scan=False)[0]  # the rest fitted again to the lobe
-        if value != p.theta[q]:
-            moved.append((s, name))
-        if not np.allclose(cur.x[k], p.x[k]):
-            moved.append((s, "ks"))
+        if value != p.theta[q] or not np.allclose(cur.x[k], p.x[k]):
+            moved[s] = record
         p = cur
         free = free.copy()
         free.x[k] = False  # the next lobe's solves keep this one where it is now
@@ -417,11 +421,12 @@ def _open_lobes(fac: Factorization, free: Free, loose: Free, sigma_free: Free, f
 
 
 def _weigh(pb: Problem, p: Params, lin: Free, k: int, q: int, value: float, bands, keep, scale: float, model, name,
-           res) -> tuple[float, float, np.ndarray]:
-    """(log posterior, shape, posterior mean ks) of a lobe held at shape ``value`` (:func:`plausible_lobes`)."""
+           res) -> tuple[float, float, float, dict]:
+    """(log posterior, shape, posterior mean ks, fit.json's record) of a lobe held at shape ``value``
+    (:func:`plausible_lobes`)."""
     from reflab.inverse.fit.ftbo import ftbo
     from reflab.inverse.fit.problem import NOISE_FLOOR
-    from reflab.inverse.fit.ranges import lobe_albedo, lobe_evidence, shape_prior
+    from reflab.inverse.fit.ranges import LOBE_ALBEDO, lobe_albedo, lobe_evidence, shape_prior
     from reflab.inverse.fit.uncertainty import sigmas
 
     cur = p.copy()
@@ -442,4 +447,8 @@ def _weigh(pb: Problem, p: Params, lin: Free, k: int, q: int, value: float, band
     else:
         a_hat, s_hat = 0.0, np.inf
     evidence, mean = lobe_evidence([a_hat], [s_hat])
-    return float(shape_prior(name, value)) - 0.5 * chi2 + evidence, value, float(mean[0]) / L
+    # What the value rests on: the prior where the data bound the albedo no better than a tenth of
+    # its range, else the photographs — "none" where they put it within a σ of 0.
+    basis = "prior" if not s_hat <= 0.1 * LOBE_ALBEDO else ("none" if mean[0] < s_hat else "photographs")
+    return (float(shape_prior(name, value)) - 0.5 * chi2 + evidence, value, float(mean[0]) / L,
+            {name: value, "ks": float(mean[0]) / L, "albedo": float(mean[0]), "basis": basis})

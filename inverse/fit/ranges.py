@@ -307,11 +307,11 @@ def lobe_evidence(a_hat, sigma, top: float = LOBE_ALBEDO, absent: float = ABSENT
     """
     from scipy.special import erf
 
-    a = np.clip(np.asarray(a_hat, dtype=np.float64), 0.0, top)
+    a = np.maximum(np.asarray(a_hat, dtype=np.float64), 0.0)  # above top: the prior's edge is near it
     s = np.asarray(sigma, dtype=np.float64)
     seen = np.isfinite(s) & (s > MIN_SIGMA)
     s_ok = np.where(seen, s, 1.0)
-    alpha, beta = -a / s_ok, (top - a) / s_ok  # alpha <= 0 <= beta
+    alpha, beta = -a / s_ok, (top - a) / s_ok
     # Φ(β) − Φ(α) and φ(α) − φ(β) without cancellation when σ dwarfs the range (a lobe barely seen).
     mass = 0.5 * (erf(beta / np.sqrt(2.0)) + erf(-alpha / np.sqrt(2.0)))
     dphi = (np.expm1(-0.5 * alpha * alpha) - np.expm1(-0.5 * beta * beta)) / np.sqrt(2.0 * np.pi)

@@ -318,6 +318,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     p, lobes, handled = plausible_lobes(pb, p, free, loose, sf, res, materials, textured, fitted_free)
     if plausible(fac, p, loose & ~handled) or lobes:
         stats = {**stats, "at_bound": at_bound(fac, p, free)}
+    if lobes:  # fit.json says where each moved lobe's value comes from
+        stats = {**stats, "plausible_lobes": {(names[s] if names else f"surface {s}"): r for s, r in lobes.items()}}
     spent = time.perf_counter() - t0
     elapsed = fitted + spent
     phases = dict(pb.phases, uncertainty=pb.phases["uncertainty"] + spent)  # with the holding rounds and the diagnosis
