@@ -362,7 +362,7 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
     fitted = free if fitted is None else fitted
     handled = Free(np.zeros_like(free.x), np.zeros_like(free.s), np.zeros_like(free.theta))
     lobes = _open_lobes(pb.fac, free, loose, sigma_free, fitted)
-    if not lobes:
+    if not lobes or pb.out_of_time():  # a spent budget: no more solves (ranges.plausible still moves bounds)
         return p.copy(), {}, handled
     from reflab.inverse.fit.ftbo import coarse_problem, ftbo
 
@@ -429,6 +429,7 @@ def _weigh(pb: Problem, p: Params, lin: Free, k: int, q: int, value: float, band
     from reflab.inverse.fit.ranges import LOBE_ALBEDO, lobe_albedo, lobe_evidence, shape_prior
     from reflab.inverse.fit.uncertainty import sigmas
 
+    pb.task.check()  # a cancel between the solves (each a fraction of a second)
     cur = p.copy()
     cur.theta[q] = value
     cur = ftbo(pb, cur, lin, 0.0, [], scan=False)[0]  # the exact linear solve at this shape
