@@ -130,20 +130,23 @@ def _lobe_on_bound(report) -> list:
 
 
 def test_undetermined_lobe_is_held_at_a_plausible_value(tmp_path):
-    """Seed 4's textured wall hides its highlight (true ks 6.2 at ns 97): its lobe is undetermined.
-    Left where the fit put it, ks was 0, the range's lower bound; it must be reported (and so
-    rendered) at the plausible value (the fit's start, INITIAL), with its σ still saying undetermined."""
+    """Seed 4's textured wall hides its highlight (true ks 6.2 at ns 180): its lobe is undetermined.
+    Left where the fit put it, ks was 0, the range's lower bound; then the fit's start (ks 0.1 at
+    ns 90.5, a lobe of albedo 0.008). No pixel shows a lobe of that shape, so it is reported (and
+    so rendered) at the prior's mean albedo over the field's lobes (determined.plausible_lobes),
+    with its σ still saying undetermined."""
     from reflab.core.workspace import read_json
+    from reflab.inverse.fit.ranges import ABSENT, LOBE_ALBEDO, phong_lobe_albedo
     from reflab.inverse.stages import FitOptions, fit
-    from reflab.reconstruction.scene import INITIAL
 
     zoo = write_zoo_workspace(tmp_path, 4, 80, 60, truth_views=False)
     report = fit(FitOptions(tmp_path)).report
     assert _lobe_on_bound(report) == []
     wall = report["surfaces"][zoo.scene.names.index("wall")]
     assert {"ks", "ns"} <= set(wall["undetermined"])
-    np.testing.assert_allclose(wall["material"]["ks"], INITIAL["ks"])
-    assert all(s is None or s > INITIAL["ks"] for s in wall["sigma"]["ks"])  # σ spans its scale: honest
+    albedo = np.asarray(wall["material"]["ks"]) * float(phong_lobe_albedo(wall["material"]["ns"]))
+    np.testing.assert_allclose(albedo, (1 - ABSENT) * LOBE_ALBEDO / 2, rtol=1e-3)  # one grey lobe, unseen
+    assert all(s is None or s > wall["material"]["ks"][0] for s in wall["sigma"]["ks"])  # σ spans its scale: honest
     assert not any(k.startswith("ks") for k in wall["at_bound"])
     s = score(compare(report, read_json(tmp_path / "truth.json"), [x.textured for x in zoo.scene]))
     assert s["wrong"] == []

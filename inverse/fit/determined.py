@@ -6,7 +6,8 @@ one-sigma exceeds :data:`RESOLVE` of their scale (a hidden highlight, ks ≈ 0 l
 held at their initial value round by round (:func:`unresolved`), and so are values the user gave
 (:func:`hold`); all are named in fit.json's ``undetermined`` (:func:`undetermined_names`). On
 textured scenes only the pixels that a free texture cannot explain inform the other parameters
-(:func:`texture_absorbed`).
+(:func:`texture_absorbed`). A lobe the image leaves open is reported at the value the data and a
+prior over the field's lobes agree on (:func:`plausible_lobes`).
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import numpy as np
 from reflab.inverse.forward.factorization import BANDS, Factorization
 from reflab.inverse.fit.problem import SCAN_POINTS, Free, Params, Problem, materials_of
 from reflab.inverse.forward.trees import derived
+from reflab.reconstruction.scene import INITIAL
 from reflab.inverse.fit.uncertainty import profiled, row_jacobian
 
 
@@ -308,3 +310,146 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
         return profiled(row_jacobian(pb, p, free, rows), e, g, weights, res[:, rows], tile[rows], n_tiles)
 
     return extra
+
+
+def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free: Free, res, materials=None,
+                    textured=None, fitted: Free | None = None) -> tuple[Params, dict, Free]:
+    """Every lobe the data leave open at the value they and the prior over the field's lobes agree on.
+
+    A lobe is open when its ks is undetermined (``loose``, or held by the holding rounds: not in
+    ``fitted``, default ``free``) and not the user's (``sigma_free``); ``free`` is what the fit
+    fitted, refitted here. Its shape (ns, Ward α), when undetermined too, is weighed at the shapes
+    of :data:`reflab.inverse.fit.ranges.SHAPE_GRID`, the prior's centre and its fitted one. At
+    each, every free linear parameter (its ks included) is fitted again with the shape held (the
+    profile: F-TBO's exact inner solve), and what the data say of the lobe's albedo there — one
+    grey ``â ± σ``, the bands' conditional ks × ``L(shape)`` weighed by their model-based σ — is
+    weighed with the prior over lobe albedos (:func:`reflab.inverse.fit.ranges.lobe_evidence`).
+    The shape taken is the one of highest posterior, the prior's
+    (:func:`reflab.inverse.fit.ranges.shape_prior`) × the profile likelihood ``exp(−χ²/2)`` (χ² in
+    the residual's variance) × that evidence; its ks is the posterior mean albedo over
+    ``L(shape)``, and the other linear parameters are fitted again with the lobe held there. So a
+    lobe the photographs show no trace of at a shape is rendered there as the data bound it (a
+    mirror's lobe held at ks 0.1, ns 3.4 added light to every view of floor_mirror, which the
+    photographs bound near 0), a lobe they show where they show it, and one no pixel shows at the
+    prior's mean, at a shape whose highlight falls where no photograph looked.
+
+    Which pixels inform: another surface's lobe the pixels where no free texture shows
+    (:func:`texture_absorbed`), as its σ. A textured surface's own lobe is weighed only while its
+    shape is still the fit's start (no round shaped it), on every pixel with its texture as the
+    fit holds it (its texture-free pixels may hold none of the lobe, and a lobe brighter than the
+    surface would need a negative texture); one a round shaped from every pixel keeps that shape
+    and height (weighed again against the texture made under it, its height ran to the range's
+    top, and zoo seed 10's box moved from its fitted ns 5, true 6.2, to 8 at twice the albedo),
+    and only :func:`reflab.inverse.fit.ranges.plausible` moves it, off a bound. Images of more
+    than :data:`reflab.inverse.fit.ftbo.COARSE_MIN_ROWS` pixels are weighed on F-TBO's coarse
+    subsample (:func:`reflab.inverse.fit.ftbo.coarse_problem`), its χ² and information scaled to
+    the full image. σ is not touched: the values stay undetermined. They are values to report and
+    render, not to start a fit from (a lobe bounded near 0 shows no shininess): a fit that seeds
+    another runs without σ and never comes here.
+
+    Returns
+    -------
+    p : Params
+        A copy with the lobes moved (and the linear parameters refitted to them).
+    moved : dict
+        Surface index → what fit.json's ``plausible_lobes`` says of each lobe moved: its shape
+        (``ns`` or ``alpha``), ``ks``, ``albedo`` and ``basis`` — ``"photographs"`` (they pin
+        its albedo to a tenth of the prior's range), ``"none"`` (they pin it within a σ of 0),
+        ``"prior"`` (they bound a lobe of that shape more loosely: the prior shapes the value).
+    handled : Free
+        The lobes weighed, ks and shape: :func:`reflab.inverse.fit.ranges.plausible` leaves them alone.
+    """
+    fitted = free if fitted is None else fitted
+    handled = Free(np.zeros_like(free.x), np.zeros_like(free.s), np.zeros_like(free.theta))
+    lobes = _open_lobes(pb.fac, free, loose, sigma_free, fitted)
+    if not lobes or pb.out_of_time():  # a spent budget: no more solves (ranges.plausible still moves bounds)
+        return p.copy(), {}, handled
+    from reflab.inverse.fit.ftbo import coarse_problem, ftbo
+
+    fac = pb.fac
+    small = coarse_problem(pb) or pb
+    scale = pb.fac.n_rows / max(small.fac.n_rows, 1)  # the full image's χ² and information per the subsample's
+    masks = (texture_absorbed(small.fac, p, materials, textured) if textured is not None and any(textured) else None)
+    p, moved = p.copy(), {}
+    for s, k, q, bands, open_shape in lobes:
+        model, name = fac.models[s], fac.models[s].nonlinear[0]
+        own = textured is not None and bool(textured[s])
+        if own and not np.isclose(p.theta[q], INITIAL[name], rtol=1e-9, atol=0.0):
+            continue  # a textured lobe an earlier round shaped from every pixel: no better estimate here
+        keep = np.ones(small.fac.n_rows, dtype=bool) if masks is None or own else ~masks[0]
+        lin = Free(free.x.copy(), free.s.copy(), np.zeros_like(free.theta))
+        lin.x[k] |= bands
+        shapes = [float(p.theta[q])]
+        if open_shape:
+            from reflab.inverse.fit.ranges import SHAPE_GRID
+
+            lo, hi = (float(v[q]) for v in (small.search.to_theta(small.search.lo), small.search.to_theta(small.search.hi)))
+            shapes += [float(v) for v in np.append(SHAPE_GRID[name], INITIAL[name]) if lo <= v <= hi]
+        best = max((_weigh(small, p, lin, k, q, value, bands, keep, scale, model, name, res) for value in shapes),
+                   key=lambda w: w[0])
+        _, value, ks, record = best
+        cur = p.copy()
+        cur.theta[q] = value
+        # One grey lobe (the field's lobes are the lamp's colour): in every band, unless the data
+        # determine some bands (those stay: a partly open lobe takes the value in its open bands).
+        cur.x[k, bands if (sigma_free.x[k] & ~bands).any() else slice(None)] = ks
+        held = Free(lin.x.copy(), lin.s, lin.theta)
+        held.x[k] = False
+        cur = ftbo(pb, cur, held, 0.0, [], scan=False)[0]  # the rest fitted again to the lobe
+        if value != p.theta[q] or not np.allclose(cur.x[k], p.x[k]):
+            moved[s] = record
+        p = cur
+        free = free.copy()
+        free.x[k] = False  # the next lobe's solves keep this one where it is now
+        handled.x[k] |= bands
+        handled.theta[q] = open_shape
+    return p, moved, handled
+
+
+def _open_lobes(fac: Factorization, free: Free, loose: Free, sigma_free: Free, fitted: Free) -> list:
+    """``(surface, ks index, shape index, open ks bands, shape open)`` of each lobe whose ks the data
+    leave open (:func:`plausible_lobes`)."""
+    lay, out = fac.layout, []
+    for s, model in enumerate(fac.models):
+        if "ks" not in model.linear or not model.nonlinear:
+            continue
+        k, q = lay.x_offset[s] + model.linear.index("ks"), lay.theta_offset[s]
+        bands = sigma_free.x[k] & (loose.x[k] | ~fitted.x[k])
+        if bands.any():
+            out.append((s, k, q, bands, bool(sigma_free.theta[q] and (loose.theta[q] or not fitted.theta[q]))))
+    return out
+
+
+def _weigh(pb: Problem, p: Params, lin: Free, k: int, q: int, value: float, bands, keep, scale: float, model, name,
+           res) -> tuple[float, float, float, dict]:
+    """(log posterior, shape, posterior mean ks, fit.json's record) of a lobe held at shape ``value``
+    (:func:`plausible_lobes`)."""
+    from reflab.inverse.fit.ftbo import ftbo
+    from reflab.inverse.fit.problem import NOISE_FLOOR
+    from reflab.inverse.fit.ranges import LOBE_ALBEDO, lobe_albedo, lobe_evidence, shape_prior
+    from reflab.inverse.fit.uncertainty import sigmas
+
+    pb.task.check()  # a cancel between the solves (each a fraction of a second)
+    cur = p.copy()
+    cur.theta[q] = value
+    cur = ftbo(pb, cur, lin, 0.0, [], scan=False)[0]  # the exact linear solve at this shape
+    r = pb.residual(pb.fac.matrices(cur.theta), pb.fac.y(cur.x, cur.s))  # its matrices: cached by the solve
+    # χ² in the fitted residual's variance per band (the same for every shape weighed).
+    var = np.maximum(np.sum(res * res, axis=1) / max(res.shape[1] - 1, 1), (NOISE_FLOOR * max(pb.peak, 1e-300)) ** 2)
+    chi2 = scale * float(np.sum(r[:, keep] ** 2 / var[:, None]))
+    L = lobe_albedo(model, value)
+    a = cur.x[k, bands] * L
+    sd = sigmas(pb, cur, lin, r, robust=False, keep=keep).x[k, bands] * L / np.sqrt(scale)
+    # One grey lobe: the bands' estimates combined by their information, their spread a misfit.
+    w = np.where(np.isfinite(sd) & (sd > 0), 1.0 / np.maximum(sd, 1e-300) ** 2, 0.0)
+    if w.sum() > 0:
+        a_hat, s_hat = float(np.sum(w * a) / w.sum()), float(1.0 / np.sqrt(w.sum()))
+        chi2 += float(np.sum(w * (a - a_hat) ** 2))
+    else:
+        a_hat, s_hat = 0.0, np.inf
+    evidence, mean = lobe_evidence([a_hat], [s_hat])
+    # What the value rests on: the prior where the data bound the albedo no better than a tenth of
+    # its range, else the photographs — "none" where they put it within a σ of 0.
+    basis = "prior" if not s_hat <= 0.1 * LOBE_ALBEDO else ("none" if mean[0] < s_hat else "photographs")
+    return (float(shape_prior(name, value)) - 0.5 * chi2 + evidence, value, float(mean[0]) / L,
+            {name: value, "ks": float(mean[0]) / L, "albedo": float(mean[0]), "basis": basis})

@@ -21,8 +21,10 @@ it receives, so each term alone is at most 1:
 F-TBO keeps every value inside these ranges (its inner bounded least squares takes the θ-
 dependent upper bound of ks); :func:`clip` projects the result of a method that does not
 (NF-TBO's unbounded reparametrisation); :func:`at_bound` names values sitting on a bound;
-:func:`plausible` moves an undetermined lobe off a bound to the field's plausible value;
-:func:`render_value` is the value a view is rendered with when the data leave an r or t loose.
+:func:`plausible` moves an undetermined value off a bound to the field's plausible value;
+:func:`render_value` is the value a view is rendered with when the data leave an r or t loose;
+:func:`shape_prior` and :func:`lobe_evidence` are the prior over a lobe the data leave open and
+what the data say of it (:func:`reflab.inverse.fit.determined.plausible_lobes` weighs them).
 """
 from __future__ import annotations
 
@@ -252,3 +254,74 @@ def render_value(value, sigma, lo: float = 0.0, hi: float = UNIT, absent: float 
     slab = (1.0 - absent) * (ndtr((hi - v) / s_ok) - ndtr((lo - v) / s_ok)) / (hi - lo)
     p0 = np.divide(spike, spike + slab, out=np.zeros_like(v), where=(spike + slab) > 0)
     return np.where(ok, lo + (1.0 - p0) * (v - lo), v)
+
+
+#: The prior over an undetermined lobe's shape, the field's materials (docs/fit.md, "Undetermined
+#: means plausible"): log2 of Phong ns or Ward α normal about :data:`INITIAL`'s (ns 2^6.5 ≈ 90,
+#: α 0.2) with this spread in log2 units — glossy paints and plastics ns 5–300, metals and glazes
+#: sharper; Ward α 0.05–0.5.
+SHAPE_PRIOR_SD = {"ns": 2.0, "alpha": 1.0}
+#: The shapes an undetermined lobe is weighed at (besides its fitted one and the prior's centre):
+#: ns every two octaves from 2 to 2^13 (a lobe sharper than that is a mirror's point), α every
+#: octave from 1/64 to 1.
+SHAPE_GRID = {"ns": 2.0 ** np.arange(1.0, 14.0, 2.0), "alpha": 2.0 ** np.arange(-6.0, 0.5, 1.0)}
+#: The prior over a lobe's albedo ``a = ks·L`` (:func:`lobe_albedo`): none (a = 0) with probability
+#: :data:`ABSENT`, else uniform on [0, LOBE_ALBEDO] — the lobes of the field's materials reflect
+#: 2–35 % of the light (docs/simulated-lab.md's zoo draws them so); a lobe reflecting half the light
+#: is a polished metal's.
+LOBE_ALBEDO = 0.5
+
+
+def lobe_albedo(model, shape: float) -> float:
+    """The albedo at normal incidence of ``model``'s lobe per unit ks at its shape: ``L(ns)`` for
+    Phong, 1 for Ward (its ρ_s is normalised already)."""
+    return float(phong_lobe_albedo(shape)) if model.name == "phong" else 1.0
+
+
+def shape_prior(name: str, value) -> np.ndarray:
+    """Log prior density (up to a constant) of a lobe's shape ``value`` (ns or α) per log2 unit."""
+    z = (np.log2(np.maximum(np.asarray(value, dtype=np.float64), 1e-300)) - np.log2(INITIAL[name])) / SHAPE_PRIOR_SD[name]
+    return -0.5 * z * z
+
+
+def lobe_evidence(a_hat, sigma, top: float = LOBE_ALBEDO, absent: float = ABSENT) -> tuple[float, np.ndarray]:
+    """What a lobe's conditional fit at one shape says under the prior over its albedo.
+
+    With the per-band albedo ``a_hat ± sigma`` the data give at that shape (Gaussian likelihood,
+    ``sigma`` inf where no pixel shows the lobe) and the prior of :data:`LOBE_ALBEDO`: none with
+    probability ``absent`` (in every band at once), else uniform on [0, top] per band,
+
+    - the log of the likelihood integrated over that prior, relative to the likelihood at
+      ``a_hat``: log(absent·Π exp(−z₀²/2) + (1 − absent)·Π σ√(2π)/top·(Φ((top − â)/σ) − Φ(−â/σ))),
+      z₀ = â/σ. 0 where no pixel shows the lobe (every albedo explains the data); about log(absent)
+      where the data bound the albedo near 0 (only "none" explains them);
+    - the posterior mean albedo per band: (1 − P0)·the mean of N(â, σ) truncated to [0, top], P0
+      the posterior probability of none. A lobe many σ above 0 keeps â, one the data bound near 0
+      renders within a σ of it, one no pixel shows the prior's mean, (1 − absent)·top/2.
+
+    Returns
+    -------
+    log_evidence : float
+    mean : (bands,) ndarray
+        Posterior mean albedo, float64, in [0, top].
+    """
+    from scipy.special import erf
+
+    a = np.maximum(np.asarray(a_hat, dtype=np.float64), 0.0)  # above top: the prior's edge is near it
+    s = np.asarray(sigma, dtype=np.float64)
+    seen = np.isfinite(s) & (s > MIN_SIGMA)
+    s_ok = np.where(seen, s, 1.0)
+    alpha, beta = -a / s_ok, (top - a) / s_ok
+    # Φ(β) − Φ(α) and φ(α) − φ(β) without cancellation when σ dwarfs the range (a lobe barely seen).
+    mass = 0.5 * (erf(beta / np.sqrt(2.0)) + erf(-alpha / np.sqrt(2.0)))
+    dphi = (np.expm1(-0.5 * alpha * alpha) - np.expm1(-0.5 * beta * beta)) / np.sqrt(2.0 * np.pi)
+    # Per band, log of the slab's integral and of the spike's (0 where unseen: the prior's whole mass).
+    log_slab = np.where(seen, np.log(s_ok * np.sqrt(2.0 * np.pi) / top) + np.log(np.maximum(mass, 1e-300)), 0.0)
+    log_spike = np.where(seen, -0.5 * alpha * alpha, 0.0)
+    lo_, ls_ = np.log(absent) + log_spike.sum(), np.log1p(-absent) + log_slab.sum()
+    top_log = max(lo_, ls_)
+    evidence = top_log + np.log(np.exp(lo_ - top_log) + np.exp(ls_ - top_log))
+    p0 = float(np.exp(lo_ - evidence))
+    mean_slab = np.where(mass > 0, a + s_ok * dphi / np.maximum(mass, 1e-300), a)
+    mean_slab = np.where(seen, np.clip(mean_slab, 0.0, top), 0.5 * top)
+    return float(evidence), (1.0 - p0) * mean_slab

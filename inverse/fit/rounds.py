@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from reflab.core.task import Task, ensure
-from reflab.inverse.fit.determined import (RESOLVE_THETA, hold, seen_twice, structural_free, texture_absorbed, texture_confounded,
+from reflab.inverse.fit.determined import (RESOLVE_THETA, hold, plausible_lobes, seen_twice, structural_free, texture_absorbed, texture_confounded,
                                 theta_resolution, undetermined_names, unresolved)
 from reflab.inverse.fit.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
 from reflab.inverse.forward.factorization import Factorization, one_blas_thread
@@ -318,10 +318,13 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         if name != "kd" and (np.any(~fitted_free.theta[th]) or np.any(loose.theta[th])):
             loose.x[k] |= fitted_free.x[k]
     status, warnings = diagnose(pb, p, A, res, textured, names)
-    # An undetermined lobe is reported and rendered at the plausible value, not at a range bound.
-    p = p.copy()
-    if plausible(fac, p, loose):
+    # An undetermined lobe is reported and rendered where the data and the prior over the field's
+    # lobes agree (determined.plausible_lobes); any other undetermined value off a range bound.
+    p, lobes, handled = plausible_lobes(pb, p, free, loose, sf, res, materials, textured, fitted_free)
+    if plausible(fac, p, loose & ~handled) or lobes:
         stats = {**stats, "at_bound": at_bound(fac, p, free)}
+    if lobes:  # fit.json says where each moved lobe's value comes from
+        stats = {**stats, "plausible_lobes": {(names[s] if names else f"surface {s}"): r for s, r in lobes.items()}}
     spent = time.perf_counter() - t0
     elapsed = fitted + spent
     phases = dict(pb.phases, uncertainty=pb.phases["uncertainty"] + spent)  # with the holding rounds and the diagnosis
