@@ -289,7 +289,8 @@ class Factorization:
 
     # ------------------------------------------------------------------ values
     def _entries(self, theta, grad: bool):
-        """Entry values (E, 3) and, with ``grad``, a list of (start, count, dvalues (P, 3, count), θ offset).
+        """Entry values (E, 3) and, with ``grad``, a list of (entries, dvalues (P, 3, len(entries)), θ offset):
+        per surface with θ, the entries of its θ-shaped columns (the others' derivatives are 0).
 
         The values are kept between calls in one array (valid until the next call): a surface's
         block is recomputed only when its θ changed (a scan over one surface's θ recomputes only
@@ -308,7 +309,7 @@ class Factorization:
             hit = self._last.get(s)
             if hit is not None and (P == 0 or (np.array_equal(hit[0], th) and (hit[1] is not None or not grad))):
                 if grad and P:
-                    das.append((start, n * J, hit[1], t0))
+                    das.append((self._shaped_entries(s), hit[1], t0))
                 continue
             w = self.weight[idx]  # (n, K, 3)
             K = w.shape[1]
@@ -327,21 +328,32 @@ class Factorization:
                     block[:, j] *= self.albedo[idx]
             dacc = None
             if grad and P:
-                # (P, 3, n·J), entries in order along the last axis: contiguous per (θ, band).
+                # (P, 3, n·|shaped|), in the order of _shaped_entries: contiguous per (θ, band).
                 dg = dg.reshape(n, K, J, P)
-                dacc = np.zeros((P, BANDS, n, J))
-                for j in model.shaped:  # the unshaped columns' derivatives are 0
+                shaped = model.shaped
+                dacc = np.empty((P, BANDS, n, len(shaped)))
+                for i, j in enumerate(shaped):
                     for p in range(P):
                         d = _light_sum(w, dg[:, :, j, p])
                         if j == kd:
                             d *= self.albedo[idx]
-                        dacc[p, :, :, j] = d.T
-                dacc = dacc.reshape(P, BANDS, n * J)
-                das.append((start, n * J, dacc, t0))
+                        dacc[p, :, :, i] = d.T
+                dacc = dacc.reshape(P, BANDS, -1)
+                das.append((self._shaped_entries(s), dacc, t0))
             self._last[s] = (th.copy(), dacc)
         if not grad:
             return a
         return a, das
+
+    def _shaped_entries(self, s: int) -> tuple:
+        """The entries (indices) of surface ``s``'s θ-shaped columns, node by node, and their rows and columns."""
+        cache = self.__dict__.setdefault("_shaped_cache", {})
+        if s not in cache:
+            start, n, J = next((st, len(i), J) for t, i, st, J in self._groups if t == s)
+            shaped = np.asarray(self.models[s].shaped, dtype=np.int64)
+            sel = (start + np.arange(n)[:, None] * J + shaped[None, :]).ravel()
+            cache[s] = (sel, self.entry_row[sel], self.entry_col[sel])
+        return cache[s]
 
     def _kd_index(self, s: int):
         """Index of ``kd`` among surface ``s``'s linear parameters when a known texture scales it."""
@@ -418,23 +430,22 @@ class Factorization:
             used, local = self._theta_rows(which) if compact else (None, rows)
             n = R if used is None else len(used)
             out = np.zeros((len(which), BANDS, n))
-            for start, count, d, q0 in das:  # per surface; the 3 bands in one bincount
+            for (sel, _, col), d, q0 in das:  # per surface; the 3 bands in one bincount
                 wanted = [p for p in range(d.shape[0]) if at[q0 + p] >= 0]
                 if not wanted:
                     continue
-                sl = slice(start, start + count)
-                slot = (local[sl][None, :] + n * np.arange(BANDS)[:, None]).ravel()
-                yc = y[:, cols[sl]]  # (3, n)
+                slot = (local[sel][None, :] + n * np.arange(BANDS)[:, None]).ravel()
+                yc = np.take(y, col, axis=1)  # (3, n)
                 for p in wanted:
                     out[at[q0 + p]] = np.bincount(slot, weights=(d[p] * yc).ravel(), minlength=BANDS * n).reshape(BANDS, n)
             return (out, used) if compact else out
 
         def grad(residual, y):
             out = np.zeros(Q)
-            for start, count, d, q0 in das:
-                sl = slice(start, start + count)
-                wres = residual[:, rows[sl]] * y[:, cols[sl]]  # (3, n)
-                out[q0:q0 + d.shape[0]] = d.reshape(d.shape[0], -1) @ wres.ravel()
+            for (_, row, col), d, q0 in das:
+                wres = np.take(residual, row, axis=1) * np.take(y, col, axis=1)  # (3, n)
+                # einsum's own loop: a (1 × n)·(n) BLAS product is several times slower here.
+                out[q0:q0 + d.shape[0]] = np.einsum("pk,k->p", d.reshape(d.shape[0], -1), wres.ravel())
             return out
 
         grad.images = images
