@@ -272,8 +272,13 @@ class _Inner:
             return
         R = np.sqrt(w[keep])[:, None] * V[:, keep].T
         d = (V[:, keep].T @ qf) / np.sqrt(w[keep])
-        x = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
         ub = self.upper(p)[fx]
+        if keep.all():  # strictly convex: the previous sweep's bounds, where still optimal, give the one minimiser
+            x = _on_bounds(R, d, p.x[fx, c], ub)
+            if x is not None:
+                p.x[fx, c] = x
+                return
+        x = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
         if np.any(x > ub):  # a plausible range binds (reflab.inverse.fit.ranges): bounded least squares
             from scipy.optimize import lsq_linear
 
@@ -364,6 +369,27 @@ class _Inner:
                     break
                 last = now
         return sweeps
+
+
+def _on_bounds(R, d, x0, ub):
+    """The minimiser of ‖R x − d‖² on 0 ≤ x ≤ ub (R square, full rank) if its binding bounds are
+    those ``x0`` sits on, else None (the caller then searches them: NNLS, BVLS).
+
+    From one sweep to the next the bounds that bind rarely change, so one least-squares solve on
+    the others and a check of the optimality conditions (each variable inside its range, the
+    gradient pointing out of the bound each bound one sits on) replaces the active-set search.
+    """
+    lo, hi = x0 <= 0.0, (x0 >= ub) & (x0 > 0.0)
+    free = ~(lo | hi)
+    x = np.where(hi, ub, 0.0)
+    if free.any():
+        x[free] = np.linalg.lstsq(R[:, free], d - R[:, hi] @ ub[hi], rcond=None)[0]
+        if not (np.all(x[free] > 0.0) and np.all(x[free] < ub[free])):
+            return None
+    g = R.T @ (R @ x - d)  # half the gradient of ‖R x − d‖²
+    if np.any(g[lo] < 0.0) or np.any(g[hi] > 0.0):
+        return None
+    return x
 
 
 def _evaluator(pb: Problem, free: Free, q):
