@@ -121,7 +121,7 @@ class Phong(Model):
     def _geometry(self, n, l, v):
         nl = _dot(n, l)
         lit = nl > 0
-        # power()'s θ-independent half: the base's logarithm (0 where the base is 0).
+        # (n·h)^ns = exp(ns · log n·h): the logarithm is θ-independent (0 where n·h is 0, the power then 0).
         base = np.clip(np.where(lit, _half_cos(n, l, v), 0.0), 0.0, 1.0)
         pos = base > 0
         return np.where(lit, nl, 0.0), pos, np.log(np.where(pos, base, 1.0))
