@@ -199,6 +199,50 @@ class _Inner:
         self.pb = problem
         self.G = [gram(A, c) for c in range(BANDS)]
         self.h = [A[c].T @ problem.b[c] for c in range(BANDS)]
+        fac = problem.fac
+        self._index = fac._factor_index  # each column's factors, by degree (Factorization.factor_products)
+        self._used = fac._used
+        self._where = {}  # factor -> its masks e == d per degree d (the factor step's polynomial)
+
+    def products(self, s_c, skip=None) -> np.ndarray:
+        """Band c's factor product of each column (C,) from its factors ``s_c`` (F,), leaving out the
+        factors ``skip`` (a list: then (len(skip), C), one row per factor left out); the numbers
+        of ``Factorization.factor_products`` (the same products, in the same order)."""
+        used, idx = self._used, self._index
+        if skip is None:
+            ext = np.ones(len(used) + 1)
+            ext[:-1] = s_c[used]
+            out = ext[idx[:, 0]]
+            for k in range(1, idx.shape[1]):
+                out *= ext[idx[:, k]]
+            return out
+        ext = np.ones((len(skip), len(used) + 1))
+        ext[:, :-1] = s_c[used]
+        ext[:, :-1][used[None, :] == np.asarray(skip)[:, None]] = 1.0
+        out = ext[:, idx[:, 0]]
+        for k in range(1, idx.shape[1]):
+            out *= ext[:, idx[:, k]]
+        return out
+
+    def y(self, p: Params, c: int) -> np.ndarray:
+        """Band c's monomial values (C,)."""
+        return p.x[self.pb.fac.col_x, c] * self.products(p.s[:, c])
+
+    def dy(self, p: Params, c: int, free: Free) -> tuple[np.ndarray, list]:
+        """:meth:`Problem.dy` (the same numbers), its factor columns formed together."""
+        fac = self.pb.fac
+        fx, fs = np.flatnonzero(free.x[:, c]), np.flatnonzero(free.s[:, c])
+        labels = [("x", i) for i in fx] + [("s", f) for f in fs]
+        if not labels:
+            return np.zeros((fac.n_columns, 0)), labels
+        parts = [self.pb.onehot[:, fx] * self.products(p.s[:, c])[:, None]]
+        if len(fs):
+            e = fac.exponents[:, fs].T  # (n_s, C)
+            rest = self.products(p.s[:, c], list(fs))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                d = np.where(e > 0, e * p.s[fs, c][:, None] ** np.maximum(e - 1, 0) * rest, 0.0)
+            parts.append((p.x[fac.col_x, c] * d).T)
+        return np.concatenate(parts, axis=1), labels
 
     def upper(self, p: Params) -> np.ndarray:
         """(X,) upper bounds of the linear parameters at ``p.theta`` (:mod:`reflab.inverse.fit.ranges`)."""
@@ -217,7 +261,7 @@ class _Inner:
         fx = free.x[:, c]
         if not fx.any():
             return
-        T = self.pb.onehot * self.pb.fac.factor_products(p.s)[:, c:c + 1]
+        T = self.pb.onehot * self.products(p.s[:, c])[:, None]
         Q = T.T @ self.G[c] @ T
         q = T.T @ self.h[c] - Q[:, ~fx] @ p.x[~fx, c]
         Qf, qf = Q[np.ix_(fx, fx)], q[fx]
@@ -228,8 +272,13 @@ class _Inner:
             return
         R = np.sqrt(w[keep])[:, None] * V[:, keep].T
         d = (V[:, keep].T @ qf) / np.sqrt(w[keep])
-        x = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
         ub = self.upper(p)[fx]
+        if keep.all():  # strictly convex: the previous sweep's bounds, where still optimal, give the one minimiser
+            x = _on_bounds(R, d, p.x[fx, c], ub)
+            if x is not None:
+                p.x[fx, c] = x
+                return
+        x = nnls(R, d, maxiter=50 * len(qf) + 50)[0]
         if np.any(x > ub):  # a plausible range binds (reflab.inverse.fit.ranges): bounded least squares
             from scipy.optimize import lsq_linear
 
@@ -239,12 +288,15 @@ class _Inner:
     def s_step(self, c, f, p: Params):
         """Exact minimiser on [0, 1] of band c's ε as a polynomial in factor f."""
         fac = self.pb.fac
-        e = fac.exponents[:, f]
-        u = p.x[fac.col_x, c] * fac.factor_products(p.s, skip=f)[:, c]
+        if f not in self._where:
+            e = fac.exponents[:, f]
+            self._where[f] = np.stack([e == d for d in range(int(e.max()) + 1)])
+        where = self._where[f]
+        u = p.x[fac.col_x, c] * self.products(p.s[:, c], [f])[0]
         G, h = self.G[c], self.h[c]
-        top = int(e.max())
+        top = len(where) - 1
         # y(σ) = Σ_d σ^d U_d; ε(σ) = Σ_{d,d'} σ^{d+d'} U_dᵀ G U_d' − 2 Σ_d σ^d hᵀU_d + const.
-        U = np.stack([np.where(e == d, u, 0.0) for d in range(top + 1)])  # (top+1, C)
+        U = np.where(where, u, 0.0)  # (top+1, C)
         GU = U[1:] @ G  # rows d >= 1 (G symmetric)
         coef = np.zeros(2 * top + 1)  # ascending powers; the constant term does not move the minimiser
         cross = GU @ U.T  # (top, top+1): U_dᵀ G U_d' for d >= 1
@@ -273,11 +325,10 @@ class _Inner:
         and the mirror that reflects it); this joint step, still in monomial space, is kept only
         when it lowers ε, so the alternation's exactness is preserved and its tail is cut short.
         """
-        D, labels = self.pb.dy(p, c, free)
+        D, labels = self.dy(p, c, free)
         if not labels:
             return
-        fac = self.pb.fac
-        y = fac.y(p.x, p.s)[c]
+        y = self.y(p, c)
         g = D.T @ (self.G[c] @ y - self.h[c])
         H = D.T @ self.G[c] @ D
         z = np.array([p.x[i, c] if k == "x" else p.s[i, c] for k, i in labels])
@@ -299,26 +350,46 @@ class _Inner:
         trial = p.copy()
         for (k, i), v in zip(labels, new):
             (trial.x if k == "x" else trial.s)[i, c] = v
-        if self.eps(c, fac.y(trial.x, trial.s)[c]) < self.eps(c, y):
+        if self.eps(c, self.y(trial, c)) < self.eps(c, y):
             p.x[:, c], p.s[:, c] = trial.x[:, c], trial.s[:, c]
 
     def solve(self, p: Params, free: Free, tol=1e-15, max_sweeps=200) -> int:
         """Alternate the exact x and factor steps per band until ε stops decreasing."""
-        fac = self.pb.fac
         sweeps = 0
         for c in range(BANDS):
-            last = self.eps(c, fac.y(p.x, p.s)[c])
+            last = self.eps(c, self.y(p, c))
             for sweep in range(max_sweeps):
                 self.x_step(c, p, free)
                 for f in np.flatnonzero(free.s[:, c]):
                     self.s_step(c, f, p)
                 self.joint_step(c, p, free)
-                now = self.eps(c, fac.y(p.x, p.s)[c])
+                now = self.eps(c, self.y(p, c))
                 sweeps += 1
                 if last - now <= tol * self.pb.bb[c] + 1e-300:
                     break
                 last = now
         return sweeps
+
+
+def _on_bounds(R, d, x0, ub):
+    """The minimiser of ‖R x − d‖² on 0 ≤ x ≤ ub (R square, full rank) if its binding bounds are
+    those ``x0`` sits on, else None (the caller then searches them: NNLS, BVLS).
+
+    From one sweep to the next the bounds that bind rarely change, so one least-squares solve on
+    the others and a check of the optimality conditions (each variable inside its range, the
+    gradient pointing out of the bound each bound one sits on) replaces the active-set search.
+    """
+    lo, hi = x0 <= 0.0, (x0 >= ub) & (x0 > 0.0)
+    free = ~(lo | hi)
+    x = np.where(hi, ub, 0.0)
+    if free.any():
+        x[free] = np.linalg.lstsq(R[:, free], d - R[:, hi] @ ub[hi], rcond=None)[0]
+        if not (np.all(x[free] > 0.0) and np.all(x[free] < ub[free])):
+            return None
+    g = R.T @ (R @ x - d)  # half the gradient of ‖R x − d‖²
+    if np.any(g[lo] < 0.0) or np.any(g[hi] > 0.0):
+        return None
+    return x
 
 
 def _evaluator(pb: Problem, free: Free, q):

@@ -89,6 +89,14 @@ class Matrices(list):
         return grams[c]
 
 
+def _light_sum(w, g) -> np.ndarray:
+    """Σ_k w[:, k, :] · g[:, k] (n, 3): one column's value per node and band, summed over the K lights."""
+    out = w[:, 0] * g[:, 0, None]
+    for k in range(1, w.shape[1]):
+        out += w[:, k] * g[:, k, None]
+    return out
+
+
 def gram(A, c: int) -> np.ndarray:
     """A_cᵀA_c (dense) of a :class:`Matrices` (kept) or of any list of sparse matrices."""
     return A.gram(c) if isinstance(A, Matrices) else (A[c].T @ A[c]).toarray()
@@ -248,9 +256,10 @@ class Factorization:
         self._indices = (slot_key % max(n_col, 1)).astype(np.int32)
         self._indptr = np.searchsorted(slot_key // max(n_col, 1), np.arange(self.n_rows + 1)).astype(np.int64)
         self._n_slots = len(slot_key)
-        self._static = {}
-        self._last = {}  # surface -> (θ, entry values, their θ-derivatives or None): the last evaluation
-        self._geometry = {}  # surface -> (normals, light directions, views) per (node, light)
+        self._slot_order = None  # entries in CSR order (False: some share a slot), set by _assemble
+        self._values = None  # (E, 3) entry values of the last evaluation (:meth:`_entries`)
+        self._last = {}  # surface -> (θ of its values, their θ-derivatives or None)
+        self._geometry = {}  # surface -> its model's θ-independent terms per (node, light)
         self._theta_rows_cache = {}  # θ indices -> (rows they act on, each entry's index among them)
 
     def without(self, pixels) -> "Factorization":
@@ -280,61 +289,71 @@ class Factorization:
 
     # ------------------------------------------------------------------ values
     def _entries(self, theta, grad: bool):
-        """Entry values (E, 3) and, with ``grad``, a list of (start, count, dvalues (P, 3, count), θ offset).
+        """Entry values (E, 3) and, with ``grad``, a list of (entries, dvalues (P, 3, len(entries)), θ offset):
+        per surface with θ, the entries of its θ-shaped columns (the others' derivatives are 0).
 
-        Surfaces whose model has no nonlinear parameter are evaluated once and cached; the others'
-        last evaluation is reused while their θ is unchanged (a scan over one surface's θ
-        recomputes only that surface).
+        The values are kept between calls in one array (valid until the next call): a surface's
+        block is recomputed only when its θ changed (a scan over one surface's θ recomputes only
+        that surface; surfaces without θ never), and then only its columns that θ shapes
+        (``Model.shaped``: a Phong kd's n·l does not move with ns); each model's θ-independent
+        terms on the surface's (node, light) pairs are computed once (``Model.geometry``).
         """
-        a = np.empty((len(self.entry_col), BANDS))
-        das = []
-        tr = self.trees
+        if self._values is None:
+            self._values = np.empty((len(self.entry_col), BANDS))
+        a, das, tr = self._values, [], self.trees
         for s, idx, start, J in self._groups:  # per surface: its model on all its nodes at once
-            model = self.models[s]
-            if s in self._static:
-                a[start:start + len(idx) * J] = self._static[s]
-                continue
-            th = np.asarray(theta[self.layout.theta_offset[s]:self.layout.theta_offset[s + 1]], dtype=np.float64)
+            model, n = self.models[s], len(idx)
+            t0 = self.layout.theta_offset[s]
+            th = np.asarray(theta[t0:self.layout.theta_offset[s + 1]], dtype=np.float64)
+            P = len(th)
             hit = self._last.get(s)
-            if hit is not None and np.array_equal(hit[0], th) and (hit[2] is not None or not grad):
-                a[start:start + len(idx) * J] = hit[1]
-                if grad and hit[2] is not None:
-                    das.append((start, len(idx) * J, hit[2], self.layout.theta_offset[s]))
+            if hit is not None and (P == 0 or (np.array_equal(hit[0], th) and (hit[1] is not None or not grad))):
+                if grad and P:
+                    das.append((self._shaped_entries(s), hit[1], t0))
                 continue
-            nodes = self.node[idx]
             w = self.weight[idx]  # (n, K, 3)
-            K, P = w.shape[1], len(th)
+            K = w.shape[1]
             if s not in self._geometry:
                 # All lights in one model call, stacked along N as the models expect (built once).
-                self._geometry[s] = (np.repeat(tr.normal[nodes], K, axis=0), tr.light_dir[nodes].reshape(-1, 3),
-                                     np.repeat(tr.view[nodes], K, axis=0))
-            args = (np.broadcast_to(th, (len(idx) * K, P)), *self._geometry[s])
-            if grad and P:
-                g, dg = model.g_and_dg(*args)
-            else:
-                g, dg = model.g(*args), None
-            # Sums over the K lights as batched (3 × K)(K × J) products: matmul beats einsum here.
-            wt = w.transpose(0, 2, 1)
-            acc = np.matmul(wt, g.reshape(len(idx), K, J))  # (n, 3, J)
+                nodes = self.node[idx]
+                self._geometry[s] = model.geometry(np.repeat(tr.normal[nodes], K, axis=0), tr.light_dir[nodes].reshape(-1, 3),
+                                                   np.repeat(tr.view[nodes], K, axis=0))
+            g, dg = model.g_and_dg_on(th, self._geometry[s], grad=grad and P > 0)
+            g = g.reshape(n, K, J)
+            block = a[start:start + n * J].reshape(n, J, BANDS)
             kd = self._kd_index(s)
-            if kd is not None:
-                acc[:, :, kd] *= self.albedo[idx]
-            a[start:start + len(idx) * J] = acc.transpose(0, 2, 1).reshape(-1, BANDS)
+            for j in (range(J) if hit is None else model.shaped):  # the others keep their values
+                block[:, j] = _light_sum(w, g[:, :, j])
+                if j == kd:
+                    block[:, j] *= self.albedo[idx]
             dacc = None
-            if dg is not None:
-                dacc = np.matmul(wt, dg.reshape(len(idx), K, J * P)).reshape(len(idx), BANDS, J, P)
-                if kd is not None:
-                    dacc[:, :, kd] *= self.albedo[idx][:, :, None]
-                # (P, 3, n·J), entries in order along the last axis: contiguous per (θ, band).
-                dacc = np.ascontiguousarray(dacc.transpose(3, 1, 0, 2).reshape(P, BANDS, -1))
-                das.append((start, len(idx) * J, dacc, self.layout.theta_offset[s]))
-            if P == 0:
-                self._static[s] = a[start:start + len(idx) * J].copy()
-            else:
-                self._last[s] = (th.copy(), a[start:start + len(idx) * J].copy(), dacc)
+            if grad and P:
+                # (P, 3, n·|shaped|), in the order of _shaped_entries: contiguous per (θ, band).
+                dg = dg.reshape(n, K, J, P)
+                shaped = model.shaped
+                dacc = np.empty((P, BANDS, n, len(shaped)))
+                for i, j in enumerate(shaped):
+                    for p in range(P):
+                        d = _light_sum(w, dg[:, :, j, p])
+                        if j == kd:
+                            d *= self.albedo[idx]
+                        dacc[p, :, :, i] = d.T
+                dacc = dacc.reshape(P, BANDS, -1)
+                das.append((self._shaped_entries(s), dacc, t0))
+            self._last[s] = (th.copy(), dacc)
         if not grad:
             return a
         return a, das
+
+    def _shaped_entries(self, s: int) -> tuple:
+        """The entries (indices) of surface ``s``'s θ-shaped columns, node by node, and their rows and columns."""
+        cache = self.__dict__.setdefault("_shaped_cache", {})
+        if s not in cache:
+            start, n, J = next((st, len(i), J) for t, i, st, J in self._groups if t == s)
+            shaped = np.asarray(self.models[s].shaped, dtype=np.int64)
+            sel = (start + np.arange(n)[:, None] * J + shaped[None, :]).ravel()
+            cache[s] = (sel, self.entry_row[sel], self.entry_col[sel])
+        return cache[s]
 
     def _kd_index(self, s: int):
         """Index of ``kd`` among surface ``s``'s linear parameters when a known texture scales it."""
@@ -361,9 +380,16 @@ class Factorization:
     def _assemble(self, a) -> "Matrices":
         import scipy.sparse as sp
 
+        if self._slot_order is None:
+            # Entries that share a slot (two nodes of one pixel with one monomial) are summed; where
+            # none do, the CSR data is a permutation of the entries.
+            self._slot_order = np.argsort(self.entry_slot, kind="stable") if self._n_slots == len(self.entry_slot) else False
         out = Matrices()
         for c in range(BANDS):
-            data = np.bincount(self.entry_slot, weights=a[:, c], minlength=self._n_slots)
+            if self._slot_order is not False:
+                data = a[self._slot_order, c]
+            else:
+                data = np.bincount(self.entry_slot, weights=a[:, c], minlength=self._n_slots)
             out.append(sp.csr_matrix((data, self._indices, self._indptr), shape=(self.n_rows, self.n_columns)))
         return out
 
@@ -404,23 +430,22 @@ class Factorization:
             used, local = self._theta_rows(which) if compact else (None, rows)
             n = R if used is None else len(used)
             out = np.zeros((len(which), BANDS, n))
-            for start, count, d, q0 in das:  # per surface; the 3 bands in one bincount
+            for (sel, _, col), d, q0 in das:  # per surface; the 3 bands in one bincount
                 wanted = [p for p in range(d.shape[0]) if at[q0 + p] >= 0]
                 if not wanted:
                     continue
-                sl = slice(start, start + count)
-                slot = (local[sl][None, :] + n * np.arange(BANDS)[:, None]).ravel()
-                yc = y[:, cols[sl]]  # (3, n)
+                slot = (local[sel][None, :] + n * np.arange(BANDS)[:, None]).ravel()
+                yc = np.take(y, col, axis=1)  # (3, n)
                 for p in wanted:
                     out[at[q0 + p]] = np.bincount(slot, weights=(d[p] * yc).ravel(), minlength=BANDS * n).reshape(BANDS, n)
             return (out, used) if compact else out
 
         def grad(residual, y):
             out = np.zeros(Q)
-            for start, count, d, q0 in das:
-                sl = slice(start, start + count)
-                wres = residual[:, rows[sl]] * y[:, cols[sl]]  # (3, n)
-                out[q0:q0 + d.shape[0]] = d.reshape(d.shape[0], -1) @ wres.ravel()
+            for (_, row, col), d, q0 in das:
+                wres = np.take(residual, row, axis=1) * np.take(y, col, axis=1)  # (3, n)
+                # einsum's own loop: a (1 × n)·(n) BLAS product is several times slower here.
+                out[q0:q0 + d.shape[0]] = np.einsum("pk,k->p", d.reshape(d.shape[0], -1), wres.ravel())
             return out
 
         grad.images = images

@@ -29,25 +29,9 @@ def _half_cos(n, l, v):
     return np.divide(_dot(n, h), norm, out=np.zeros(len(n)), where=norm > 0)
 
 
-def power(base, exponent):
-    """``base ** exponent`` for base in [0, 1] and exponent > 0, via exp(e·log b), underflow → 0.
-
-    Returns
-    -------
-    value, log_base : ndarray
-        The power, and ``log(base)`` with 0 where ``base <= 0`` (so ``value · log_base``, the
-        derivative in the exponent, is finite and tends to its limit 0 at base 0 and base 1).
-    """
-    base = np.clip(base, 0.0, 1.0)
-    pos = base > 0
-    log_b = np.log(np.where(pos, base, 1.0))
-    with np.errstate(under="ignore"):
-        value = np.where(pos, np.exp(exponent * log_b), 0.0)
-    return value, log_b
-
-
 class Model:
-    """A partially linear BRTDF: subclasses set the names and implement :meth:`_eval`."""
+    """A partially linear BRTDF: subclasses set the names and implement :meth:`_geometry` (the
+    θ-independent terms) and :meth:`_on` (g and dg/dθ from them)."""
 
     name: str = ""
     linear: tuple[str, ...] = ()
@@ -82,6 +66,24 @@ class Model:
         """Both g (N, L) and dg/dθ (N, L, P) in one pass."""
         return self._eval(*self._prepare(theta, n, l, v), grad=True)
 
+    def geometry(self, n, l, v) -> tuple:
+        """The θ-independent terms of ``g`` on fixed (n, l, v) (:meth:`g_and_dg_on`): a fit
+        evaluates one surface's nodes at many θ, and these (dot products, the half vector, its
+        logarithm) are most of a model's cost."""
+        n, l, v = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (n, l, v))
+        return self._geometry(n, l, v)
+
+    def g_and_dg_on(self, theta, geometry, grad: bool = True):
+        """``g`` (N, L) and, with ``grad``, ``dg/dθ`` (N, L, P) on a :meth:`geometry`; the same numbers
+        as :meth:`g_and_dg` on its (n, l, v) (the same operations, in the same order)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        theta = np.broadcast_to(theta.reshape(-1, self.n_nonlinear) if theta.size else np.zeros((1, 0)),
+                                (len(geometry[0]), self.n_nonlinear))
+        return self._on(theta, geometry, grad)
+
+    def _eval(self, theta, n, l, v, grad):
+        return self._on(theta, self._geometry(n, l, v), grad)
+
     def theta_of(self, material) -> np.ndarray:
         """The nonlinear parameters of ``material`` as a (P,) float64 array."""
         return np.array([float(material[p]) for p in self.nonlinear], dtype=np.float64)
@@ -90,7 +92,11 @@ class Model:
         """The linear parameters of ``material`` as a (3, L) array (band, parameter)."""
         return np.stack([np.broadcast_to(material[p], (3,)) for p in self.linear], axis=1).astype(np.float64)
 
-    def _eval(self, theta, n, l, v, grad):  # pragma: no cover - abstract
+    def _geometry(self, n, l, v) -> tuple:  # pragma: no cover - abstract
+        """The θ-independent terms, a tuple whose first item has one row per (n, l, v)."""
+        raise NotImplementedError
+
+    def _on(self, theta, geometry, grad):  # pragma: no cover - abstract
         raise NotImplementedError
 
 
@@ -99,9 +105,12 @@ class Lambert(Model):
 
     name, linear, nonlinear = "lambert", ("kd",), ()
 
-    def _eval(self, theta, n, l, v, grad):
-        nl = np.maximum(_dot(n, l), 0.0)
-        return nl[:, None], (np.zeros((len(n), 1, 0)) if grad else None)
+    def _geometry(self, n, l, v):
+        return (np.maximum(_dot(n, l), 0.0),)
+
+    def _on(self, theta, geometry, grad):
+        nl = geometry[0]
+        return nl[:, None], (np.zeros((len(nl), 1, 0)) if grad else None)
 
 
 class Phong(Model):
@@ -109,14 +118,22 @@ class Phong(Model):
 
     name, linear, nonlinear, shaped = "phong", ("kd", "ks"), ("ns",), (1,)
 
-    def _eval(self, theta, n, l, v, grad):
+    def _geometry(self, n, l, v):
         nl = _dot(n, l)
         lit = nl > 0
-        spec, log_nh = power(np.where(lit, _half_cos(n, l, v), 0.0), theta[:, 0])
-        g = np.stack([np.where(lit, nl, 0.0), spec], axis=1)
+        # (n·h)^ns = exp(ns · log n·h): the logarithm is θ-independent (0 where n·h is 0, the power then 0).
+        base = np.clip(np.where(lit, _half_cos(n, l, v), 0.0), 0.0, 1.0)
+        pos = base > 0
+        return np.where(lit, nl, 0.0), pos, np.log(np.where(pos, base, 1.0))
+
+    def _on(self, theta, geometry, grad):
+        nl, pos, log_nh = geometry
+        with np.errstate(under="ignore"):
+            spec = np.where(pos, np.exp(theta[:, 0] * log_nh), 0.0)
+        g = np.stack([nl, spec], axis=1)
         if not grad:
             return g, None
-        dg = np.zeros((len(n), 2, 1))
+        dg = np.zeros((len(nl), 2, 1))
         dg[:, 1, 0] = spec * log_nh
         return g, dg
 
@@ -126,24 +143,27 @@ class Ward(Model):
 
     name, linear, nonlinear, shaped = "ward", ("kd", "ks"), ("alpha",), (1,)
 
-    def _eval(self, theta, n, l, v, grad):
+    def _geometry(self, n, l, v):
         nl = _dot(n, l)
         lit = nl > 0
         nl = np.where(lit, nl, 0.0)
         nv = np.maximum(_dot(n, v), _MIN_COS_VIEW)
         nh = np.clip(_half_cos(n, l, v), 0.0, 1.0)
-        alpha = theta[:, 0]
         ok = lit & (nh > 0)
         nh2 = np.where(ok, nh * nh, 1.0)
-        tan2 = (1.0 - nh2) / nh2
+        # n·l / sqrt(n·l n·v) = sqrt(n·l / n·v): no division by a vanishing n·l.
+        return nl, ok, (1.0 - nh2) / nh2, np.sqrt(nl / nv)
+
+    def _on(self, theta, geometry, grad):
+        nl, ok, tan2, root = geometry
+        alpha = theta[:, 0]
         with np.errstate(under="ignore"):
             lobe = np.where(ok, np.exp(-tan2 / alpha**2), 0.0)
-        # n·l / sqrt(n·l n·v) = sqrt(n·l / n·v): no division by a vanishing n·l.
-        spec = lobe * np.sqrt(nl / nv) / (4.0 * np.pi * alpha**2)
+        spec = lobe * root / (4.0 * np.pi * alpha**2)
         g = np.stack([nl, spec], axis=1)
         if not grad:
             return g, None
-        dg = np.zeros((len(n), 2, 1))
+        dg = np.zeros((len(nl), 2, 1))
         dg[:, 1, 0] = spec * (2.0 * tan2 / alpha**3 - 2.0 / alpha)
         return g, dg
 
@@ -157,12 +177,15 @@ class OrenNayar(Model):
 
     name, linear, nonlinear, shaped = "oren-nayar", ("kd",), ("sigma",), (0,)
 
-    def _eval(self, theta, n, l, v, grad):
+    def _geometry(self, n, l, v):
         nl = _dot(n, l)
         lit = nl > 0
         nl = np.where(lit, nl, 0.0)
         nv = np.maximum(_dot(n, v), _MIN_COS_VIEW)
-        c = np.maximum(_dot(l, v) - nl * nv, 0.0) / np.maximum(np.maximum(nl, nv), _MIN_COS_VIEW)
+        return nl, np.maximum(_dot(l, v) - nl * nv, 0.0) / np.maximum(np.maximum(nl, nv), _MIN_COS_VIEW)
+
+    def _on(self, theta, geometry, grad):
+        nl, c = geometry
         s2 = theta[:, 0] ** 2
         a = 1.0 - 0.5 * s2 / (s2 + 0.33)
         b = 0.45 * s2 / (s2 + 0.09)
