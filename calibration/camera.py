@@ -90,33 +90,71 @@ class Camera:
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """Normalised image coordinates (x, y) with distortion removed, for pixels ``uv`` (N, 2)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        Kinv = np.linalg.inv(self.K)
+        if len(uv) == 0:  # cv2.undistortPoints answers None
+            return np.zeros((0, 2))
         if not np.any(self.dist):
-            return uv @ Kinv[:2, :2].T + Kinv[:2, 2]
+            Kinv = np.linalg.inv(self.K)
+            # spelled out: (N, 2) @ a transposed (2, 2) view takes numpy's slow generic loop
+            xy = np.empty_like(uv)
+            u, v = uv[:, 0], uv[:, 1]
+            xy[:, 0] = u * Kinv[0, 0] + v * Kinv[0, 1] + Kinv[0, 2]
+            xy[:, 1] = u * Kinv[1, 0] + v * Kinv[1, 1] + Kinv[1, 2]
+            return xy
         import cv2
 
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
         out = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, None, crit)
         return out.reshape(-1, 2)
 
-    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_rays(self, rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """World-space rays through every pixel centre, row-major (pixel index = v * width + u).
+
+        Parameters
+        ----------
+        rows : (r0, r1), optional
+            Only image rows ``r0 <= v < r1`` (a tile); the rays are those rows of the whole image's.
 
         Returns
         -------
         origins : (H*W, 3) ndarray
         directions : (H*W, 3) ndarray, unit length
         """
-        v, u = np.mgrid[0 : self.height, 0 : self.width]
-        return self.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+        r0, r1 = (0, self.height) if rows is None else (int(rows[0]), int(rows[1]))
+        if not 0 <= r0 <= r1 <= self.height:
+            raise ValueError(f"rows must lie within [0, {self.height}] with r0 <= r1, got {rows!r}")
+        u = np.arange(self.width, dtype=np.float64)
+        v = np.arange(r0, r1, dtype=np.float64)
+        if np.any(self.dist):
+            uu, vv = np.meshgrid(u, v)
+            return self.rays(np.stack([uu.ravel(), vv.ravel()], axis=1))
+        # without distortion the unnormalised direction R.T @ K^-1 (u, v, 1) is a column part
+        # plus a row part (K^-1 is upper triangular): one broadcast sum instead of per-pixel products
+        Kinv, R = np.linalg.inv(self.K), self.R
+        col = np.multiply.outer(u * Kinv[0, 0], R[0])
+        row = np.multiply.outer(v * Kinv[0, 1], R[0]) + np.multiply.outer(v * Kinv[1, 1], R[1])
+        row += Kinv[0, 2] * R[0] + Kinv[1, 2] * R[1] + R[2]
+        d = (row[:, None, :] + col[None, :, :]).reshape(-1, 3)
+        return self._origins(len(d)), self._normalised(d)
 
     def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World-space rays through pixel positions ``uv`` (N, 2), distortion removed."""
         xy = self.undistort(uv)
-        d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-        d = d_cam @ self.R  # R.T @ d_cam for each row
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return np.broadcast_to(self.center, d.shape).copy(), d
+        R = self.R
+        # R.T @ (x, y, 1) for each row, written out (no (N, 3) concatenation, no generic matmul)
+        d = np.multiply.outer(xy[:, 0], R[0])
+        d += np.multiply.outer(xy[:, 1], R[1])
+        d += R[2]
+        return self._origins(len(d)), self._normalised(d)
+
+    def _origins(self, n: int) -> np.ndarray:
+        out = np.empty((n, 3))
+        out[:] = self.center
+        return out
+
+    @staticmethod
+    def _normalised(d: np.ndarray) -> np.ndarray:
+        d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+        return d
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel positions (N, 2) of world points (N, 3), distortion applied."""
