@@ -94,11 +94,13 @@ class Camera:
             return np.zeros((0, 2))
         if not np.any(self.dist):
             Kinv = np.linalg.inv(self.K)
-            # spelled out: (N, 2) @ a transposed (2, 2) view takes numpy's slow generic loop
+            if Kinv[0, 1] != 0 or Kinv[1, 0] != 0:  # skewed: the product as it always was
+                return uv @ Kinv[:2, :2].T + Kinv[:2, 2]
+            # Spelled out: (N, 2) @ a transposed (2, 2) view takes numpy's slow generic loop.
+            # Without skew these are its floats exactly (its terms with a zero factor add 0).
             xy = np.empty_like(uv)
-            u, v = uv[:, 0], uv[:, 1]
-            xy[:, 0] = u * Kinv[0, 0] + v * Kinv[0, 1] + Kinv[0, 2]
-            xy[:, 1] = u * Kinv[1, 0] + v * Kinv[1, 1] + Kinv[1, 2]
+            xy[:, 0] = uv[:, 0] * Kinv[0, 0] + Kinv[0, 2]
+            xy[:, 1] = uv[:, 1] * Kinv[1, 1] + Kinv[1, 2]
             return xy
         import cv2
 
@@ -124,37 +126,35 @@ class Camera:
             raise ValueError(f"rows must lie within [0, {self.height}] with r0 <= r1, got {rows!r}")
         u = np.arange(self.width, dtype=np.float64)
         v = np.arange(r0, r1, dtype=np.float64)
-        if np.any(self.dist):
+        Kinv = np.linalg.inv(self.K)
+        if np.any(self.dist) or Kinv[0, 1] != 0 or Kinv[1, 0] != 0:
             uu, vv = np.meshgrid(u, v)
             return self.rays(np.stack([uu.ravel(), vv.ravel()], axis=1))
-        # without distortion the unnormalised direction R.T @ K^-1 (u, v, 1) is a column part
-        # plus a row part (K^-1 is upper triangular): one broadcast sum instead of per-pixel products
-        Kinv, R = np.linalg.inv(self.K), self.R
-        col = np.multiply.outer(u * Kinv[0, 0], R[0])
-        row = np.multiply.outer(v * Kinv[0, 1], R[0]) + np.multiply.outer(v * Kinv[1, 1], R[1])
-        row += Kinv[0, 2] * R[0] + Kinv[1, 2] * R[1] + R[2]
-        d = (row[:, None, :] + col[None, :, :]).reshape(-1, 3)
-        return self._origins(len(d)), self._normalised(d)
+        # Without distortion or skew, x depends on the column only and y on the row only: filled
+        # by broadcasting, the same floats as undistort's (u·a + v·0 + c is u·a + c exactly).
+        d_cam = np.empty((r1 - r0, self.width, 3))
+        d_cam[:, :, 0] = u * Kinv[0, 0] + Kinv[0, 2]
+        d_cam[:, :, 1] = (v * Kinv[1, 1] + Kinv[1, 2])[:, None]
+        d_cam[:, :, 2] = 1.0
+        return self._rays(d_cam.reshape(-1, 3))
 
     def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World-space rays through pixel positions ``uv`` (N, 2), distortion removed."""
         xy = self.undistort(uv)
-        R = self.R
-        # R.T @ (x, y, 1) for each row, written out (no (N, 3) concatenation, no generic matmul)
-        d = np.multiply.outer(xy[:, 0], R[0])
-        d += np.multiply.outer(xy[:, 1], R[1])
-        d += R[2]
-        return self._origins(len(d)), self._normalised(d)
+        d_cam = np.empty((len(xy), 3))
+        d_cam[:, :2] = xy
+        d_cam[:, 2] = 1.0
+        return self._rays(d_cam)
 
-    def _origins(self, n: int) -> np.ndarray:
-        out = np.empty((n, 3))
-        out[:] = self.center
-        return out
-
-    @staticmethod
-    def _normalised(d: np.ndarray) -> np.ndarray:
-        d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
-        return d
+    def _rays(self, d_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit world directions of camera-frame directions ``d_cam`` (N, 3)."""
+        # The product and the norm as they always were (BLAS, np.linalg.norm): the same rays to
+        # the last bit, so a fit or texture does not move with how the pixels were enumerated.
+        d = d_cam @ self.R  # R.T @ d_cam for each row
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        origins = np.empty_like(d)
+        origins[:] = self.center
+        return origins, d
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel positions (N, 2) of world points (N, 3), distortion applied."""
