@@ -90,33 +90,71 @@ class Camera:
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """Normalised image coordinates (x, y) with distortion removed, for pixels ``uv`` (N, 2)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        Kinv = np.linalg.inv(self.K)
+        if len(uv) == 0:  # cv2.undistortPoints answers None
+            return np.zeros((0, 2))
         if not np.any(self.dist):
-            return uv @ Kinv[:2, :2].T + Kinv[:2, 2]
+            Kinv = np.linalg.inv(self.K)
+            if Kinv[0, 1] != 0 or Kinv[1, 0] != 0:  # skewed: the product as it always was
+                return uv @ Kinv[:2, :2].T + Kinv[:2, 2]
+            # Spelled out: (N, 2) @ a transposed (2, 2) view takes numpy's slow generic loop.
+            # Without skew these are its floats exactly (its terms with a zero factor add 0).
+            xy = np.empty_like(uv)
+            xy[:, 0] = uv[:, 0] * Kinv[0, 0] + Kinv[0, 2]
+            xy[:, 1] = uv[:, 1] * Kinv[1, 1] + Kinv[1, 2]
+            return xy
         import cv2
 
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
         out = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, None, crit)
         return out.reshape(-1, 2)
 
-    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_rays(self, rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """World-space rays through every pixel centre, row-major (pixel index = v * width + u).
+
+        Parameters
+        ----------
+        rows : (r0, r1), optional
+            Only image rows ``r0 <= v < r1`` (a tile); the rays are those rows of the whole image's.
 
         Returns
         -------
         origins : (H*W, 3) ndarray
         directions : (H*W, 3) ndarray, unit length
         """
-        v, u = np.mgrid[0 : self.height, 0 : self.width]
-        return self.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+        r0, r1 = (0, self.height) if rows is None else (int(rows[0]), int(rows[1]))
+        if not 0 <= r0 <= r1 <= self.height:
+            raise ValueError(f"rows must lie within [0, {self.height}] with r0 <= r1, got {rows!r}")
+        u = np.arange(self.width, dtype=np.float64)
+        v = np.arange(r0, r1, dtype=np.float64)
+        Kinv = np.linalg.inv(self.K)
+        if np.any(self.dist) or Kinv[0, 1] != 0 or Kinv[1, 0] != 0:
+            uu, vv = np.meshgrid(u, v)
+            return self.rays(np.stack([uu.ravel(), vv.ravel()], axis=1))
+        # Without distortion or skew, x depends on the column only and y on the row only: filled
+        # by broadcasting, the same floats as undistort's (u·a + v·0 + c is u·a + c exactly).
+        d_cam = np.empty((r1 - r0, self.width, 3))
+        d_cam[:, :, 0] = u * Kinv[0, 0] + Kinv[0, 2]
+        d_cam[:, :, 1] = (v * Kinv[1, 1] + Kinv[1, 2])[:, None]
+        d_cam[:, :, 2] = 1.0
+        return self._rays(d_cam.reshape(-1, 3))
 
     def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World-space rays through pixel positions ``uv`` (N, 2), distortion removed."""
         xy = self.undistort(uv)
-        d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        d_cam = np.empty((len(xy), 3))
+        d_cam[:, :2] = xy
+        d_cam[:, 2] = 1.0
+        return self._rays(d_cam)
+
+    def _rays(self, d_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit world directions of camera-frame directions ``d_cam`` (N, 3)."""
+        # The product and the norm as they always were (BLAS, np.linalg.norm): the same rays to
+        # the last bit, so a fit or texture does not move with how the pixels were enumerated.
         d = d_cam @ self.R  # R.T @ d_cam for each row
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return np.broadcast_to(self.center, d.shape).copy(), d
+        origins = np.empty_like(d)
+        origins[:] = self.center
+        return origins, d
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel positions (N, 2) of world points (N, 3), distortion applied."""

@@ -194,3 +194,30 @@ def test_tsai_per_view_start_is_close_on_tilted_views():
     for (R, t), (R_true, t_true) in zip(start, poses):
         assert np.degrees(np.arccos((np.trace(R @ R_true.T) - 1) / 2)) < 2.0  # measured <= 0.9 deg
         assert np.linalg.norm(t - t_true) < 0.02  # metres at 0.28 m; measured <= 8 mm
+
+
+@pytest.mark.parametrize("skew, dist", [(0.0, None), (2.5, None), (0.0, [-0.12, 0.03, 0.001, -0.002, 0.004])])
+def test_pixel_rays_project_back_onto_their_pixel_centres(skew, dist):
+    # The rays are checked against OpenCV's projection (cv2.projectPoints), not against themselves;
+    # a tile of rows gives those rows of the whole image's rays.
+    cam = Camera.look_at(37, 23, 55.0, eye=(0.3, -1.2, 0.8), target=(0.05, 0.1, 0.0), dist=dist)
+    cam.K[0, 1] = skew
+    o, d = cam.pixel_rays()
+    assert o.shape == d.shape == (37 * 23, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-14)
+    np.testing.assert_allclose(o, np.broadcast_to(cam.center, o.shape), atol=1e-15)
+    v, u = np.divmod(np.arange(37 * 23), 37)
+    x = o + 0.7 * d
+    if dist is None:  # the pinhole with skew by hand: cv2.projectPoints ignores K's skew
+        h = (x @ cam.R.T + cam.t) @ cam.K.T
+        uv = h[:, :2] / h[:, 2:]
+    else:
+        uv = cam.project(x)
+    np.testing.assert_allclose(uv, np.stack([u, v], axis=1), rtol=0, atol=1e-6 if dist else 1e-9)
+    o5, d5 = cam.pixel_rays(rows=(5, 9))
+    np.testing.assert_allclose(d5, d[5 * 37 : 9 * 37], rtol=0, atol=1e-15)
+    _, d_uv = cam.rays(np.stack([u, v], axis=1).astype(float))
+    np.testing.assert_allclose(d_uv, d, rtol=0, atol=1e-15)
+    assert cam.pixel_rays(rows=(4, 4))[1].shape == (0, 3)
+    with pytest.raises(ValueError, match="rows"):
+        cam.pixel_rays(rows=(0, 24))

@@ -300,12 +300,24 @@ def undetermined_radiance(trees, materials, intensities, undetermined, *, kd_nod
     for i, path in enumerate(trees.paths):  # one iteration per distinct path
         for s, kind in path:
             per_path[i] |= coeff[s, int(bool(kind))]
-    terms = linear_basis(trees, materials, intensities) * x * path_products(trees, materials)[:, :, None]
-    slot = slots[trees.surface]
+    # Only the nodes on which something is undetermined (a tiled texture: most nodes are a
+    # textured ground's, whose part is exactly 0); the others keep 0, as they would in full.
+    some = slots.any(axis=(1, 2))[trees.surface] | per_path.any(axis=1)[trees.path]
     if guessed is not None:
-        slot[:, :, 0] |= np.asarray(guessed, dtype=bool)[:, None]
+        guessed = np.asarray(guessed, dtype=bool)
+        some |= guessed
+    sel = np.flatnonzero(some)
+    del some
+    out = np.zeros((len(trees), 3))
+    if len(sel) == 0:
+        return out
+    terms = linear_basis(trees, materials, intensities)[sel] * x[sel] * path_products(trees, materials)[sel][:, :, None]
+    slot = slots[trees.surface[sel]]
+    if guessed is not None:
+        slot[:, :, 0] |= guessed[sel][:, None]
     part = np.where(slot, terms, 0.0).sum(axis=2)
-    return np.where(per_path[trees.path], terms.sum(axis=2), part)
+    out[sel] = np.where(per_path[trees.path[sel]], terms.sum(axis=2), part)
+    return out
 
 
 def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, textured=None) -> np.ndarray:
@@ -350,19 +362,6 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
         sf[s] = [sig(s, "r", 3), sig(s, "t", 3)]
     basis = linear_basis(trees, materials, intensities)  # the kept one: a tiled texture's tile asked for it already
     prod = path_products(trees, materials)
-    var = ((basis * sx[trees.surface]) ** 2).sum(axis=2) * prod**2
-    # θ's part on the surfaces whose θ has a σ only (a 12 MP texture: the derivatives of every
-    # node took a sixth of its time, most of them on a Lambertian ground with no θ).
-    for s, idx in _groups(trees):
-        if not st[s].any():
-            continue
-        model = get_model(materials[s].brdf)
-        L, P, k = model.n_linear, model.n_nonlinear, trees.n_lights
-        normal, light, view, weight = _surface_geometry(trees, idx)
-        _, dg = model.g_and_dg(np.broadcast_to(model.theta_of(materials[s]), (len(idx) * k, P)), normal, light, view)
-        dbasis = _weighted(weight, intensities, dg.reshape(len(idx) * k, L * P)).reshape(len(idx), 3, L, P)
-        dtheta = np.einsum("nclp,ncl->ncp", dbasis, x[idx, :, :L]) * st[s, :P]
-        var[idx] += (dtheta**2).sum(axis=2) * prod[idx] ** 2
     # d(path product)/d(factor) · σ, one distinct path at a time: the product of the path's other
     # factors times the factor's exponent and power below (a zero factor's branch still counts).
     dpath = np.zeros((len(trees.paths), 3))
@@ -375,7 +374,27 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
                     others *= np.asarray(materials[s2]["t" if k2 else "r"], dtype=np.float64) ** e2
             value = np.asarray(materials[s]["t" if kind else "r"], dtype=np.float64)
             dpath[i] += (e * value ** (e - 1) * others * sf[s, kind]) ** 2
-    var += np.einsum("ncl,ncl->nc", basis, x) ** 2 * dpath[trees.path]
+    # Only the nodes with some σ (a tiled texture: most nodes are a textured ground's, whose kd's
+    # σ is the texture's and whose variance is exactly 0); the others keep 0, as they would in full.
+    sel = np.flatnonzero((sx.any(axis=(1, 2)) | st.any(axis=1))[trees.surface] | dpath.any(axis=1)[trees.path])
+    var = np.zeros((len(trees), 3))
+    if len(sel) == 0:
+        return var
+    surf_sel, path_sel = trees.surface[sel], trees.path[sel]
+    var[sel] = ((basis[sel] * sx[surf_sel]) ** 2).sum(axis=2) * prod[sel] ** 2
+    # θ's part on the surfaces whose θ has a σ only (a 12 MP texture: the derivatives of every
+    # node took a sixth of its time, most of them on a Lambertian ground with no θ).
+    for s, idx in _groups(trees):
+        if not st[s].any():
+            continue
+        model = get_model(materials[s].brdf)
+        L, P, k = model.n_linear, model.n_nonlinear, trees.n_lights
+        normal, light, view, weight = _surface_geometry(trees, idx)
+        _, dg = model.g_and_dg(np.broadcast_to(model.theta_of(materials[s]), (len(idx) * k, P)), normal, light, view)
+        dbasis = _weighted(weight, intensities, dg.reshape(len(idx) * k, L * P)).reshape(len(idx), 3, L, P)
+        dtheta = np.einsum("nclp,ncl->ncp", dbasis, x[idx, :, :L]) * st[s, :P]
+        var[idx] += (dtheta**2).sum(axis=2) * prod[idx] ** 2
+    var[sel] += np.einsum("ncl,ncl->nc", basis[sel], x[sel]) ** 2 * dpath[path_sel]
     return np.sqrt(var)
 
 

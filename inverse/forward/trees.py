@@ -285,8 +285,12 @@ class _Caster:
         hit points are intersected in float64 from the true ``origin``, so the offset leaves
         no trace in them.
         """
-        start = origin if offset is None else origin + offset
-        rays = np.concatenate([start, direction], axis=1).astype(np.float32)
+        rays = np.empty((len(origin), 6), dtype=np.float32)  # filled in place: no float64 (M, 6) copy
+        if offset is None:
+            rays[:, :3] = origin
+        else:
+            np.add(origin, offset, out=rays[:, :3], casting="same_kind")
+        rays[:, 3:] = direction
         ans = self.rc.cast_rays(self.o3d.core.Tensor(rays))
         gid = ans["geometry_ids"].numpy().astype(np.int64)
         hit = gid != self.rc.INVALID_ID
@@ -311,7 +315,9 @@ class _Caster:
         """Whether the segment origin → target (both (M, 3)) hits any surface."""
         if len(origin) == 0:
             return np.zeros(0, dtype=bool)
-        rays = np.concatenate([origin, target - origin], axis=1).astype(np.float32)
+        rays = np.empty((len(origin), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        np.subtract(target, origin, out=rays[:, 3:], casting="same_kind")
         occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
         return occ.numpy().astype(bool)
 
@@ -398,8 +404,7 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     if rows is None:
         origin, direction = camera.pixel_rays()
     else:  # the same rays as pixel_rays' rows r0..r1-1
-        v, u = np.mgrid[r0:r1, 0:camera.width]
-        origin, direction = camera.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+        origin, direction = camera.pixel_rays(rows=(r0, r1))
     offset = None
     n_pix = len(origin)
     ray_pixel = np.arange(n_pix, dtype=np.int64)
