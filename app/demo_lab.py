@@ -27,11 +27,21 @@ from reflab.app.devices import SIM_SIZE
 #: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
 SIZE, CENTRE = SIM_SIZE, (0.0, 0.0)
 
+#: The further photographs are taken at this many times the calibrated size (a camera's full
+#: resolution): the lab's print grain (2-8 mm) is finer than twice the reference photograph's
+#: 1.45 mm ground pixels, and only photographs that sample it finer let the texels hold it
+#: (docs/fit.md, "Where the demo's error lives"). The texels follow their footprint.
+FURTHER_SCALE = 2
+#: The texture's smoothness with the further photographs: their sub-millimetre registration
+#: error makes neighbouring texels disagree (docs/fit.md, "Where the demo's error lives").
+SMOOTHNESS = 0.1
 
-def step_options(quick: bool = False) -> dict[str, dict]:
+
+def step_options(quick: bool = False, size=SIZE) -> dict[str, dict]:
     """Options per step on the simulated lab: its props' target, rod and grey card (the region
     5 mm inside the card's edges), the turntable axis; sweep shots and texture rounds (--quick:
-    24 and 1)."""
+    24 and 1); "further": the further photographs' size (:data:`FURTHER_SCALE` times ``size``);
+    the texture's texels at those photographs' footprint, smoothed as their registration allows."""
     from reflab.hardware.sim.props import LabProps
 
     props, inset = LabProps(), 0.005
@@ -41,7 +51,9 @@ def step_options(quick: bool = False) -> dict[str, dict]:
             "calibrate_lights": {"rod_height": props.rod_height, "sheet_reflectance": props.card_reflectance,
                                  "sheet_region": region},
             "sweep": {"count": 24 if quick else 36}, "reconstruct": {"turntable_centre": CENTRE},
-            "fit": {"texture_rounds": 1 if quick else 2}}
+            "fit": {"texture_rounds": 1 if quick else 2},
+            "further": {"size": (FURTHER_SCALE * size[0], FURTHER_SCALE * size[1])},
+            "texture": {"texel_scale": 1 / FURTHER_SCALE, "smoothness": SMOOTHNESS}}
 
 
 def views(workspace) -> dict[str, dict]:
@@ -64,7 +76,7 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
     from reflab.app.devices import Devices, SimOptions
     from reflab.hardware.sim.user import mark_sweep
 
-    options = step_options(quick)
+    options = step_options(quick, size)
     runs = [(s.name.replace("_", " "), s, options.get(s.name, {})) for s in steps.STEPS]
     runs += [(f"render {view}", steps.step("results"), opts) for view, opts in views(root).items()]
     with Devices("sim", "sim", sim=SimOptions(size=size, centre=list(CENTRE)), log=_log) as rig:
@@ -85,15 +97,16 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
             rows.append((stage, seconds, score.score_stage(stage, root, truth)))
             _log(f"[demo] {stage}: {seconds:.1f} s{'; ' + rows[-1][2] if rows[-1][2] else ''}")
             if step.name == "fit" and further:
-                code = _further_photographs(root, rig, options.get("fit", {}), truth, rows, further)
+                code = _further_photographs(root, rig, options, truth, rows, further)
                 if code:
                     return code
     return 0
 
 
-def _further_photographs(root: Path, rig, fit_options: dict, truth: dict, rows: list, rounds: int) -> int:
-    """Plan -> take the planned shots -> fit again, until the plan expects no shot to gain enough
-    (every parameter the photographs show determined, or none that the rig's shots would fix)."""
+def _further_photographs(root: Path, rig, options: dict, truth: dict, rows: list, rounds: int) -> int:
+    """Plan -> take the planned shots (``options["further"]``: their size) -> fit again
+    (``options["fit"]``), until the plan expects no shot to gain enough (every parameter the
+    photographs show determined, or none that the rig's shots would fix)."""
     from reflab.app import demo_score as score, steps
     from reflab.core.workspace import Workspace, read_json
 
@@ -101,7 +114,7 @@ def _further_photographs(root: Path, rig, fit_options: dict, truth: dict, rows: 
     for n in range(1, rounds + 1):
         t0 = time.perf_counter()
         _log(f"[demo] further photographs, round {n}: plan the shots that would fix what the fit left open")
-        result = steps.further_photographs(root, rig, log=_log)
+        result = steps.further_photographs(root, rig, log=_log, **options.get("further", {}))
         plan = read_json(ws.plan)
         if not result.value:
             _log(f"[demo] round {n}: no further shot would gain enough; still open: "
@@ -110,7 +123,7 @@ def _further_photographs(root: Path, rig, fit_options: dict, truth: dict, rows: 
         for shot in plan["shots"]:
             _log(f"[demo] took {shot['name']} (turntable {shot['angle_deg']:g} deg, lamps {shot['lamps']}) because it "
                  f"determines {', '.join(shot['determines']) or 'nothing alone but narrows the targets'}")
-        r = steps.step("fit").run(root, rig=rig, log=_log, **fit_options)
+        r = steps.step("fit").run(root, rig=rig, log=_log, **options.get("fit", {}))
         _log(f"[demo] step fit: {r.summary}")
         if r.value.status == "poor fit":
             _log("[demo] stage fit failed (exit 3) over the further photographs: later stages skipped")

@@ -59,6 +59,7 @@ def test_readmes_commands_are_the_demos_steps_and_options():
         for key, value in options.items():
             given = [args[key] for step, args in parsed if step == name and key in args]
             want = list(value) if isinstance(value, tuple) else value
+            given = [list(g) if isinstance(g, tuple) else g for g in given]
             assert given and all(g == pytest.approx(want) if key == "sheet_region" else g == want for g in given), \
                 (name, key, given, value)
     renders = [{k: Path(args[k]) for k in ("camera", "lights", "output") if args[k]} for step, args in parsed
@@ -68,7 +69,8 @@ def test_readmes_commands_are_the_demos_steps_and_options():
     assert all(args["port"] == "sim" for args in rig) and len(rig) == 6
     captures = [args for args in rig if "camera" in args]
     assert all(args["camera"] == "sim" and args["centre"] == list(CENTRE) for args in captures)
-    assert [args["size"] for args in captures] == [SIZE, None, None, None, None]  # later captures take camera.json's
+    # Later captures take camera.json's size; the further photographs twice it (the camera's full resolution).
+    assert [args["size"] for args in captures] == [SIZE, None, None, None, (2 * SIZE[0], 2 * SIZE[1])]
     assert [args["plan"] for args in captures] == [False] * 4 + [True]
 
 
