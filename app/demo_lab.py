@@ -113,6 +113,13 @@ def _further_photographs(root: Path, rig, options: dict, truth: dict, rows: list
     ws = Workspace(root)
     for n in range(1, rounds + 1):
         t0 = time.perf_counter()
+        size = options.get("further", {}).get("size")
+        if n == 1 and size is not None:  # the texture's finest detail: the reference's own view, at full resolution
+            lamps = list(range(len(rig.controller.config.lamps)))
+            _log(f"[demo] the input's view again at {size[0]}x{size[1]}, every lamp on: the finest detail for the "
+                 f"texture, registered as the input photograph is (no turntable axis between them)")
+            steps.further_photographs(root, rig, log=_log, shots=[{"name": "a0", "angle_deg": 0.0, "lamps": lamps}],
+                                      size=size)
         _log(f"[demo] further photographs, round {n}: plan the shots that would fix what the fit left open")
         result = steps.further_photographs(root, rig, log=_log, **options.get("further", {}))
         plan = read_json(ws.plan)

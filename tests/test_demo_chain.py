@@ -66,12 +66,16 @@ def test_readmes_commands_are_the_demos_steps_and_options():
                if step == "results"]
     assert renders == list(views("demo-workspace").values())
     rig = [args for _, args in parsed if "port" in args]
-    assert all(args["port"] == "sim" for args in rig) and len(rig) == 6
+    assert all(args["port"] == "sim" for args in rig) and len(rig) == 7
     captures = [args for args in rig if "camera" in args]
     assert all(args["camera"] == "sim" and args["centre"] == list(CENTRE) for args in captures)
-    # Later captures take camera.json's size; the further photographs twice it (the camera's full resolution).
-    assert [args["size"] for args in captures] == [SIZE, None, None, None, (2 * SIZE[0], 2 * SIZE[1])]
-    assert [args["plan"] for args in captures] == [False] * 4 + [True]
+    # Later captures take camera.json's size; the further photographs twice it (the camera's full
+    # resolution, step_options' "further"), the first of them the input's own view with every lamp.
+    full = (2 * SIZE[0], 2 * SIZE[1])
+    assert [args["size"] for args in captures] == [SIZE, None, None, None, full, full]
+    assert step_options()["further"]["size"] == full
+    assert [args["plan"] for args in captures] == [False] * 5 + [True]
+    assert captures[4]["kind"] == "inputs" and captures[4]["angles"] == [0.0]
 
 
 def test_every_simulated_default_is_the_size_that_reconstructs():
