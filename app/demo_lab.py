@@ -7,7 +7,8 @@
    calibrate lights (rod shots) -> sweep (then the simulated user marks the mirror's and the
    sheet's corners and names the surfaces, as a person does in the GUI) -> reconstruct -> input
    photograph -> fit -> [plan -> the planned further photographs -> fit, while the plan expects a
-   shot to fix what is still open] -> texture -> results; then the results step again for the
+   shot to fix what is still open] -> photographs for the texture's detail (full resolution, near
+   the input's view) -> texture -> results; then the results step again for the
    novel and the relit view (truth/'s camera and lamps), and the report;
 3. after each stage prints its error against the truth and its time, and at the end a table.
 
@@ -27,21 +28,20 @@ from reflab.app.devices import SIM_SIZE
 #: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
 SIZE, CENTRE = SIM_SIZE, (0.0, 0.0)
 
-#: The further photographs are taken at this many times the calibrated size (a camera's full
-#: resolution): the lab's print grain (2-8 mm) is finer than twice the reference photograph's
-#: 1.45 mm ground pixels, and only photographs that sample it finer let the texels hold it
-#: (docs/fit.md, "Where the demo's error lives"). The texels follow their footprint.
-FURTHER_SCALE = 2
-#: The texture's smoothness with the further photographs: their sub-millimetre registration
-#: error makes neighbouring texels disagree (docs/fit.md, "Where the demo's error lives").
-SMOOTHNESS = 0.1
+#: Photographs for the texture's detail, taken after the last fit: at this many times the
+#: calibrated size (a camera's full resolution; the lab's 2-8 mm print grain is finer than twice
+#: the reference photograph's 1.45 mm ground pixels) from the input's view and the turntable turned
+#: by these angles (degrees), every lamp on: views close to the input's, whose small turns the
+#: reconstructed axis registers to a fraction of the grain (docs/fit.md, "Where the demo's error
+#: lives"). The texels follow their footprint, smoothed against what registration leaves.
+DETAIL_SCALE, DETAIL_ANGLES, SMOOTHNESS = 2, (0.0, 30.0, -30.0), 0.1
 
 
 def step_options(quick: bool = False, size=SIZE) -> dict[str, dict]:
     """Options per step on the simulated lab: its props' target, rod and grey card (the region
     5 mm inside the card's edges), the turntable axis; sweep shots and texture rounds (--quick:
-    24 and 1); "further": the further photographs' size (:data:`FURTHER_SCALE` times ``size``);
-    the texture's texels at those photographs' footprint, smoothed as their registration allows."""
+    24 and 1); "detail": the photographs taken for the texture after the last fit (their turntable
+    angles and size, :data:`DETAIL_SCALE` times ``size``), and the texture's texels at their footprint."""
     from reflab.hardware.sim.props import LabProps
 
     props, inset = LabProps(), 0.005
@@ -52,8 +52,8 @@ def step_options(quick: bool = False, size=SIZE) -> dict[str, dict]:
                                  "sheet_region": region},
             "sweep": {"count": 24 if quick else 36}, "reconstruct": {"turntable_centre": CENTRE},
             "fit": {"texture_rounds": 1 if quick else 2},
-            "further": {"size": (FURTHER_SCALE * size[0], FURTHER_SCALE * size[1])},
-            "texture": {"texel_scale": 1 / FURTHER_SCALE, "smoothness": SMOOTHNESS}}
+            "detail": {"angles": list(DETAIL_ANGLES), "size": (DETAIL_SCALE * size[0], DETAIL_SCALE * size[1])},
+            "texture": {"texel_scale": 1 / DETAIL_SCALE, "smoothness": SMOOTHNESS}}
 
 
 def views(workspace) -> dict[str, dict]:
@@ -81,6 +81,8 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
     runs += [(f"render {view}", steps.step("results"), opts) for view, opts in views(root).items()]
     with Devices("sim", "sim", sim=SimOptions(size=size, centre=list(CENTRE)), log=_log) as rig:
         for stage, step, opts in runs:
+            if step.name == "texture" and options.get("detail"):
+                _detail_photographs(root, rig, options["detail"], rows)
             _log(f"[demo] step {step.name}: {step.title}")
             t0 = time.perf_counter()
             with running(f"demo {stage}") as task:  # a progress bar; Ctrl-C cancels the step
@@ -103,25 +105,33 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
     return 0
 
 
+def _detail_photographs(root: Path, rig, detail: dict, rows: list) -> None:
+    """The photographs for the texture's detail (``detail``: turntable angles and size), every
+    lamp on, into inputs/ as ``reflab capture inputs --angles A,.. --size WxH`` takes them."""
+    from reflab.app import steps
+
+    t0, (w, h) = time.perf_counter(), detail["size"]
+    lamps = list(range(len(rig.controller.config.lamps)))
+    shots = [{"name": f"a{a:g}".replace("-", "m"), "angle_deg": float(a), "lamps": lamps} for a in detail["angles"]]
+    _log(f"[demo] photographs for the texture's detail at {w}x{h} (the camera's full resolution), every lamp on, "
+         f"turntable at {', '.join(f'{a:g}' for a in detail['angles'])} deg from the input's view")
+    r = steps.further_photographs(root, rig, log=_log, shots=shots, size=(w, h))
+    _log(f"[demo] step detail: {r.summary}")
+    rows.append(("detail photos", time.perf_counter() - t0, ""))
+
+
 def _further_photographs(root: Path, rig, options: dict, truth: dict, rows: list, rounds: int) -> int:
-    """Plan -> take the planned shots (``options["further"]``: their size) -> fit again
-    (``options["fit"]``), until the plan expects no shot to gain enough (every parameter the
-    photographs show determined, or none that the rig's shots would fix)."""
+    """Plan -> take the planned shots -> fit again (``options["fit"]``), until the plan expects no
+    shot to gain enough (every parameter the photographs show determined, or none that the rig's
+    shots would fix)."""
     from reflab.app import demo_score as score, steps
     from reflab.core.workspace import Workspace, read_json
 
     ws = Workspace(root)
     for n in range(1, rounds + 1):
         t0 = time.perf_counter()
-        size = options.get("further", {}).get("size")
-        if n == 1 and size is not None:  # the texture's finest detail: the reference's own view, at full resolution
-            lamps = list(range(len(rig.controller.config.lamps)))
-            _log(f"[demo] the input's view again at {size[0]}x{size[1]}, every lamp on: the finest detail for the "
-                 f"texture, registered as the input photograph is (no turntable axis between them)")
-            steps.further_photographs(root, rig, log=_log, shots=[{"name": "a0", "angle_deg": 0.0, "lamps": lamps}],
-                                      size=size)
         _log(f"[demo] further photographs, round {n}: plan the shots that would fix what the fit left open")
-        result = steps.further_photographs(root, rig, log=_log, **options.get("further", {}))
+        result = steps.further_photographs(root, rig, log=_log)
         plan = read_json(ws.plan)
         if not result.value:
             _log(f"[demo] round {n}: no further shot would gain enough; still open: "

@@ -38,7 +38,7 @@ def readme_commands() -> list[list[str]]:
 STEP_OF = {"hardware": "devices", "capture calibration": "calibrate_camera", "calibrate camera": "calibrate_camera",
            "capture lights": "calibrate_lights", "calibrate lights": "calibrate_lights", "capture sweep": "sweep",
            "reconstruct": "reconstruct", "capture input": "input", "fit": "fit", "texture": "texture",
-           "plan": "further", "capture inputs": "further",
+           "plan": "further", "capture inputs": "further",  # with --angles and no --plan: "detail"
            "render": "results", "report": "report"}
 
 
@@ -51,10 +51,13 @@ def test_readmes_commands_are_the_demos_steps_and_options():
     parser = build_parser()
     parsed = [(STEP_OF[" ".join(argv[:2]) if argv[0] in ("capture", "calibrate") else argv[0]],
                vars(parser.parse_args(argv))) for argv in documented[1:]]
+    parsed = [("detail" if args["command"] == "capture" and name == "further" and not args["plan"] else name, args)
+              for name, args in parsed]
     order = [name for i, (name, _) in enumerate(parsed) if i == 0 or parsed[i - 1][0] != name]
-    # After the first fit the demo plans, takes the further photographs and fits again.
+    # After the first fit the demo plans, takes the further photographs and fits again; before the
+    # texture it takes the photographs for the texture's detail.
     at = steps.NAMES.index("fit") + 1
-    assert order == steps.NAMES[:at] + ["further", "fit"] + steps.NAMES[at:] + ["report"]
+    assert order == steps.NAMES[:at] + ["further", "fit", "detail"] + steps.NAMES[at:] + ["report"]
     for name, options in step_options().items():
         for key, value in options.items():
             given = [args[key] for step, args in parsed if step == name and key in args]
@@ -69,13 +72,12 @@ def test_readmes_commands_are_the_demos_steps_and_options():
     assert all(args["port"] == "sim" for args in rig) and len(rig) == 7
     captures = [args for args in rig if "camera" in args]
     assert all(args["camera"] == "sim" and args["centre"] == list(CENTRE) for args in captures)
-    # Later captures take camera.json's size; the further photographs twice it (the camera's full
-    # resolution, step_options' "further"), the first of them the input's own view with every lamp.
+    # Later captures take camera.json's size; the photographs for the texture's detail twice it
+    # (the camera's full resolution), the input's view among them.
     full = (2 * SIZE[0], 2 * SIZE[1])
-    assert [args["size"] for args in captures] == [SIZE, None, None, None, full, full]
-    assert step_options()["further"]["size"] == full
-    assert [args["plan"] for args in captures] == [False] * 5 + [True]
-    assert captures[4]["kind"] == "inputs" and captures[4]["angles"] == [0.0]
+    assert [args["size"] for args in captures] == [SIZE, None, None, None, None, full]
+    assert [args["plan"] for args in captures] == [False] * 4 + [True, False]
+    assert 0.0 in captures[5]["angles"] and step_options()["detail"]["size"] == full
 
 
 def test_every_simulated_default_is_the_size_that_reconstructs():
