@@ -165,8 +165,8 @@ class CaptureSession:
     size : (width, height), optional
         The image size every shot must have; by default camera.json's when it exists (except for
         the calibration kind, which may calibrate a new size). A camera whose resolution is a
-        setting (``set_size((width, height))``, the simulated one) is set to it first; a shot of
-        another size stops the session before it is written.
+        setting (``set_size((width, height))``, the simulated one) is set to it first (to its own
+        with no size); a shot of another size stops the session before it is written.
     retakes : int
         How many times one shot is taken again after the board reset or changed during it, before
         the session stops.
@@ -259,7 +259,7 @@ class CaptureSession:
             raise WorkspaceError(existing, expected="no input photograph yet: pass --overwrite to replace it, or move "
                                                     "it away", got="an existing file")
         self.folder.mkdir(parents=True, exist_ok=True)
-        if self.size is not None and hasattr(self.camera, "set_size"):
+        if hasattr(self.camera, "set_size"):  # None (a calibration of a new size): the camera's own
             self.camera.set_size(self.size)
         ctl = self.controller
         self.manifest = {
