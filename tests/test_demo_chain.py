@@ -94,7 +94,7 @@ def test_every_simulated_default_is_the_size_that_reconstructs():
     assert inspect.signature(MainWindow).parameters["size"].default == SIZE
 
 
-@pytest.mark.slow  # the whole acquisition: 57 simulated shots, structure from motion, fit, texture (140 s measured)
+@pytest.mark.slow  # the whole acquisition: structure from motion, fit, texture (326 s at a load of about 10, 3.7 GB)
 def test_readme_chain_on_the_simulated_lab(tmp_path):
     ws = tmp_path / "lab"
     for argv in readme_commands():
@@ -118,10 +118,11 @@ def test_readme_chain_on_the_simulated_lab(tmp_path):
     assert by_name["sheet"].material.ior == pytest.approx(1.46) and not by_name["sheet"].textured
     assert not by_name["mirror"].textured and by_name["box"].textured and by_name["tile"].textured
     # The recovered model against the reference renderer's novel and relit views, over the pixels of
-    # known albedo (every node of the pixel's tree), the issue's 30 dB. Measured 30.4 and 31.8 dB
-    # (30.0-30.6 and 31.3-31.8 over four seeds of the simulated user's marks): the camera from
-    # pixel-integrated target shots (focal 0.015 %) and the mirror's face from its edges in the shots
-    # (0.19 mm RMS); before either, 28.0 and 30.6 dB (docs/simulated-lab.md's error budget).
+    # known albedo (every node of the pixel's tree) and over those whose seen surface's albedo is
+    # known (psnr_primary_db), issue #30's 33 dB. Measured 34.1 and 34.4 dB both ways (2026-11-27):
+    # the texture from the photographs for its detail at twice the calibrated size; before them 31.7
+    # and 32.5 dB (docs/fit.md, "Where the demo's error lives"), before the further photographs 30.4
+    # and 31.8 dB.
     # The further photographs the plan chose determined the mirror's lobe, which the input photograph
     # does not show: within 3σ + 2 % of the truth.
     import json
@@ -136,9 +137,9 @@ def test_readme_chain_on_the_simulated_lab(tmp_path):
         want = np.atleast_1d(true_mirror[key])
         assert np.all(np.abs(got - want) <= 3 * sig + 0.02 * np.abs(want)), (key, got, sig, want)
     truth = {"depth": 3, "images": {k: read_image(ws / "truth" / f"{k}.exr").astype(np.float64) for k in ("novel", "relit")}}
-    for which, bar in (("novel", 30.0), ("relit", 31.0)):
+    for which in ("novel", "relit"):
         e = score.view_psnr(ws, truth, which)
-        assert e["psnr_db"] >= bar and e["known_pct"] > 50, (which, e)
+        assert e["psnr_db"] >= 33.0 and e["psnr_primary_db"] >= 33.0 and e["known_pct"] > 90, (which, e)
     assert (ws / "report.html").exists()
 
 
