@@ -7,7 +7,8 @@
    calibrate lights (rod shots) -> sweep (then the simulated user marks the mirror's and the
    sheet's corners and names the surfaces, as a person does in the GUI) -> reconstruct -> input
    photograph -> fit -> [plan -> the planned further photographs -> fit, while the plan expects a
-   shot to fix what is still open] -> texture -> results; then the results step again for the
+   shot to fix what is still open] -> photographs for the texture's detail (full resolution, near
+   the input's view) -> texture -> results; then the results step again for the
    novel and the relit view (truth/'s camera and lamps), and the report;
 3. after each stage prints its error against the truth and its time, and at the end a table.
 
@@ -27,11 +28,20 @@ from reflab.app.devices import SIM_SIZE
 #: The simulated camera's image size (``--size``'s default) and the turntable axis (x, y), metres.
 SIZE, CENTRE = SIM_SIZE, (0.0, 0.0)
 
+#: Photographs for the texture's detail, taken after the last fit: at this many times the
+#: calibrated size (a camera's full resolution; the lab's 2-8 mm print grain is finer than twice
+#: the reference photograph's 1.45 mm ground pixels) from the input's view and the turntable turned
+#: by these angles (degrees), every lamp on: views close to the input's, whose small turns the
+#: reconstructed axis registers to a fraction of the grain (docs/fit.md, "Where the demo's error
+#: lives"). The texels follow their footprint, smoothed against what registration leaves.
+DETAIL_SCALE, DETAIL_ANGLES, SMOOTHNESS = 2, (0.0, 30.0, -30.0), 0.1
 
-def step_options(quick: bool = False) -> dict[str, dict]:
+
+def step_options(quick: bool = False, size=SIZE) -> dict[str, dict]:
     """Options per step on the simulated lab: its props' target, rod and grey card (the region
     5 mm inside the card's edges), the turntable axis; sweep shots and texture rounds (--quick:
-    24 and 1)."""
+    24 and 1); "detail": the photographs taken for the texture after the last fit (their turntable
+    angles and size, :data:`DETAIL_SCALE` times ``size``), and the texture's texels at their footprint."""
     from reflab.hardware.sim.props import LabProps
 
     props, inset = LabProps(), 0.005
@@ -41,7 +51,9 @@ def step_options(quick: bool = False) -> dict[str, dict]:
             "calibrate_lights": {"rod_height": props.rod_height, "sheet_reflectance": props.card_reflectance,
                                  "sheet_region": region},
             "sweep": {"count": 24 if quick else 36}, "reconstruct": {"turntable_centre": CENTRE},
-            "fit": {"texture_rounds": 1 if quick else 2}}
+            "fit": {"texture_rounds": 1 if quick else 2},
+            "detail": {"angles": list(DETAIL_ANGLES), "size": (DETAIL_SCALE * size[0], DETAIL_SCALE * size[1])},
+            "texture": {"texel_scale": 1 / DETAIL_SCALE, "smoothness": SMOOTHNESS}}
 
 
 def views(workspace) -> dict[str, dict]:
@@ -64,11 +76,13 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
     from reflab.app.devices import Devices, SimOptions
     from reflab.hardware.sim.user import mark_sweep
 
-    options = step_options(quick)
+    options = step_options(quick, size)
     runs = [(s.name.replace("_", " "), s, options.get(s.name, {})) for s in steps.STEPS]
     runs += [(f"render {view}", steps.step("results"), opts) for view, opts in views(root).items()]
     with Devices("sim", "sim", sim=SimOptions(size=size, centre=list(CENTRE)), log=_log) as rig:
         for stage, step, opts in runs:
+            if step.name == "texture" and options.get("detail"):
+                _detail_photographs(root, rig, options["detail"], rows)
             _log(f"[demo] step {step.name}: {step.title}")
             t0 = time.perf_counter()
             with running(f"demo {stage}") as task:  # a progress bar; Ctrl-C cancels the step
@@ -85,15 +99,31 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
             rows.append((stage, seconds, score.score_stage(stage, root, truth)))
             _log(f"[demo] {stage}: {seconds:.1f} s{'; ' + rows[-1][2] if rows[-1][2] else ''}")
             if step.name == "fit" and further:
-                code = _further_photographs(root, rig, options.get("fit", {}), truth, rows, further)
+                code = _further_photographs(root, rig, options, truth, rows, further)
                 if code:
                     return code
     return 0
 
 
-def _further_photographs(root: Path, rig, fit_options: dict, truth: dict, rows: list, rounds: int) -> int:
-    """Plan -> take the planned shots -> fit again, until the plan expects no shot to gain enough
-    (every parameter the photographs show determined, or none that the rig's shots would fix)."""
+def _detail_photographs(root: Path, rig, detail: dict, rows: list) -> None:
+    """The photographs for the texture's detail (``detail``: turntable angles and size), every
+    lamp on, into inputs/ as ``reflab capture inputs --angles A,.. --size WxH`` takes them."""
+    from reflab.app import steps
+
+    t0, (w, h) = time.perf_counter(), detail["size"]
+    lamps = list(range(len(rig.controller.config.lamps)))
+    shots = [{"name": f"a{a:g}".replace("-", "m"), "angle_deg": float(a), "lamps": lamps} for a in detail["angles"]]
+    _log(f"[demo] photographs for the texture's detail at {w}x{h} (the camera's full resolution), every lamp on, "
+         f"turntable at {', '.join(f'{a:g}' for a in detail['angles'])} deg from the input's view")
+    r = steps.further_photographs(root, rig, log=_log, shots=shots, size=(w, h))
+    _log(f"[demo] step detail: {r.summary}")
+    rows.append(("detail photos", time.perf_counter() - t0, ""))
+
+
+def _further_photographs(root: Path, rig, options: dict, truth: dict, rows: list, rounds: int) -> int:
+    """Plan -> take the planned shots -> fit again (``options["fit"]``), until the plan expects no
+    shot to gain enough (every parameter the photographs show determined, or none that the rig's
+    shots would fix)."""
     from reflab.app import demo_score as score, steps
     from reflab.core.workspace import Workspace, read_json
 
@@ -110,7 +140,7 @@ def _further_photographs(root: Path, rig, fit_options: dict, truth: dict, rows: 
         for shot in plan["shots"]:
             _log(f"[demo] took {shot['name']} (turntable {shot['angle_deg']:g} deg, lamps {shot['lamps']}) because it "
                  f"determines {', '.join(shot['determines']) or 'nothing alone but narrows the targets'}")
-        r = steps.step("fit").run(root, rig=rig, log=_log, **fit_options)
+        r = steps.step("fit").run(root, rig=rig, log=_log, **options.get("fit", {}))
         _log(f"[demo] step fit: {r.summary}")
         if r.value.status == "poor fit":
             _log("[demo] stage fit failed (exit 3) over the further photographs: later stages skipped")

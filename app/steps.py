@@ -86,6 +86,8 @@ def capture(workspace, kind: str, rig, task=None, *, log=print, recapture: bool 
     path = ws.manifest(kind)
     old = read_json(path) if path.exists() else {}
     same = old.get("plan") == [asdict(s) for s in shots]
+    if options.get("size") is not None:  # shots of another size are another session
+        same = same and all(rec.get("size") == list(options["size"]) for rec in old.get("shots", []))
     if same and old.get("status") == "complete" and not recapture:
         log(f"{kind}: the {len(shots)} shots are already taken")
         return CaptureResult(path, old)
@@ -214,7 +216,7 @@ def _results(workspace, task=None, *, rig=None, log=print, **options) -> StepRes
 
 
 def further_photographs(workspace, rig, task=None, *, log=print, shots=None, recapture: bool = False,
-                        turntable_centre=None, **plan_options) -> StepResult:
+                        turntable_centre=None, size=None, **plan_options) -> StepResult:
     """Take further photographs of the scene into ``inputs/`` with ``rig`` (docs/formats.md "inputs/").
 
     ``shots`` (dicts with ``name``, ``angle_deg`` from the input's view and ``lamps``): these;
@@ -222,6 +224,9 @@ def further_photographs(workspace, rig, task=None, *, log=print, shots=None, rec
     it is missing or older than fit.json. The turntable turns to each shot, its lamps alone lit;
     each photograph gets its sidecar from camera.json, lights.json and the turntable axis
     (``turntable_centre`` (x, y), turning counter-clockwise; by default the axis reconstruct found).
+    ``size`` (width, height): the photographs' size, by default camera.json's; a larger one with its
+    aspect ratio (the camera's full resolution) holds detail finer than the calibrated size's pixels,
+    and each sidecar's camera is camera.json's scaled to it.
     """
     from reflab.core.workspace import read_json
     from reflab.inverse.forward.photographs import inputs_from_capture
@@ -237,7 +242,8 @@ def further_photographs(workspace, rig, task=None, *, log=print, shots=None, rec
         shots = read_json(ws.plan).get("shots") or []
     if not shots:
         return StepResult("no further photograph planned: the plan expects no shot to gain enough")
-    result = capture(ws.root, "inputs", rig, task, log=log, recapture=recapture, shots=list(shots))
+    result = capture(ws.root, "inputs", rig, task, log=log, recapture=recapture, shots=list(shots),
+                     size=None if size is None else tuple(size))
     names = inputs_from_capture(ws, centre=turntable_centre, direction=None if turntable_centre is None else 1.0, log=log)
     return StepResult(f"{len(names)} further photographs in {ws.inputs}: {', '.join(names)}", names, result)
 

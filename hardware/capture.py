@@ -164,8 +164,9 @@ class CaptureSession:
     log : callable, optional
     size : (width, height), optional
         The image size every shot must have; by default camera.json's when it exists (except for
-        the calibration kind, which may calibrate a new size). A shot of another size stops the
-        session before it is written.
+        the calibration kind, which may calibrate a new size). A camera whose resolution is a
+        setting (``set_size((width, height))``, the simulated one) is set to it first (to its own
+        with no size); a shot of another size stops the session before it is written.
     retakes : int
         How many times one shot is taken again after the board reset or changed during it, before
         the session stops.
@@ -258,6 +259,8 @@ class CaptureSession:
             raise WorkspaceError(existing, expected="no input photograph yet: pass --overwrite to replace it, or move "
                                                     "it away", got="an existing file")
         self.folder.mkdir(parents=True, exist_ok=True)
+        if hasattr(self.camera, "set_size"):  # None (a calibration of a new size): the camera's own
+            self.camera.set_size(self.size)
         ctl = self.controller
         self.manifest = {
             "kind": self.kind, "plan": self._plan_json(), "shots": kept,
@@ -407,7 +410,8 @@ class CaptureOptions:
     is the input's angle); ``ambient`` adds a lamps-off frame to the input; ``format`` is the
     image files' suffix. ``on_shot(done, total, record)`` is told every shot, ``log(message)``
     what happened. ``size`` (width, height) every shot must have: by default camera.json's
-    (except for the calibration kind).
+    (except for the calibration kind); further photographs (``inputs``) may be larger than the
+    calibration, with camera.json's aspect ratio (their sidecars' cameras are scaled).
     """
 
     workspace: Path

@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim = parser.add_argument_group("simulated camera (--camera sim)")
     table_arguments(sim, SimOptions, override={"size": {"default": None, "help": (
         "image size WxH (default: camera.json's, else 480x360: at 320x240 structure from motion registers too few "
-        "sweep shots; every capture of a workspace must have the same size)")}})
+        "sweep shots; every capture of a workspace must have the same size, except inputs: any with camera.json's "
+        "aspect ratio, e.g. twice it for detail finer than the calibrated pixels)")}})
 
 
 def run(args) -> int:
@@ -62,10 +63,12 @@ def run(args) -> int:
     calibrated = calibrated_size(ws)
     if args.camera == "sim" and args.size is None:
         args.size = calibrated or SIM_SIZE
-    elif args.camera == "sim" and calibrated and tuple(args.size) != calibrated and args.kind != "calibration":
+    elif args.camera == "sim" and calibrated and tuple(args.size) != calibrated and args.kind != "calibration" and (
+            args.kind != "inputs" or args.size[0] * calibrated[1] != args.size[1] * calibrated[0]):
         raise WorkspaceError(ws.camera, "width/height",
                              f"captures of the calibrated size {calibrated[0]}x{calibrated[1]} (leave --size out, "
-                             "or calibrate again at the new size)", got=f"--size {args.size[0]}x{args.size[1]}")
+                             "or calibrate again at the new size; inputs: its aspect ratio)",
+                             got=f"--size {args.size[0]}x{args.size[1]}")
     try:
         sim = options_from_args(SimOptions, args)
         with Devices(args.port, args.camera, config=config, unlock=args.unlock, sim=sim, trigger=args.trigger,
@@ -75,7 +78,8 @@ def run(args) -> int:
 
                 shots = None if args.plan else [{"name": f"a{a:g}".replace("-", "m"), "angle_deg": a,
                                                  "lamps": list(range(len(config.lamps)))} for a in args.angles or []]
-                LOG.info(further_photographs(ws.root, rig, task, log=LOG.info, shots=shots, recapture=args.overwrite).summary)
+                LOG.info(further_photographs(ws.root, rig, task, log=LOG.info, shots=shots, recapture=args.overwrite,
+                                             size=args.size).summary)
                 return 0
             options = options_from_args(CaptureOptions, args, workspace=args.workspace, kind=args.kind,
                                         controller=rig.controller, camera=rig.camera, on_shot=on_shot, log=LOG.info)

@@ -4,7 +4,8 @@ On a finished `reflab demo WORKSPACE` (its truth/ beside it), each view is rende
 scores it (:func:`reflab.app.demo_score.view_psnr`'s ``psnr_primary_db``: over the pixels whose
 directly seen surface has a known albedo) and its squared error split by the surface seen at each
 pixel. Then copies of the workspace (fit.json dropped where the materials are given, inputs/ kept,
-`reflab texture` run again on every photograph):
+`reflab texture` run again on every photograph with the options textures/index.json records, the
+demo's texel scale and smoothness):
 
 - ``true materials``: truth/scene.json's materials on the reconstructed meshes (what the fit loses);
 - ``true materials and geometry``: truth/scene.json with its meshes (what reconstruct loses);
@@ -96,8 +97,20 @@ def _copy(src: Path, dst: Path, *, materials: bool = False, meshes=(), truth_sce
         shutil.copy(src / "truth" / "meshes" / f"{name}.ply", dst / "meshes" / f"{name}.ply")
     if materials or truth_scene:
         (dst / "fit.json").unlink()
-    texture(TextureOptions(dst))
+    texture(TextureOptions(dst, **_texture_options(src)))
     return dst
+
+
+def _texture_options(root: Path) -> dict:
+    """The options the workspace's textures were recovered with (textures/index.json), as
+    TextureOptions fields."""
+    import dataclasses
+
+    from reflab.inverse.stages import TextureOptions
+
+    used = json.loads((root / "textures" / "index.json").read_text()).get("options", {})
+    fields = {f.name for f in dataclasses.fields(TextureOptions)} - {"workspace"}
+    return {k: (tuple(v) if isinstance(v, list) else v) for k, v in used.items() if k in fields and v is not None}
 
 
 def _line(label: str, res: dict) -> str:

@@ -310,7 +310,10 @@ def inputs_from_capture(workspace, *, centre=None, direction: float | None = Non
     """Write ``inputs/`` from a finished ``captures/inputs`` session: each shot's photograph with
     its sidecar, the camera and lamps turned from camera.json and lights.json about the turntable
     axis (``centre``/``direction``, by default the axis reconstruct found) by the shot's angle
-    from the reference input's, and only its lit lamps. Returns the names written."""
+    from the reference input's, and only its lit lamps. A photograph larger (or smaller) than
+    camera.json's size, with its aspect ratio, gets camera.json's camera at its size
+    (:meth:`reflab.calibration.camera.Camera.scaled`: the camera's full resolution where it was
+    calibrated binned or at a lower one). Returns the names written."""
     from reflab.calibration.camera import Camera
     from reflab.calibration.lights import Lights
     from reflab.core.images import read_image
@@ -337,7 +340,14 @@ def inputs_from_capture(workspace, *, centre=None, direction: float | None = Non
         lit = [k for k, on in enumerate(shot["lamps"]) if on]
         angle = float(shot["angle"]) - start
         cam, li = turned_view(camera, lights, angle, centre, direction=direction, lit=lit)
-        image = read_image(ws.captures_of("inputs") / shot["file"])
+        path = ws.captures_of("inputs") / shot["file"]
+        image = read_image(path)
+        height, width = image.shape[:2]
+        if (width, height) != (cam.width, cam.height):
+            if width * cam.height != height * cam.width:
+                raise WorkspaceError(path, "size", f"camera.json's aspect ratio ({cam.width}x{cam.height} or a "
+                                                   "multiple)", got=f"{width}x{height}")
+            cam = cam.scaled(width, height)
         name = Path(shot["file"]).stem
         write_input(ws, name, image, cam, li, {"angle_deg": angle, "lamps": lit})
         names.append(name)
