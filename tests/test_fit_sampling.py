@@ -22,8 +22,8 @@ def test_the_sample_keeps_every_strong_evidence_pixel_and_is_seeded():
     truth = [s.material for s in lab.scene]
     mask = np.ones(80 * 60, dtype=bool)
     budget = 1200
-    keep, counts = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
-    again, _ = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
+    keep, _, counts = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
+    again, _, _ = fit_sample(trees, truth, lab.lights.intensities, mask, budget)
     assert np.array_equal(keep, again)
     w = evidence_weight(trees, truth, lab.lights.intensities)
     strongest = np.argsort(w)[::-1][:100]  # each term's strongest pixels (highlights): all read

@@ -125,7 +125,7 @@ def shaped(materials, open_lobes, shape) -> list:
 
 
 def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: int = SEED,
-               open_lobes=()) -> tuple[np.ndarray, dict]:
+               open_lobes=()) -> tuple[np.ndarray, np.ndarray, dict]:
     """The pixels the fit reads after its pilot: ``mask``'s evidence and a uniform share of the rest.
 
     With ``evidence`` = :data:`EVIDENCE` · ``pixels``, each pixel is kept with probability
@@ -138,7 +138,11 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
 
     Returns
     -------
-    (H*W,) bool
+    keep : (H*W,) bool
+    probability : (H*W,) float
+        Each pixel's probability to be kept (:func:`inclusion`; 0 outside ``mask``): the fit
+        weighs each kept pixel's row by its inverse (:func:`weights`, Horvitz–Thompson), so that
+        its normal equations estimate those of every pixel of ``mask``.
     dict
         fit.json's ``sampling`` counts: ``evidence``, ``bulk``, ``of`` (the pixels ``mask`` held).
     """
@@ -151,13 +155,52 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
     total = float(w.sum())
     rng = np.random.default_rng(seed + 1)
     draw = rng.random(len(w))
-    ev = np.zeros_like(mask)
+    p_ev = np.zeros(len(w))
     if total > 0:
         # The scale c with Σ min(1, c·w) = evidence (bisection on the sorted weights).
         c = _scale(w[w > 0], float(evidence))
-        ev = (w > 0) & (draw < (np.minimum(1.0, c * w) if np.isfinite(c) else 1.0))
-    rest = uniform(mask & ~ev, bulk, seed + 2)
-    return ev | rest, {"pixels": int(pixels), "evidence": int(ev.sum()), "bulk": int(rest.sum()), "of": int(mask.sum())}
+        p_ev = np.where(w > 0, np.minimum(1.0, c * w) if np.isfinite(c) else 1.0, 0.0)
+    ev = draw < p_ev
+    others = mask & ~ev
+    rest = uniform(others, bulk, seed + 2)
+    keep = ev | rest
+    p_bulk = float(rest.sum()) / max(int(others.sum()), 1)
+    return keep, np.where(mask, inclusion(p_ev, p_bulk), 0.0), {"pixels": int(pixels), "evidence": int(ev.sum()),
+                                                                 "bulk": int(rest.sum()), "of": int(mask.sum())}
+
+
+def inclusion(*probabilities) -> np.ndarray:
+    """A pixel's probability to be drawn by any of independent draws of the given probabilities
+    (arrays or numbers): ``1 − Π (1 − p)``. Each draw's own: the evidence's ``min(1, c·w)``, a
+    uniform draw's its count over the pixels it drew from (the bulk draws from those the
+    evidence left, so independently of it given them)."""
+    miss = 1.0
+    for p in probabilities:
+        miss = miss * (1.0 - np.clip(np.asarray(p, dtype=np.float64), 0.0, 1.0))
+    return 1.0 - miss
+
+
+def weights(keep, probability) -> np.ndarray:
+    """(H*W,) 1 / ``probability`` on ``keep`` (0 elsewhere), scaled to average 1 over ``keep``:
+    the fit's row weights (Horvitz–Thompson). The scale changes no estimate and no σ; at mean 1 a
+    weighted residual's size stays a pixel's (the noise tests, the stopping rules)."""
+    keep = np.asarray(keep, dtype=bool)
+    p = np.broadcast_to(np.asarray(probability, dtype=np.float64), keep.shape)
+    out = np.zeros(keep.shape)
+    out[keep] = 1.0 / np.maximum(p[keep], 1e-12)
+    mean = out[keep].mean() if keep.any() else 1.0
+    return out / mean
+
+
+def weighted(trees, weight):
+    """``trees`` (a shallow copy) carrying the row weights ``weight`` (H*W,): every system built on
+    them (:class:`reflab.inverse.forward.factorization.Factorization`: the fit, its outlier refits,
+    the texture rounds, the albedo model's refit) weighs its rows alike."""
+    import copy
+
+    out = copy.copy(trees)
+    out.weights = np.asarray(weight, dtype=np.float64)
+    return out
 
 
 def _scale(w, budget: float) -> float:

@@ -145,12 +145,17 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     t1 = time.perf_counter()
     models = [get_model(s.material.brdf) for s in scene]
     usable = np.asarray(usable, dtype=bool).reshape(-1)
-    sampled = sampling.needed(usable, pixels, sample_above)
+    # What a sample stands for: the usable pixels that see something (a pixel without a tree
+    # is a zero row, nothing to read).
+    frame = np.zeros_like(usable)
+    frame[np.asarray(trees.pixel, dtype=np.int64)] = True
+    frame &= usable
+    sampled = sampling.needed(frame, pixels, sample_above)
     if sampled:  # the pixels read are too sparse for the noise's 3×3 windows: the usable ones say it
         from reflab.inverse.fit.photograph import remember_noise
 
         remember_noise(image, usable)
-    fac = Factorization(trees, models, intensities, mask=sampling.pilot(usable, pixels) if sampled else usable)
+    fac = Factorization(trees, models, intensities, mask=sampling.pilot(frame, pixels) if sampled else usable)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
@@ -167,9 +172,12 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     if sampled and not result.message.startswith("stopped"):
         # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
         t3 = time.perf_counter()
-        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable, pixels,
-                                                  open_lobes=sampling.open_lobes(result))
+        keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame, pixels,
+                                                               open_lobes=sampling.open_lobes(result))
         sample_report["pilot"] = int(fac.n_rows)
+        # Each row weighed by 1/(its inclusion probability): the evidence is favoured in the draw,
+        # not in the estimate (Horvitz–Thompson; docs/fit.md "Sampling").
+        trees = sampling.weighted(trees, sampling.weights(keep, probability))
         fac = Factorization(trees, models, intensities, mask=keep)
         t4 = time.perf_counter()
         sample_report["pilot_s"] = round(result.time_s, 6)
@@ -198,9 +206,11 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
             # with the sample, not with the photographs.
             seen = keep.copy()
             seen[:int(ref)] = True
-            round_trees = trees.of_pixels(seen)
+            round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
+        # The lobes from the texture's colours weigh their pixels alike: they read every usable pixel.
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
-                                           mask=keep, rounds=texture_rounds, method=method,
+                                           mask=keep, colour_mask=frame if sampled and round_trees is trees else None,
+                                           rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
