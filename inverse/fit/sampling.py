@@ -26,10 +26,9 @@ import numpy as np
 #: default is this number): above it, it samples.
 PIXELS = 85_000
 #: The fit reads every usable pixel up to this many (all photographs together; ``reflab fit
-#: --sample-above``, in megapixels) and samples only above: an unweighted draw that favours the
-#: evidence shifts the estimate where the model is imperfect, and σ does not hold that shift
-#: (docs/fit.md, "Sampling": a zoo scene's textured lobe ns 9.3 ± 0.8 for 12.2 at 640x480).
-SAMPLE_ABOVE = 2_000_000
+#: --sample-above``, in megapixels) and samples only above: about twice the budget, where reading
+#: a sample starts to pay (a 640x480 photograph is sampled, a 320x240 one is read whole).
+SAMPLE_ABOVE = 200_000
 #: Of that budget: the pilot's share (uniform), the evidence's (drawn by information) and the
 #: bulk's (uniform, beside the evidence).
 PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
