@@ -168,6 +168,14 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
                                                                  "bulk": int(rest.sum()), "of": int(mask.sum())}
 
 
+def even(mask, pixels: int = PIXELS, seed: int = SEED) -> np.ndarray:
+    """A uniform sample of ``mask`` as large as the fit's uniform draws (:data:`PILOT` + :data:`BULK`
+    of the budget ``pixels``): for an estimate that weighs its pixels alike (the lobes from the
+    texture's colours, :mod:`reflab.inverse.fit.dichromatic`), which the evidence's draw would
+    lean toward the favoured pixels and reading every pixel would make slow."""
+    return uniform(mask, max(int((PILOT + BULK) * pixels), 1), seed + 4)
+
+
 def inclusion(*probabilities) -> np.ndarray:
     """A pixel's probability to be drawn by any of independent draws of the given probabilities
     (arrays or numbers): ``1 − Π (1 − p)``. Each draw's own: the evidence's ``min(1, c·w)``, a

@@ -282,10 +282,10 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         band, whose texture the fit's rows, ``trees``' nodes, then look up.
     colour_mask : (H*W,) bool, optional
         The pixels the lobes from the texture's colours (:func:`colour_held`) read, when not
-        ``mask``: every usable pixel where the fit reads a weighted sample (``mask``) but the
-        trees hold every pixel. That estimate weighs its pixels alike, so from a sample drawn by
-        evidence it would lean toward the favoured pixels (zoo seed 7 at 640x480: a printed
-        cylinder's ns 9.4 ± 0.8 for 12.2 from the sample, 11.9 ± 0.9 from every pixel).
+        ``mask``: a uniform sample (:func:`reflab.inverse.fit.sampling.even`) where the fit reads
+        a weighted one drawn by evidence (``mask``). That estimate weighs its pixels alike, so on
+        the evidence's sample it leans toward the favoured pixels (zoo seed 7 at 640x480: a
+        printed cylinder's ns 9.4 ± 0.8 for 12.2; 12.0 ± 0.9 from every pixel).
 
     Returns
     -------

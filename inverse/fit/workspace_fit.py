@@ -207,9 +207,10 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
             seen = keep.copy()
             seen[:int(ref)] = True
             round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
-        # The lobes from the texture's colours weigh their pixels alike: they read every usable pixel.
+        # The lobes from the texture's colours weigh their pixels alike: they read a uniform sample.
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
-                                           mask=keep, colour_mask=frame if sampled and round_trees is trees else None,
+                                           mask=keep, colour_mask=sampling.even(frame, pixels)
+                                           if sampled and round_trees is trees else None,
                                            rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
