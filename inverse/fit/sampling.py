@@ -13,10 +13,13 @@ information, are rare. So the fit reads
    term's, and pixels are drawn by that weight (:data:`EVIDENCE` of the budget, the strongest all
    kept), then a uniform random sample of the others (:data:`BULK` of it).
 
-Choosing rows by the model, not by their values, keeps least squares unbiased (the residual of a
-kept pixel has the same distribution as before), and every σ is computed from the rows the fit
-read, so it is the honest σ of the estimate actually made: a sample can only widen it. The
-sample is seeded (the same photograph gives the same fit).
+Each pixel read is weighed by 1 / its probability to be drawn (:func:`inclusion`, :func:`weights`;
+Horvitz–Thompson): the fit's normal equations, sums over the pixels read, then estimate those over
+every usable pixel without bias, whether or not the model is right. Unweighted, a draw that
+favours the evidence pulls an imperfect model's estimate toward what the favoured pixels prefer,
+and σ does not hold that pull (docs/fit.md, "Sampling"). Every σ is computed from the rows read
+and their weights, so it is the honest σ of the estimate actually made. The sample is seeded (the
+same photograph gives the same fit).
 """
 from __future__ import annotations
 
