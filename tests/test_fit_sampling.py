@@ -176,3 +176,49 @@ def test_weighted_rows_estimate_every_pixels_fit_where_the_model_is_wrong():
     assert {names[j] for j in np.flatnonzero(biased.any(axis=0))} >= {"1.ks", "4.kd", "4.ks"}, (bias_p, se_p)
     assert np.all(np.abs(bias_w[biased]) < 0.25 * np.abs(bias_p[biased])), (bias_w[biased], bias_p[biased])
     assert np.all(np.abs(bias_w[sane]) < 4 * se_w[sane] + 1e-3 * np.abs(full[sane])), (bias_w, se_w)
+
+
+def test_inclusion_probabilities_are_how_often_each_pixel_is_drawn():
+    """fit_sample's probability per pixel (evidence and bulk combined) against the frequency with
+    which 60 seeded draws read it: equal within the draws' binomial spread, over pixels grouped by
+    their probability (those certain to be read: every draw)."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.sampling import fit_sample
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(80, 60, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material for s in lab.scene]
+    mask = np.zeros(80 * 60, dtype=bool)
+    mask[trees.pixel] = True
+    draws = 60
+    count = np.zeros(80 * 60)
+    for k in range(draws):
+        keep, probability, _ = fit_sample(trees, truth, lab.lights.intensities, mask, 1200, seed=7 * k)
+        count += keep
+    assert not count[~mask].any() and not probability[~mask].any()
+    sure = probability[mask] >= 1.0
+    assert sure.any() and (count[mask][sure] == draws).all()
+    prob, seen = probability[mask][~sure], count[mask][~sure]
+    # Groups: the bulk's floor alone, and thirds of the probabilities the evidence lifts above it.
+    above = prob > prob.min() * (1 + 1e-9)
+    rank = np.argsort(np.argsort(prob)) - (~above).sum()  # 0.. among those above the floor
+    which = np.where(above, 1 + np.minimum(3 * rank // max(above.sum(), 1), 2), 0)
+    groups = [b for b in range(4) if (which == b).sum() >= 20]
+    assert len(groups) == 4
+    for b in groups:
+        p, n = prob[which == b], seen[which == b]
+        spread = np.sqrt(np.sum(p * (1 - p)) * draws) / len(p)  # sd of the group's mean count
+        assert abs(n.mean() - draws * p.mean()) < 4 * spread + 0.01 * draws * p.mean(), (b, n.mean(), draws * p.mean())
+
+
+def test_a_640x480_photograph_is_sampled_by_default_a_320x240_one_read_whole():
+    """The options' default (--sample-above 0.2 MP) and the budget (--pixels 85 000)."""
+    from reflab.inverse.fit.sampling import PIXELS, needed
+    from reflab.inverse.stages import FitOptions
+
+    above = int(round(FitOptions("ws").sample_above * 1e6))
+    assert FitOptions("ws").pixels == PIXELS
+    assert needed(np.ones(640 * 480, dtype=bool), PIXELS, above)
+    assert not needed(np.ones(320 * 240, dtype=bool), PIXELS, above)
+    assert not needed(np.ones(640 * 480, dtype=bool), 0, above)  # --pixels 0: never

@@ -141,7 +141,7 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     rng = np.random.default_rng(sampling.SEED + 3)
     bulk_left = int(sampling.BULK * pixels)
     total = sum(int((~sat).sum()) for sat in saturated)
-    read, probability = [], []
+    read, probability, uniform_read = [], [], []
     for i, (photo, f, sat) in enumerate(zip(photos, factors, saturated)):
         b = view.blocks[i]
         px = view.pixels(i)
@@ -154,6 +154,7 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
         bulk = rng.choice(usable, size=min(share, len(usable)), replace=False)
         mine = np.unique(np.concatenate([full[~np.asarray(sat, dtype=bool)[full]], bulk]))
         read.append(mine)
+        uniform_read.append(bulk)
         # Its inclusion probability: its view pixel's, shared by the block's f² pixels, or the uniform share's.
         y, x = np.divmod(mine, photo.camera.width)
         inside = (y // f < b.height) & (x // f < b.width)  # the binned view crops the remainders
@@ -172,11 +173,14 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     del usable_full
     unusable = np.ones(stack.width * stack.height, dtype=bool)
     p_read = np.zeros(stack.width * stack.height)
+    even = np.zeros(stack.width * stack.height, dtype=bool)  # the uniform share: for the colour lobes
     for i, (r, sat) in enumerate(zip(read, saturated)):
         b = stack.blocks[i]
         v, u = np.divmod(r, b.width)
         unusable[(v + b.row0) * stack.width + u] = False  # read and not saturated
         p_read[(v + b.row0) * stack.width + u] = probability[i]
+        v, u = np.divmod(uniform_read[i], b.width)
+        even[(v + b.row0) * stack.width + u] = True
     t2 = time.perf_counter()
     # 4. The fit on the read pixels, from the pilot's values, each row weighed by 1/(its
     # inclusion probability) (Horvitz–Thompson: docs/fit.md "Sampling").
@@ -195,7 +199,7 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
                                            mask=~unusable, rounds=texture_rounds, method=method, maxiter=maxiter,
                                            progress=progress, task=task, held=held,
                                            max_seconds=None if left is None else left - result.time_s,
-                                           view=(view.trees, view_image, None))
+                                           view=(view.trees, view_image, None), colour_mask=even)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     elif "complete" in result.stats:
         result = result.stats["complete"]()
