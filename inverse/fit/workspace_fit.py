@@ -202,6 +202,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
 
         homogeneous_rms = [float(v) for v in result.rms]
         round_trees = trees
+        # The lobes from the texture's colours weigh their pixels alike: per surface, a uniform sample.
+        even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
         if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
@@ -210,11 +212,9 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
             seen = keep.copy()
             seen[:int(ref)] = True
             round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
-        # The lobes from the texture's colours weigh their pixels alike: they read a uniform sample.
+            even[int(ref):] = False  # the reference's pixels: the further ones' trees are the sample's
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
-                                           mask=keep, colour_mask=sampling.even(frame, pixels)
-                                           if sampled and round_trees is trees else None,
-                                           rounds=texture_rounds, method=method,
+                                           mask=keep, colour_mask=even, rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
