@@ -203,16 +203,19 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         homogeneous_rms = [float(v) for v in result.rms]
         round_trees = trees
         # The lobes from the texture's colours weigh their pixels alike: per surface, a uniform sample.
-        even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
-        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
+        several = sampled and ref and int(trees.stats.get("photographs", 1)) > 1
+        colour_frame = frame.copy()
+        if several:
+            colour_frame[int(ref):] = False  # the reference's pixels: the further ones' trees are the sample's
+        even = sampling.even(trees, colour_frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
+        if several:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
             # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
             # with the sample, not with the photographs.
             seen = keep.copy()
             seen[:int(ref)] = True
             round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
-            even[int(ref):] = False  # the reference's pixels: the further ones' trees are the sample's
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
                                            mask=keep, colour_mask=even, rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
