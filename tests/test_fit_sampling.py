@@ -222,3 +222,24 @@ def test_a_640x480_photograph_is_sampled_by_default_a_320x240_one_read_whole():
     assert needed(np.ones(640 * 480, dtype=bool), PIXELS, above)
     assert not needed(np.ones(320 * 240, dtype=bool), PIXELS, above)
     assert not needed(np.ones(640 * 480, dtype=bool), 0, above)  # --pixels 0: never
+
+
+def test_even_keeps_every_pixel_of_a_small_surface_and_a_uniform_share_of_a_large_one():
+    """The colour lobes' sample: per surface, its directly seen pixels up to the count, all of a small one."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.sampling import even
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(80, 60, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    first = np.full(80 * 60, -1)
+    top = trees.level == 1
+    first[trees.pixel[top]] = trees.surface[top]
+    sizes = np.bincount(first[first >= 0], minlength=len(lab.scene))
+    mask = np.ones(80 * 60, dtype=bool)
+    small, large = int(np.argmin(np.where(sizes > 0, sizes, 10**9))), int(np.argmax(sizes))
+    count = (sizes[small] + sizes[large]) // 2
+    got = even(trees, mask, [small, large], count)
+    assert np.array_equal(got & (first == small), first == small)  # all of the small one
+    assert (got & (first == large)).sum() == count and not (got & ~np.isin(first, [small, large])).any()
+    assert np.array_equal(got, even(trees, mask, [small, large], count))  # seeded
