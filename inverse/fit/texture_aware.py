@@ -306,9 +306,6 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     n_pix = trees.width * trees.height
     mask = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix).copy()
     _leave_out(mask, start, trees.width)
-    if colour_mask is not None:
-        colour_mask = np.asarray(colour_mask, dtype=bool).reshape(n_pix).copy()
-        _leave_out(colour_mask, start, trees.width)
     albedo_models = {}
     if select_models:
         # Surfaces whose photograph shows one colour are fitted as homogeneous (albedo_model).
@@ -316,8 +313,6 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                                              method=method, maxiter=maxiter, max_seconds=max_seconds,
                                              task=task, held=held, min_share=min_share)
         _leave_out(mask, start, trees.width)  # the refit's outliers too
-        if colour_mask is not None:
-            _leave_out(colour_mask, start, trees.width)
     rejected = start.stats.get("rejected", {"count": 0, "pixels": []})
     textured = np.array([s.textured for s in scene], dtype=bool)
     if not np.isin(trees.surface, np.flatnonzero(textured)).any():  # every one uniform: no round
@@ -332,6 +327,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     relative_view, best_relative_view = None, None
     trace, elapsed = [list(p) for p in start.trace], start.time_s
     evaluations, iterations = start.evaluations, start.iterations
+    if colour_mask is not None:  # the start's outliers (the refit's too: start's list holds both) stay out
+        colour_mask = np.asarray(colour_mask, dtype=bool).reshape(n_pix).copy()
+        _leave_out(colour_mask, start, trees.width)
     t_start = time.perf_counter()
     for k in range(int(rounds)):
         t0 = time.perf_counter()
