@@ -300,6 +300,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     """
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
+    given = None if mask is None else np.asarray(mask, dtype=bool).reshape(-1).copy()
+
     options = options or SolverOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
     # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
     # for outliers where the homogeneous fit excused it as albedo variation).
@@ -327,9 +329,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     relative_view, best_relative_view = None, None
     trace, elapsed = [list(p) for p in start.trace], start.time_s
     evaluations, iterations = start.evaluations, start.iterations
-    if colour_mask is not None:  # the start's outliers (the refit's too: start's list holds both) stay out
+    if colour_mask is not None:  # what left the fit's pixels (outliers: the start's list holds the refit's too) stays out
         colour_mask = np.asarray(colour_mask, dtype=bool).reshape(n_pix).copy()
         _leave_out(colour_mask, start, trees.width)
+        if given is not None:
+            colour_mask &= ~(given & ~mask)
     t_start = time.perf_counter()
     for k in range(int(rounds)):
         t0 = time.perf_counter()
