@@ -301,7 +301,6 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
     given = None if mask is None else np.asarray(mask, dtype=bool).reshape(-1).copy()
-
     options = options or SolverOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
     # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
     # for outliers where the homogeneous fit excused it as albedo variation).
