@@ -134,6 +134,7 @@ class Problem:
         data = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)[fac.rows].T  # (3, R)
         #: sqrt of each row's weight (a sample's, :mod:`reflab.inverse.fit.sampling`; None: 1), applied
         #: to ``b`` as the factorization applies it to A's rows: residuals are weighted residuals.
+        #: (``b`` is weighted: a Problem made from it on a weighted system would weigh it twice.)
         self.scale = getattr(fac, "row_scale", None)
         self.b = (data * self.scale if self.scale is not None else data).copy()
         self.bb = np.einsum("cr,cr->c", self.b, self.b)
@@ -182,8 +183,8 @@ class Problem:
             return A, res
         from scipy.sparse import diags
 
-        inv = diags(1.0 / self.scale)
-        return [(inv @ a).tocsr() for a in A], res / self.scale
+        inv = np.divide(1.0, self.scale, out=np.zeros_like(self.scale), where=self.scale > 0)
+        return [(diags(inv) @ a).tocsr() for a in A], res * inv
 
     def rms(self, res) -> np.ndarray:
         """RMS residual per band over the used pixels (weighted: the rows' weights average 1, so
