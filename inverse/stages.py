@@ -45,8 +45,9 @@ class FitOptions:
     pixels: int = opt(85_000, "pixels the fit reads when it samples (above --sample-above, or a photograph above "
                               "2 MP): a pilot, then the pixels that show lobes, reflections and transmissions and "
                               "a share of the rest (0 = never sample)", type=nonneg_int)
-    sample_above: float = opt(2.0, "the fit reads every usable pixel of the photographs up to this many megapixels "
-                                   "(all together) and samples only above", unit="MP", type=nonneg_float)
+    sample_above: float = opt(0.2, "the fit reads every usable pixel of the photographs up to this many megapixels "
+                                   "(all together) and samples only above (its rows weighed back: "
+                                   "docs/fit.md \"Sampling\")", unit="MP", type=nonneg_float)
 
 
 @dataclass

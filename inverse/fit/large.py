@@ -136,12 +136,12 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     pilot = fit(pilot_fac, view_image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
                 textured=textured, names=scene.names, task=task, held=held, uncertainty=False, reject=False)
     # 3. The pixels read: the view's evidence, each at one pixel of its block, and a uniform share.
-    chosen_view, counts = sampling.fit_sample(view.trees, pilot.materials, view.intensities, view_usable, pixels,
+    chosen_view, p_view, counts = sampling.fit_sample(view.trees, pilot.materials, view.intensities, view_usable, pixels,
                                               open_lobes=sampling.open_lobes(pilot))
     rng = np.random.default_rng(sampling.SEED + 3)
     bulk_left = int(sampling.BULK * pixels)
     total = sum(int((~sat).sum()) for sat in saturated)
-    read = []
+    read, probability, uniform_read = [], [], []
     for i, (photo, f, sat) in enumerate(zip(photos, factors, saturated)):
         b = view.blocks[i]
         px = view.pixels(i)
@@ -154,6 +154,13 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
         bulk = rng.choice(usable, size=min(share, len(usable)), replace=False)
         mine = np.unique(np.concatenate([full[~np.asarray(sat, dtype=bool)[full]], bulk]))
         read.append(mine)
+        uniform_read.append(bulk)
+        # Its inclusion probability: its view pixel's, shared by the block's f² pixels, or the uniform share's.
+        y, x = np.divmod(mine, photo.camera.width)
+        inside = (y // f < b.height) & (x // f < b.width)  # the binned view crops the remainders
+        p_block = np.zeros(len(mine))
+        p_block[inside] = p_view[(b.row0 + y[inside] // f) * view.width + x[inside] // f] / (f * f)
+        probability.append(sampling.inclusion(p_block, len(bulk) / max(len(usable), 1)))
     trees = [trees_of_pixels(scene, p.camera, p.lights, r, depth=depth, task=task) for p, r in zip(photos, read)]
     stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
     image = stack.image(images)
@@ -165,13 +172,20 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     remember_noise(image, usable_full)
     del usable_full
     unusable = np.ones(stack.width * stack.height, dtype=bool)
+    p_read = np.zeros(stack.width * stack.height)
+    even = np.zeros(stack.width * stack.height, dtype=bool)  # the uniform share: for the colour lobes
     for i, (r, sat) in enumerate(zip(read, saturated)):
         b = stack.blocks[i]
         v, u = np.divmod(r, b.width)
         unusable[(v + b.row0) * stack.width + u] = False  # read and not saturated
+        p_read[(v + b.row0) * stack.width + u] = probability[i]
+        v, u = np.divmod(uniform_read[i], b.width)
+        even[(v + b.row0) * stack.width + u] = True
     t2 = time.perf_counter()
-    # 4. The fit on the read pixels, from the pilot's values.
-    fac = Factorization(stack.trees, models, stack.intensities, mask=~unusable)
+    # 4. The fit on the read pixels, from the pilot's values, each row weighed by 1/(its
+    # inclusion probability) (Horvitz–Thompson: docs/fit.md "Sampling").
+    fit_trees = sampling.weighted(stack.trees, sampling.weights(~unusable, p_read))
+    fac = Factorization(fit_trees, models, stack.intensities, mask=~unusable)
     refit = texture_rounds > 0 and np.isin(stack.trees.surface, np.flatnonzero(textured)).any()
     left = None if max_seconds is None else max(max_seconds - pilot.time_s, 1e-3)
     result = fit(fac, image, pilot.materials, method, maxiter=maxiter, max_seconds=left, textured=textured,
@@ -181,11 +195,11 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
         from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
-        result, records = fit_with_texture(stack.trees, scene, models, stack.intensities, image, result,
+        result, records = fit_with_texture(fit_trees, scene, models, stack.intensities, image, result,
                                            mask=~unusable, rounds=texture_rounds, method=method, maxiter=maxiter,
                                            progress=progress, task=task, held=held,
                                            max_seconds=None if left is None else left - result.time_s,
-                                           view=(view.trees, view_image, None))
+                                           view=(view.trees, view_image, None), colour_mask=even)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     elif "complete" in result.stats:
         result = result.stats["complete"]()

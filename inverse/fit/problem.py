@@ -131,10 +131,15 @@ class Problem:
     def __init__(self, fac: Factorization, image, transparent):
         self.fac = fac
         self.transparent = [bool(t) for t in transparent]
-        self.b = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)[fac.rows].T.copy()  # (3, R)
+        data = np.asarray(image, dtype=np.float64).reshape(-1, BANDS)[fac.rows].T  # (3, R)
+        #: sqrt of each row's weight (a sample's, :mod:`reflab.inverse.fit.sampling`; None: 1), applied
+        #: to ``b`` as the factorization applies it to A's rows: residuals are weighted residuals.
+        #: (``b`` is weighted: a Problem made from it on a weighted system would weigh it twice.)
+        self.scale = getattr(fac, "row_scale", None)
+        self.b = (data * self.scale if self.scale is not None else data).copy()
         self.bb = np.einsum("cr,cr->c", self.b, self.b)
         self.norm = float(self.bb.sum()) or 1.0
-        self.peak = float(self.b.max()) if self.b.size else 0.0
+        self.peak = float(data.max()) if data.size else 0.0
         used = np.zeros(fac.width * fac.height, dtype=bool)
         used[fac.rows] = True
         #: Noise σ per band estimated from the image alone (over its usable pixels when the stage
@@ -171,8 +176,19 @@ class Problem:
         """Model minus image (3, R)."""
         return np.stack([A[c] @ y[c] for c in range(BANDS)]) - self.b
 
+    def unweighted(self, A, res):
+        """``A`` (per band) and the residual ``res`` (3, R) with the row weights taken out: what a
+        pixel's own residual is, for tests against the image noise (outliers, the diagnosis)."""
+        if self.scale is None:
+            return A, res
+        from scipy.sparse import diags
+
+        inv = np.divide(1.0, self.scale, out=np.zeros_like(self.scale), where=self.scale > 0)
+        return [(diags(inv) @ a).tocsr() for a in A], res * inv
+
     def rms(self, res) -> np.ndarray:
-        """RMS residual per band over the used pixels."""
+        """RMS residual per band over the used pixels (weighted: the rows' weights average 1, so
+        with weights it estimates the RMS over every pixel the sample stands for)."""
         return np.sqrt(np.mean(res * res, axis=1)) if res.shape[1] else np.zeros(BANDS)
 
     def dy(self, p: Params, c: int, free: Free) -> tuple[np.ndarray, list]:

@@ -210,7 +210,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     inf = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
     if int(reject) > 0 and not message.startswith("stopped"):
         # Outliers first: a refit follows, and this pass's σ and diagnosis would be thrown away.
-        bad = outliers(pb, p, A, res, textured)
+        bad = outliers(pb, p, *pb.unweighted(A, res), textured)  # each pixel against the noise
         if 0 < len(bad) <= REJECT_SHARE * fac.n_rows:
             first = FitSolution(method, p, free, materials_of(fac, p, materials), inf, rms, fitted, trace, [],
                               rounds, pb.evaluations, iterations, message,
@@ -317,7 +317,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
         if name != "kd" and (np.any(~fitted_free.theta[th]) or np.any(loose.theta[th])):
             loose.x[k] |= fitted_free.x[k]
-    status, warnings = diagnose(pb, p, A, res, textured, names)
+    status, warnings = diagnose(pb, p, *pb.unweighted(A, res), textured, names)
     # An undetermined lobe is reported and rendered where the data and the prior over the field's
     # lobes agree (determined.plausible_lobes); any other undetermined value off a range bound.
     p, lobes, handled = plausible_lobes(pb, p, free, loose, sf, res, materials, textured, fitted_free)

@@ -13,10 +13,13 @@ information, are rare. So the fit reads
    term's, and pixels are drawn by that weight (:data:`EVIDENCE` of the budget, the strongest all
    kept), then a uniform random sample of the others (:data:`BULK` of it).
 
-Choosing rows by the model, not by their values, keeps least squares unbiased (the residual of a
-kept pixel has the same distribution as before), and every σ is computed from the rows the fit
-read, so it is the honest σ of the estimate actually made: a sample can only widen it. The
-sample is seeded (the same photograph gives the same fit).
+Each pixel read is weighed by 1 / its probability to be drawn (:func:`inclusion`, :func:`weights`;
+Horvitz–Thompson): the fit's normal equations, sums over the pixels read, then estimate those over
+every usable pixel without bias, whether or not the model is right. Unweighted, a draw that
+favours the evidence pulls an imperfect model's estimate toward what the favoured pixels prefer,
+and σ does not hold that pull (docs/fit.md, "Sampling"). Every σ is computed from the rows read
+and their weights, so it is the honest σ of the estimate actually made. The sample is seeded (the
+same photograph gives the same fit).
 """
 from __future__ import annotations
 
@@ -26,15 +29,16 @@ import numpy as np
 #: default is this number): above it, it samples.
 PIXELS = 85_000
 #: The fit reads every usable pixel up to this many (all photographs together; ``reflab fit
-#: --sample-above``, in megapixels) and samples only above: an unweighted draw that favours the
-#: evidence shifts the estimate where the model is imperfect, and σ does not hold that shift
-#: (docs/fit.md, "Sampling": a zoo scene's textured lobe ns 9.3 ± 0.8 for 12.2 at 640x480).
-SAMPLE_ABOVE = 2_000_000
+#: --sample-above``, in megapixels) and samples only above: about twice the budget, where reading
+#: a sample starts to pay (a 640x480 photograph is sampled, a 320x240 one is read whole).
+SAMPLE_ABOVE = 200_000
 #: Of that budget: the pilot's share (uniform), the evidence's (drawn by information) and the
 #: bulk's (uniform, beside the evidence).
 PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
 #: The sampling's seed.
 SEED = 0
+#: Pixels per surface at most for an estimate that weighs its pixels alike (:func:`even`).
+EVEN = 5_000
 #: Shapes at which a lobe the pilot left undetermined is looked for: where a broad, a glossy or a
 #: sharp lobe would show (its shininess unknown, its highlight may be anywhere among them).
 SHAPES = ({"ns": 8.0, "alpha": 0.3}, {"ns": 64.0, "alpha": 0.1}, {"ns": 512.0, "alpha": 0.02})
@@ -125,7 +129,7 @@ def shaped(materials, open_lobes, shape) -> list:
 
 
 def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: int = SEED,
-               open_lobes=()) -> tuple[np.ndarray, dict]:
+               open_lobes=()) -> tuple[np.ndarray, np.ndarray, dict]:
     """The pixels the fit reads after its pilot: ``mask``'s evidence and a uniform share of the rest.
 
     With ``evidence`` = :data:`EVIDENCE` · ``pixels``, each pixel is kept with probability
@@ -138,7 +142,11 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
 
     Returns
     -------
-    (H*W,) bool
+    keep : (H*W,) bool
+    probability : (H*W,) float
+        Each pixel's probability to be kept (:func:`inclusion`; 0 outside ``mask``): the fit
+        weighs each kept pixel's row by its inverse (:func:`weights`, Horvitz–Thompson), so that
+        its normal equations estimate those of every pixel of ``mask``.
     dict
         fit.json's ``sampling`` counts: ``evidence``, ``bulk``, ``of`` (the pixels ``mask`` held).
     """
@@ -151,13 +159,69 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
     total = float(w.sum())
     rng = np.random.default_rng(seed + 1)
     draw = rng.random(len(w))
-    ev = np.zeros_like(mask)
+    p_ev = np.zeros(len(w))
     if total > 0:
         # The scale c with Σ min(1, c·w) = evidence (bisection on the sorted weights).
         c = _scale(w[w > 0], float(evidence))
-        ev = (w > 0) & (draw < (np.minimum(1.0, c * w) if np.isfinite(c) else 1.0))
-    rest = uniform(mask & ~ev, bulk, seed + 2)
-    return ev | rest, {"pixels": int(pixels), "evidence": int(ev.sum()), "bulk": int(rest.sum()), "of": int(mask.sum())}
+        p_ev = np.where(w > 0, np.minimum(1.0, c * w) if np.isfinite(c) else 1.0, 0.0)
+    ev = draw < p_ev
+    others = mask & ~ev
+    rest = uniform(others, bulk, seed + 2)
+    keep = ev | rest
+    p_bulk = float(rest.sum()) / max(int(others.sum()), 1)
+    return keep, np.where(mask, inclusion(p_ev, p_bulk), 0.0), {"pixels": int(pixels), "evidence": int(ev.sum()),
+                                                                 "bulk": int(rest.sum()), "of": int(mask.sum())}
+
+
+def even(trees, mask, surfaces, count: int = EVEN, seed: int = SEED) -> np.ndarray:
+    """(H*W,) bool: for an estimate that weighs its pixels alike (the lobes from the texture's
+    colours, :mod:`reflab.inverse.fit.dichromatic`), per surface of ``surfaces`` the pixels of
+    ``mask`` that see it first, all of them up to ``count``, else ``count`` drawn uniformly. The
+    evidence's draw would lean such an estimate toward the favoured pixels; reading every pixel of
+    a large surface would make it slow (a zoo ground's 152 000 pixels at 640x480: 13 s of 64 under
+    cProfile)."""
+    mask = np.asarray(mask, dtype=bool).reshape(-1)
+    first = np.full(len(mask), -1, dtype=np.int64)
+    top = np.asarray(trees.level) == 1
+    first[np.asarray(trees.pixel)[top]] = np.asarray(trees.surface)[top]
+    out = np.zeros_like(mask)
+    for k, s in enumerate(surfaces):
+        out |= uniform(mask & (first == int(s)), int(count), seed + 4 + k)
+    return out
+
+
+def inclusion(*probabilities) -> np.ndarray:
+    """A pixel's probability to be drawn by any of independent draws of the given probabilities
+    (arrays or numbers): ``1 − Π (1 − p)``. Each draw's own: the evidence's ``min(1, c·w)``, a
+    uniform draw's its count over the pixels it drew from (the bulk draws from those the
+    evidence left, so independently of it given them)."""
+    miss = 1.0
+    for p in probabilities:
+        miss = miss * (1.0 - np.clip(np.asarray(p, dtype=np.float64), 0.0, 1.0))
+    return 1.0 - miss
+
+
+def weights(keep, probability) -> np.ndarray:
+    """(H*W,) 1 / ``probability`` on ``keep`` (0 elsewhere), scaled to average 1 over ``keep``:
+    the fit's row weights (Horvitz–Thompson). The scale changes no estimate and no σ; at mean 1 a
+    weighted residual's size stays a pixel's (the noise tests, the stopping rules)."""
+    keep = np.asarray(keep, dtype=bool)
+    p = np.broadcast_to(np.asarray(probability, dtype=np.float64), keep.shape)
+    out = np.zeros(keep.shape)
+    out[keep] = 1.0 / np.maximum(p[keep], 1e-12)
+    mean = out[keep].mean() if keep.any() else 1.0
+    return out / mean
+
+
+def weighted(trees, weight):
+    """``trees`` (a shallow copy) carrying the row weights ``weight`` (H*W,): every system built on
+    them (:class:`reflab.inverse.forward.factorization.Factorization`: the fit, its outlier refits,
+    the texture rounds, the albedo model's refit) weighs its rows alike."""
+    import copy
+
+    out = copy.copy(trees)
+    out.weights = np.asarray(weight, dtype=np.float64)
+    return out
 
 
 def _scale(w, budget: float) -> float:

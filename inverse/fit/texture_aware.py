@@ -235,7 +235,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                      min_share: float = MIN_SHARE, method: str = "ftbo", options: SolverOptions | None = None,
                      maxiter: int | None = None, max_seconds: float | None = None,
                      progress=None, task=None, held=None, select_models: bool = True,
-                     view=None) -> tuple[FitSolution, list]:
+                     view=None, colour_mask=None) -> tuple[FitSolution, list]:
     """Refit the parameters of a textured scene in rounds against its recovered texture.
 
     Parameters
@@ -281,6 +281,12 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         Where the rounds recover their texture, when not from ``trees`` and ``image`` themselves:
         a large photograph's binned view (:mod:`reflab.inverse.fit.large`) and its noise σ per
         band, whose texture the fit's rows, ``trees``' nodes, then look up.
+    colour_mask : (H*W,) bool, optional
+        The pixels the lobes from the texture's colours (:func:`colour_held`) read, when not
+        ``mask``: a uniform sample (:func:`reflab.inverse.fit.sampling.even`) where the fit reads
+        a weighted one drawn by evidence (``mask``). That estimate weighs its pixels alike, so on
+        the evidence's sample it leans toward the favoured pixels (zoo seed 7 at 640x480: a
+        printed cylinder's ns 9.4 ± 0.8 for 12.2; 12.0 ± 0.9 from every pixel).
 
     Returns
     -------
@@ -295,6 +301,7 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     """
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
+    given = None if mask is None else np.asarray(mask, dtype=bool).reshape(-1).copy()
     options = options or SolverOptions(texel_scale=TEXEL_SCALE, min_coverage=MIN_COVERAGE)
     # The start's outliers stay out; the rounds reject no more (the texture's own misfit would pass
     # for outliers where the homogeneous fit excused it as albedo variation).
@@ -324,6 +331,11 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     relative_view, best_relative_view = None, None
     trace, elapsed = [list(p) for p in start.trace], start.time_s
     evaluations, iterations = start.evaluations, start.iterations
+    if colour_mask is not None:  # what left the fit's pixels (outliers: the start's list holds the refit's too) stays out
+        colour_mask = np.asarray(colour_mask, dtype=bool).reshape(n_pix).copy()
+        _leave_out(colour_mask, start, trees.width)
+        if given is not None:
+            colour_mask &= ~(given & ~mask)
     t_start = time.perf_counter()
     for k in range(int(rounds)):
         t0 = time.perf_counter()
@@ -342,7 +354,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         if last:
             # A lobe the texture's colours determine is held at that estimate (reflab.inverse.fit.dichromatic).
             materials, guessed, colour = colour_held(trees, materials, guessed, intensities, image, textured,
-                                                     start.stats.get("noise"), mask, held, result.rms)
+                                                     start.stats.get("noise"), mask if colour_mask is None
+                                                     else colour_mask, held, result.rms)
             colour_s = time.perf_counter() - t0
         # The first round's pixels are chosen with each textured surface's own r and t at 0: the
         # homogeneous start fitted them against one kd, so they carry the texture's variation (shiny

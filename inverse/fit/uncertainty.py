@@ -64,13 +64,18 @@ def coarser(rows: np.ndarray, width: int, height: int, factor: int) -> tuple[np.
     return out, len(used)
 
 
-def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def covariance(H: np.ndarray, scores: np.ndarray | None = None, middle: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Standard deviations from the normal matrix ``H`` (n, n) and tile scores (n, T).
+
+    ``middle`` (n, n): for rows weighed by a sample's 1/p (Horvitz–Thompson), ``Σ w² JᵀWJ``, the
+    noise's variance of the weighted score; the model-based covariance is then ``H⁻¹ middle H⁻¹``
+    (``H⁻¹`` when every weight is 1).
 
     Returns
     -------
     model : (n,) ndarray
-        ``sqrt(diag(H⁻¹))``; ``inf`` where ``H`` is singular along the parameter.
+        ``sqrt(diag(H⁻¹))`` (``sqrt(diag(H⁻¹ middle H⁻¹))``); ``inf`` where ``H`` is singular along the parameter.
     robust : (n,) ndarray
         ``sqrt(diag(H⁻¹ M H⁻¹))`` (``model`` where no scores are given); ``inf`` likewise.
     """
@@ -88,7 +93,11 @@ def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndar
     floor = 1e-14 * max(w.max(), 1e-300)
     w = np.maximum(w, floor)
     inv = (V / w) @ V.T  # scaled (H⁻¹ up to the diagonal scaling)
-    model[ok] = np.sqrt(np.maximum(np.diag(inv), 0.0)) / dg[ok]
+    if middle is None:
+        model[ok] = np.sqrt(np.maximum(np.diag(inv), 0.0)) / dg[ok]
+    else:
+        mid = middle[np.ix_(ok, ok)] / np.outer(dg[ok], dg[ok])
+        model[ok] = np.sqrt(np.maximum(np.einsum("ij,jk,ki->i", inv, mid, inv), 0.0)) / dg[ok]
     if scores is None or scores.shape[1] < 2:
         robust[:] = model
         return model, robust
@@ -100,7 +109,8 @@ def covariance(H: np.ndarray, scores: np.ndarray | None = None) -> tuple[np.ndar
     return model, robust
 
 
-def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height: int, blocks=None) -> np.ndarray:
+def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height: int, blocks=None,
+              middle: np.ndarray | None = None) -> np.ndarray:
     """(n,) the larger, per parameter, of the model-based σ and the sandwich over the fine tiles
     (``scores`` (n, T) summed per :func:`tile_index` of the used pixels ``rows``; None: the model's
     alone) and over tiles :data:`COARSE_FACTOR` times larger; inf where unconstrained, never NaN.
@@ -109,8 +119,9 @@ def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height
     :mod:`reflab.inverse.forward.photographs`): the sandwich is also taken over whole photographs.
     A misfit that one photograph's pixels share (a highlight a slightly wrong geometry shows in
     the wrong place, in the only photograph that shows it) is one cluster there, and the tiles'
-    sandwich, where it spans one or two tiles, would not see it."""
-    model, sandwich = covariance(H, scores)
+    sandwich, where it spans one or two tiles, would not see it. ``middle``: as :func:`covariance`
+    takes it (weighted rows)."""
+    model, sandwich = covariance(H, scores, middle)
     if scores is not None:
         group, n_big = coarser(rows, width, height, COARSE_FACTOR)
         big = np.zeros((scores.shape[0], n_big))
@@ -133,7 +144,8 @@ def normal_matrix(pb: Problem, p: Params, free: Free, weights, A=None, grad=None
     ``A``, ``grad`` from ``fac.matrices_and_grad(p.theta)`` when the caller has them. With the
     residual ``res`` (3, R) and ``tiles`` = (tile of each used pixel, T), also the per-tile
     gradients ``g_t = Σ_{i∈t} J_iᵀ W r_i`` (n, T) of :func:`reflab.inverse.fit.uncertainty.covariance`.
-    ``keep`` (R,) bool: only these pixels inform (the others' rows count as zero).
+    ``keep`` (R,) bool: only these pixels inform (the others' rows count as zero); a float
+    array scales each row by it (its square in ``H``).
     """
     fac = pb.fac
     if A is None:
@@ -260,10 +272,18 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     only these pixels inform (:func:`reflab.inverse.fit.determined.texture_absorbed` leaves out what a free texture explains).
     ``extra``: ``extra(free, weights, tiles) -> (H, scores)`` or None, terms of further pixels
     added to the normal matrix and the tile scores (:func:`profiled`). Never NaN.
+
+    Rows weighed by a sample's 1/p (``pb.scale``, :mod:`reflab.inverse.fit.sampling`): ``H`` and
+    the tile scores are the weighted ones (Horvitz–Thompson estimates of every pixel's), and the
+    model-based covariance is ``H⁻¹ (Σ w² JᵀWJ) H⁻¹``, the spread the noise of the pixels read
+    gives the weighted estimate; the sandwich over tiles, from the weighted scores, holds the
+    sampling's share of a misfit too.
     """
     n_free = free.count()
     dof = max(BANDS * pb.fac.n_rows - n_free, 1)
     var = np.sum(res * res, axis=1) / max(dof / BANDS, 1.0)
+    if getattr(pb, "scale", None) is not None:  # weighted residuals: per unit of weight
+        var = var * pb.fac.n_rows / max(float(np.sum(pb.scale ** 2)), 1e-300)
     var = np.maximum(var, (NOISE_FLOOR * pb.peak) ** 2)
     sig = Params(np.full_like(p.x, np.inf), np.full_like(p.s, np.inf), np.full_like(p.theta, np.inf))
     # The tiles only where they serve: the holding rounds' many model-based calls need none.
@@ -274,13 +294,18 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
         (H, labels), scores = normal_matrix(pb, p, free, 1.0 / var, keep=keep), None
     if not labels:
         return sig
+    middle = None
+    if getattr(pb, "scale", None) is not None:
+        # Σ w² JᵀWJ: the rows (already scaled by sqrt(w)) scaled by sqrt(w) once more.
+        middle = normal_matrix(pb, p, free, 1.0 / var, keep=pb.scale * (1.0 if keep is None else keep))[0]
     more = extra(free, 1.0 / var, tiles) if extra is not None else None
     if more is not None:
         H = H + more[0]
+        middle = None if middle is None else middle + more[0]  # (their w² term: the sandwich holds it)
         scores = None if scores is None else scores + more[1]
     stats = getattr(pb.fac.trees, "stats", None)
     blocks = stats.get("block_row0") if isinstance(stats, dict) else None
-    sd = robust_sd(H, scores, pb.fac.rows, pb.fac.width, pb.fac.height, blocks)
+    sd = robust_sd(H, scores, pb.fac.rows, pb.fac.width, pb.fac.height, blocks, middle)
     for (kind, i, c), v in zip(labels, sd):
         if kind == "x":
             sig.x[i, c] = v

@@ -145,12 +145,17 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     t1 = time.perf_counter()
     models = [get_model(s.material.brdf) for s in scene]
     usable = np.asarray(usable, dtype=bool).reshape(-1)
-    sampled = sampling.needed(usable, pixels, sample_above)
+    # What a sample stands for: the usable pixels that see something (a pixel without a tree
+    # is a zero row, nothing to read).
+    frame = np.zeros_like(usable)
+    frame[np.asarray(trees.pixel, dtype=np.int64)] = True
+    frame &= usable
+    sampled = sampling.needed(frame, pixels, sample_above)
     if sampled:  # the pixels read are too sparse for the noise's 3×3 windows: the usable ones say it
         from reflab.inverse.fit.photograph import remember_noise
 
         remember_noise(image, usable)
-    fac = Factorization(trees, models, intensities, mask=sampling.pilot(usable, pixels) if sampled else usable)
+    fac = Factorization(trees, models, intensities, mask=sampling.pilot(frame, pixels) if sampled else usable)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
@@ -160,16 +165,22 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     seen_textured = np.isin(trees.surface, [i for i, s in enumerate(scene) if s.textured])
     refit = texture_rounds > 0 and seen_textured.any()
     # With texture rounds to follow, the homogeneous fit's σ is computed only if it is the one kept.
+    # A pilot is a seed: its outliers (pixels of the pilot, which the pixels read after it hardly
+    # share) are left to the fit that reads them; rejecting them cost a refit (zoo seed 1 at
+    # 640x480: 10 s of 64 under cProfile).
     result = fit(fac, image, [s.material for s in scene], method, maxiter=maxiter, max_seconds=max_seconds,
                  textured=[s.textured for s in scene], names=scene.names, task=task, held=held,
-                 uncertainty=not (refit or sampled))
+                 uncertainty=not (refit or sampled), reject=not sampled)
     sample_report, keep = None, usable
     if sampled and not result.message.startswith("stopped"):
         # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
         t3 = time.perf_counter()
-        keep, sample_report = sampling.fit_sample(trees, result.materials, intensities, usable, pixels,
-                                                  open_lobes=sampling.open_lobes(result))
+        keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame, pixels,
+                                                               open_lobes=sampling.open_lobes(result))
         sample_report["pilot"] = int(fac.n_rows)
+        # Each row weighed by 1/(its inclusion probability): the evidence is favoured in the draw,
+        # not in the estimate (Horvitz–Thompson; docs/fit.md "Sampling").
+        trees = sampling.weighted(trees, sampling.weights(keep, probability))
         fac = Factorization(trees, models, intensities, mask=keep)
         t4 = time.perf_counter()
         sample_report["pilot_s"] = round(result.time_s, 6)
@@ -191,16 +202,22 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
 
         homogeneous_rms = [float(v) for v in result.rms]
         round_trees = trees
+        # The lobes from the texture's colours weigh their pixels alike: per surface, a uniform sample.
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
-        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
+        several = sampled and ref and int(trees.stats.get("photographs", 1)) > 1
+        colour_frame = frame.copy()
+        if several:
+            colour_frame[int(ref):] = False  # the reference's pixels: the further ones' trees are the sample's
+        even = sampling.even(trees, colour_frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
+        if several:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
             # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
             # with the sample, not with the photographs.
             seen = keep.copy()
             seen[:int(ref)] = True
-            round_trees = trees.of_pixels(seen)
+            round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
-                                           mask=keep, rounds=texture_rounds, method=method,
+                                           mask=keep, colour_mask=even, rounds=texture_rounds, method=method,
                                            maxiter=maxiter, progress=progress, task=task, held=held,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}

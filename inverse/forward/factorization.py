@@ -148,11 +148,19 @@ class Factorization:
         node's surface (NaN or absent: 1). The surface's ``kd`` parameter is then a gain on that
         texture (1 where the texture is right), and the fit judges the other parameters against
         it instead of against a homogeneous albedo.
+    weights : (H*W,) array_like, optional
+        Per pixel, the weight of its row in the least squares (a sample's 1/inclusion probability,
+        :mod:`reflab.inverse.fit.sampling`): its row of every ``A_c`` (and of ∂A/∂θ) is scaled by
+        ``sqrt(weight)``, as :class:`reflab.inverse.fit.problem.Problem` scales ``b``. Default: the
+        trees' ``weights`` attribute when they carry one (a sample's trees, so that every system
+        built on them weighs alike), else none (every row weight 1).
 
     Attributes
     ----------
     rows : (R,) int
         Pixel index of each matrix row.
+    row_scale : (R,) ndarray or None
+        ``sqrt(weight)`` of each row (None: unweighted).
     layout : Layout
     col_x : (C,) int
         Flat linear parameter of each column.
@@ -162,10 +170,12 @@ class Factorization:
         The monomial of each distinct column group.
     """
 
-    def __init__(self, trees, models, intensities, mask=None, albedo=None):
+    def __init__(self, trees, models, intensities, mask=None, albedo=None, weights=None):
         self.trees = trees
         self.models = list(models)
-        self._args = (intensities, mask, albedo)  # for :meth:`without`
+        if weights is None:
+            weights = getattr(trees, "weights", None)
+        self._args = (intensities, mask, albedo, weights)  # for :meth:`without`
         n_surf = len(self.models)
         self.width, self.height, self.depth = int(trees.width), int(trees.height), int(trees.depth)
         n_pix = self.width * self.height
@@ -194,6 +204,12 @@ class Factorization:
         keep = (row_of_pixel[pixel] >= 0) & np.any(weight > 0, axis=(1, 2))
         self.node = np.flatnonzero(keep)
         self.weight = weight[self.node]
+        self.row_scale = None
+        if weights is not None:
+            # A row weighed w is the row scaled by sqrt(w): every entry and θ-derivative is linear
+            # in these per-node weights, so scaling them scales the whole row.
+            self.row_scale = np.sqrt(np.asarray(weights, dtype=np.float64).reshape(n_pix)[self.rows])
+            self.weight = self.weight * self.row_scale[row_of_pixel[pixel[self.node]]][:, None, None]
         self.albedo = None
         if albedo is not None:
             albedo = np.asarray(albedo, dtype=np.float64).reshape(len(pixel), BANDS)[self.node]
@@ -264,11 +280,11 @@ class Factorization:
 
     def without(self, pixels) -> "Factorization":
         """The same system with the flat pixel indices ``pixels`` left out too (rejected outliers)."""
-        intensities, mask, albedo = self._args
+        intensities, mask, albedo, weights = self._args
         n_pix = self.width * self.height
         keep = np.ones(n_pix, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n_pix).copy()
         keep[np.asarray(pixels, dtype=np.int64)] = False
-        return Factorization(self.trees, self.models, intensities, mask=keep, albedo=albedo)
+        return Factorization(self.trees, self.models, intensities, mask=keep, albedo=albedo, weights=weights)
 
     # ------------------------------------------------------------------ sizes
     @property
