@@ -44,7 +44,10 @@ def test_coarse_scan_from_a_poor_start_reaches_the_truth(monkeypatch):
         np.testing.assert_array_equal(mask, getattr(full.free, name))
         got, want = getattr(res.params, name)[mask], getattr(t, name)[mask]
         np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7, err_msg=name)
-        np.testing.assert_allclose(got, getattr(full.params, name)[mask], rtol=1e-6, atol=1e-9, err_msg=name)
+        # Same basin, same end point; the lowered threshold also makes the held mirror lobe weighed on
+        # the 80x60 subsample (determined.plausible_lobes) in this path only, which moves the linear
+        # values fitted beside it by < 1e-5 relative.
+        np.testing.assert_allclose(got, getattr(full.params, name)[mask], rtol=2e-5, atol=1e-9, err_msg=name)
     # Box and tile shininess found from 2^14; from this start the mirror's faint highlight (seen
     # only in the box) stays undetermined with or without the coarse scan.
     assert res.undetermined == full.undetermined == [["r", "t"], ["t"], ["ks", "ns"], ["ks", "t", "ns"], ["t"]]
