@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from reflab.hardware.sim.scenes import build, determined, render, user_materials
+from reflab.inverse.fit import albedo_model
 from reflab.inverse.fit.albedo_model import albedo_evidence
 from reflab.inverse.forward.factorization import Factorization
 from reflab.inverse.forward.models import get_model
@@ -17,6 +18,13 @@ from reflab.reconstruction.scene import Scene, Surface
 W, H = 80, 60
 NOISE = 0.01
 
+
+
+@pytest.fixture(autouse=True)
+def _palettes(monkeypatch):
+    """The palette model as built, though off by default (albedo_model.PALETTES: a soft-edged
+    zoo print passed as four inks at 640x480): these tests hold it to what it must do."""
+    monkeypatch.setattr(albedo_model, "PALETTES", True)
 
 def _uniform(name):
     """Design ``name`` with every texture taken away: each surface its one colour (its texture's
