@@ -184,7 +184,9 @@ def test_disconnect_for_good_gives_up_with_what_to_check(sim):
 
 def test_feed_hold_pauses_the_move_and_cycle_start_resumes(sim):
     sim.time_scale = 1.0
-    cfg = GrblConfig(**dict(FAST, feed_deg_per_min=3600.0))  # 60 deg/s: 90 deg in 1.5 s
+    # 60 deg/s: 90 deg in 1.5 s; a status wait of 2 s, as two test suites at once on two cores
+    # delayed one report past FAST's 0.4 s (the timeout itself is test_no_answer_times_out's)
+    cfg = GrblConfig(**dict(FAST, feed_deg_per_min=3600.0, timeout_s=2.0))
     polls = {"n": 0}
     held_angles = []
 
