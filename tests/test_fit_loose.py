@@ -36,41 +36,16 @@ def test_render_value_keeps_what_the_data_fix_and_what_has_no_sigma():
 
 def test_shiny_box_relit_with_seven_photographs_is_the_true_materials_view(tmp_path):
     from reflab.app.demo_score import psnr
-    from reflab.calibration.lights import Lights, PointLight
-    from reflab.core.images import write_image
     from reflab.core.workspace import Workspace
-    from reflab.hardware.sim.lab import named_views, write_lab
     from reflab.hardware.sim.reference import render_reference
-    from reflab.hardware.sim.scenes import build
-    from reflab.inverse.fit.workspace_fit import fit_workspace
-    from reflab.inverse.forward.photographs import write_input
-    from reflab.inverse.stages import TextureOptions, render_workspace, texture
     from reflab.inverse.texture.solve import load_materials
     from reflab.reconstruction.scene import Scene
+    from seven_photographs import relit_lights, true_and_fitted_renders
 
-    lab = build("shiny_box", 160, 120)
-    rng = np.random.default_rng(0)
-
-    def photograph(cam, lights):
-        img = render_reference(lab.scene, cam, lights, albedo=lab.albedo)
-        return img + rng.normal(0.0, 0.01 * img.max(), img.shape)
-
-    photo = photograph(lab.camera, lab.lights)
-    further = [(n, photograph(c, li), c, li) for n, c, li in named_views(lab.camera, lab.lights, "L0,L1,T35,T-35,T70,T-70")]
-    relit = Lights([PointLight((0.25, -0.3, 0.45), (0.10, 0.095, 0.085)), PointLight((-0.2, 0.35, 0.5), (0.09, 0.085, 0.08))])
-    relit.save(tmp_path / "relit.json")
+    relit = relit_lights(tmp_path / "relit.json")
+    lab, images = true_and_fitted_renders(tmp_path, "shiny_box", {"relit": (None, tmp_path / "relit.json")})
     truth = render_reference(lab.scene, lab.camera, relit, albedo=lab.albedo)
-    views = {}
-    for kind in ("true", "fitted"):
-        root = tmp_path / kind
-        write_lab(root, lab, materials=kind == "true")
-        write_image(root / "input.exr", photo)
-        for name, img, cam, li in further:
-            write_input(root, name, img, cam, li)
-        if kind == "fitted":
-            fit_workspace(root)
-        texture(TextureOptions(root))
-        views[kind] = render_workspace(root, lights=tmp_path / "relit.json")
+    views = {kind: images[kind]["relit"] for kind in images}
     known = ~views["true"][1]["unknown_pixels"] & ~views["fitted"][1]["unknown_pixels"]
     gap = psnr(views["fitted"][0], truth, known) - psnr(views["true"][0], truth, known)
     assert known.mean() > 0.9

@@ -49,29 +49,15 @@ def test_floor_mirror_with_seven_photographs_renders_as_the_true_materials(tmp_p
     -5.5, novel -5.1 dB); rendered where the data and the prior agree it is within 1 dB."""
     from reflab.app.demo_score import psnr
     from reflab.calibration.camera import Camera
-    from reflab.calibration.lights import Lights, PointLight
     from reflab.calibration.rotations import axis_rotation
-    from reflab.core.images import write_image
     from reflab.core.workspace import Workspace
-    from reflab.hardware.sim.lab import named_views, write_lab
     from reflab.hardware.sim.reference import render_reference
     from reflab.hardware.sim.scenes import build
     from reflab.inverse.fit.ranges import phong_lobe_albedo
-    from reflab.inverse.fit.workspace_fit import fit_workspace
-    from reflab.inverse.forward.photographs import write_input
-    from reflab.inverse.stages import TextureOptions, render_workspace, texture
+    from seven_photographs import relit_lights, true_and_fitted_renders
 
     lab = build("floor_mirror", 160, 120)
-    rng = np.random.default_rng(0)
-
-    def photograph(cam, lights):
-        img = render_reference(lab.scene, cam, lights, albedo=lab.albedo)
-        return img + rng.normal(0.0, 0.01 * img.max(), img.shape)
-
-    photo = photograph(lab.camera, lab.lights)
-    further = [(n, photograph(c, li), c, li) for n, c, li in named_views(lab.camera, lab.lights, "L0,L1,T35,T-35,T70,T-70")]
-    relit = Lights([PointLight((0.25, -0.3, 0.45), (0.10, 0.095, 0.085)), PointLight((-0.2, 0.35, 0.5), (0.09, 0.085, 0.08))])
-    relit.save(tmp_path / "relit.json")
+    relit = relit_lights(tmp_path / "relit.json")
     target = np.array([0.0, 0.02, 0.02])  # the input camera turned 40° about the vertical and raised 8 cm
     eye = axis_rotation((0.0, 0.0, 1.0), 40.0) @ (lab.camera.center - target) + target + [0.0, 0.0, 0.08]
     fov = np.degrees(2 * np.arctan(lab.camera.width / 2 / lab.camera.K[0, 0]))
@@ -80,17 +66,7 @@ def test_floor_mirror_with_seven_photographs_renders_as_the_true_materials(tmp_p
     views = {"input": (None, None), "relit": (None, tmp_path / "relit.json"), "novel": (tmp_path / "novel.json", None)}
     truth = {v: render_reference(lab.scene, novel if v == "novel" else lab.camera, relit if v == "relit" else lab.lights,
                                  albedo=lab.albedo) for v in views}
-    images = {}
-    for kind in ("true", "fitted"):
-        root = tmp_path / kind
-        write_lab(root, lab, materials=kind == "true")
-        write_image(root / "input.exr", photo)
-        for name, img, cam, li in further:
-            write_input(root, name, img, cam, li)
-        if kind == "fitted":
-            fit_workspace(root)
-        texture(TextureOptions(root))
-        images[kind] = {v: render_workspace(root, cam, lig) for v, (cam, lig) in views.items()}
+    lab, images = true_and_fitted_renders(tmp_path, "floor_mirror", views)
     for v in views:
         known = ~images["true"][v][1]["unknown_pixels"] & ~images["fitted"][v][1]["unknown_pixels"]
         assert known.mean() > 0.9
