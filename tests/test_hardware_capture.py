@@ -19,7 +19,7 @@ from reflab.hardware.sim.device import SimulatedGrbl
 from reflab.hardware.sim.lab import build_lab
 from reflab.core.workspace import WorkspaceError, read_json
 
-CFG = GrblConfig(timeout_s=0.4, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
+CFG = GrblConfig(timeout_s=2.0, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,9 @@ from reflab.hardware.grbl import (DeviceLost, GrblAlarm, GrblCommandError, GrblC
 from reflab.hardware.sim.device import SimulatedGrbl
 from reflab.core.workspace import WorkspaceError
 
-FAST = dict(timeout_s=0.4, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
+# A status wait of 2 s: under two test suites at once on two cores one report came later than 0.4 s
+# (the timeout itself: test_no_answer_times_out, at 0.4 s).
+FAST = dict(timeout_s=2.0, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
 
 
 @pytest.fixture
@@ -129,7 +131,7 @@ def test_garbled_reply_stops_with_a_clear_message(sim):
 
 def test_no_answer_times_out(sim):
     sim.inject("silent", match="G1")
-    with GrblController(sim.port, GrblConfig(**FAST)) as ctl:
+    with GrblController(sim.port, GrblConfig(**dict(FAST, timeout_s=0.4))) as ctl:
         with pytest.raises(GrblTimeout, match=r"no answer to 'G90 G1 X90.000.*within 0.4 s"):
             ctl.rotate_to(90.0)
 
@@ -184,9 +186,7 @@ def test_disconnect_for_good_gives_up_with_what_to_check(sim):
 
 def test_feed_hold_pauses_the_move_and_cycle_start_resumes(sim):
     sim.time_scale = 1.0
-    # 60 deg/s: 90 deg in 1.5 s; a status wait of 2 s, as two test suites at once on two cores
-    # delayed one report past FAST's 0.4 s (the timeout itself is test_no_answer_times_out's)
-    cfg = GrblConfig(**dict(FAST, feed_deg_per_min=3600.0, timeout_s=2.0))
+    cfg = GrblConfig(**dict(FAST, feed_deg_per_min=3600.0))  # 60 deg/s: 90 deg in 1.5 s
     polls = {"n": 0}
     held_angles = []
 

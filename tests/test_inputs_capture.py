@@ -59,7 +59,7 @@ def test_a_camera_of_another_size_stops_at_its_first_shot(workspace):
     """Any camera whose size is not a setting (here the simulated one at 80x60, its renderer's size
     fixed): the shot is not written, the manifest says why."""
     lab = build_lab(80, 60, textured=False)
-    cfg = GrblConfig(timeout_s=0.4, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
+    cfg = GrblConfig(timeout_s=2.0, boot_wait_s=0.4, reconnect_delay_s=0.05, reconnects=2, feed_deg_per_min=36000.0)
     render = lab_renderer(lab, depth=1)
     with SimulatedGrbl(time_scale=20.0) as board, GrblController(board.port, cfg) as ctl:
         camera = SimulatedCamera(lambda angle, lamps: render(angle, lamps),
