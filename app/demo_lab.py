@@ -107,15 +107,11 @@ def _run_steps(root: Path, truth: dict, size, quick: bool, rows: list, further: 
 
 def _detail_photographs(root: Path, rig, detail: dict, rows: list) -> None:
     """The photographs for the texture's detail (``detail``: turntable angles and size), every
-    lamp on, into inputs/ as ``reflab capture inputs --angles A,.. --size WxH`` takes them."""
+    lamp on, into inputs/ as the GUI's input step and ``reflab capture inputs --angles A,.. --size WxH`` take them."""
     from reflab.app import steps
 
-    t0, (w, h) = time.perf_counter(), detail["size"]
-    lamps = list(range(len(rig.controller.config.lamps)))
-    shots = [{"name": f"a{a:g}".replace("-", "m"), "angle_deg": float(a), "lamps": lamps} for a in detail["angles"]]
-    _log(f"[demo] photographs for the texture's detail at {w}x{h} (the camera's full resolution), every lamp on, "
-         f"turntable at {', '.join(f'{a:g}' for a in detail['angles'])} deg from the input's view")
-    r = steps.further_photographs(root, rig, log=_log, shots=shots, size=(w, h))
+    t0 = time.perf_counter()
+    r = steps.detail_photographs(root, rig, angles=detail["angles"], size=detail["size"], log=_log)
     _log(f"[demo] step detail: {r.summary}")
     rows.append(("detail photos", time.perf_counter() - t0, ""))
 

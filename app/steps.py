@@ -248,6 +248,40 @@ def further_photographs(workspace, rig, task=None, *, log=print, shots=None, rec
     return StepResult(f"{len(names)} further photographs in {ws.inputs}: {', '.join(names)}", names, result)
 
 
+def detail_photographs(workspace, rig, task=None, *, angles=(0.0, 30.0, -30.0), scale: int = 2, size=None,
+                       log=print) -> StepResult:
+    """Photographs for the texture's detail into ``inputs/``: every lamp on, the turntable at each of
+    ``angles`` (degrees from the input's view), at ``scale`` times camera.json's size (a camera's
+    full resolution; ``size`` (width, height) instead when given), each with its sidecar
+    (camera.json scaled, the lamps, the turn).
+
+    A texture at ``--texel-scale 1/scale`` then has texels as fine as these photographs' pixels;
+    views close to the input's keep the registration error below the print's grain. As
+    ``reflab capture inputs WS --angles A,.. --size WxH`` takes them.
+    """
+    from reflab.hardware.capture import calibrated_size
+
+    ws = Workspace(workspace)
+    if rig is None:
+        raise ValueError("detail photographs need the opened devices (rig)")
+    if int(scale) != scale or scale < 1:
+        raise ValueError(f"detail photographs: scale must be a whole number >= 1, got {scale!r}")
+    angles = [float(a) for a in angles]
+    if not angles:
+        raise ValueError("detail photographs: no turntable angle given")
+    if size is None:
+        size = calibrated_size(ws.root)
+        if size is None:
+            raise ValueError(f"detail photographs are sized from {ws.camera.name}: calibrate the camera first")
+        size = int(scale) * size[0], int(scale) * size[1]
+    w, h = (int(v) for v in size)
+    lamps = list(range(len(rig.controller.config.lamps)))
+    shots = [{"name": f"a{a:g}".replace("-", "m").replace(".", "p"), "angle_deg": a, "lamps": lamps} for a in angles]
+    log(f"photographs for the texture's detail at {w}x{h}, every lamp on, turntable at "
+        f"{', '.join(f'{a:g}' for a in angles)} deg from the input's view")
+    return further_photographs(ws.root, rig, task, log=log, shots=shots, size=(w, h))
+
+
 STEPS = [
     Step("devices", "Devices", _exists("hardware"), _devices),
     Step("calibrate_camera", "Calibrate the camera", _exists("camera"), _calibrate_camera, "calibration"),

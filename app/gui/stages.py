@@ -225,13 +225,22 @@ def _input(ctx, task) -> str:
     summary = _run(ctx, task, "input", start=float(o.get("angle", default(CaptureOptions, "start"))),
                    ambient=bool(o.get("ambient", default(CaptureOptions, "ambient"))),
                    recapture=bool(o.get("recapture"))).summary
-    if not o.get("further"):
-        return summary
-    if not ctx.ws.fit.exists():
-        raise StepFailed("further photographs are planned from fit.json: run Fit first, then this step again")
-    with ctx.rig.lock:
-        more = core.further_photographs(ctx.workspace, ctx.rig.devices, task, log=ctx.log)
-    return f"{summary}; {more.summary}; run Fit again to use them"
+    if o.get("further"):
+        if not ctx.ws.fit.exists():
+            raise StepFailed("further photographs are planned from fit.json: run Fit first, then this step again")
+        with ctx.rig.lock:
+            more = core.further_photographs(ctx.workspace, ctx.rig.devices, task, log=ctx.log)
+        summary = f"{summary}; {more.summary}; run Fit again to use them"
+    if o.get("detail"):
+        angles = _floats(o.get("detail_angles"), "detail turntable angles")
+        if not angles:
+            raise StepFailed("detail turntable angles: give at least one angle, e.g. 0, 30, -30")
+        scale = int(o.get("detail_scale") or 2)
+        with ctx.rig.lock:
+            more = core.detail_photographs(ctx.workspace, ctx.rig.devices, task, angles=angles, scale=scale,
+                                           log=ctx.log)
+        summary = f"{summary}; {more.summary}; recover the textures with texel scale {1 / scale:g} to use them"
+    return summary
 
 
 def _fit(ctx, task) -> str:
@@ -246,7 +255,11 @@ def _fit(ctx, task) -> str:
 
 
 def _texture(ctx, task) -> str:
-    return _run(ctx, task, "texture").summary
+    from reflab.inverse.stages import TextureOptions
+
+    o = ctx.options
+    return _run(ctx, task, "texture", texel_scale=float(o.get("texel_scale", default(TextureOptions, "texel_scale"))),
+                smoothness=float(o.get("smoothness", default(TextureOptions, "smoothness")))).summary
 
 
 def _results(ctx, task) -> str:

@@ -4,9 +4,9 @@ photographs and the plan"), shown in the plan's table."""
 from __future__ import annotations
 
 import numpy as np
-from PySide6.QtWidgets import QCheckBox, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QCheckBox, QLineEdit, QVBoxLayout, QWidget
 
-from reflab.app.gui.pages.page import StepPage, fmt, from_table, read_image, refill, table
+from reflab.app.gui.pages.page import StepPage, fmt, from_table, read_image, refill, spin, table
 from reflab.app.gui.widgets import ImageView, text_label
 from reflab.hardware.capture import CaptureOptions
 
@@ -22,6 +22,15 @@ class InputPage(StepPage):
         self.add_option("further", "", QCheckBox("then plan and take the further photographs (after a fit)"),
                         "With fit.json: plan the shots (lamps x turntable angle) that would determine what the fit "
                         "left open, take them into inputs/, then run Fit again.")
+        self.add_option("detail", "", QCheckBox("then take photographs for the texture's detail"),
+                        "Every lamp on, at the camera's full resolution (the size below times camera.json's), from "
+                        "the input's view and the turntable turned by the angles below; then recover the textures "
+                        "with texels of 1/size of the calibrated pixels' footprint (Textures page).")
+        self.add_option("detail_scale", "Detail size (× calibrated)", spin(2, 1, 4, 1, 0, "×"),
+                        "The detail photographs' size as a multiple of camera.json's (the same aspect ratio).")
+        self.add_option("detail_angles", "Detail turntable angles", QLineEdit("0, 30, -30"),
+                        "Degrees from the input's view, comma-separated; small turns keep the registration error "
+                        "below the print's grain.")
         w = QWidget()
         lay = QVBoxLayout(w)
         self.summary = text_label("", "input_summary")

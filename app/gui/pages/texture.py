@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QGridLayout, QGroupBox, QLabel, QVBoxLayout, QWidget
 
-from reflab.app.gui.pages.page import StepPage, read_image
+from reflab.app.gui.pages.page import StepPage, from_table, read_image
 from reflab.app.gui.widgets import ImageView, text_label
 
 
@@ -13,6 +13,10 @@ class TexturePage(StepPage):
     run_text = "Recover textures"
 
     def build(self):
+        from reflab.inverse.stages import TextureOptions
+
+        self.add_option("texel_scale", "Texel scale", from_table(TextureOptions, "texel_scale", 0.1, 4.0, 0.25, 2))
+        self.add_option("smoothness", "Smoothness", from_table(TextureOptions, "smoothness", 0.0, 10.0, 0.01, 3))
         self.grid_widget = QWidget()
         self.grid = QGridLayout(self.grid_widget)
         self.tab(self.grid_widget, "Textures")
