@@ -333,8 +333,9 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
     shots = []
     for c in chosen:
         after, before = determined(c["relative_sigma"]), determined(c["before"])
-        under = {names[t]: [h.label for h, r, b in zip(hyps, c["relative_sigma"], c["before"]) if r[t] <= LOOSE < b[t]]
-                 for t in targets}
+        under = {names[t]: [_label(h, scene[surf_of[t[:2]]].name) for h, r, b in
+                            zip(hyps, c["relative_sigma"], c["before"]) if r[t] <= LOOSE < b[t]]
+                 for t in targets if any(scene[surf_of[t[:2]]].name in h.lobes for h in hyps)}
         shots.append({"name": c["shot"].name, "angle_deg": c["shot"].angle, "lamps": list(c["shot"].lamps),
                       "gain": round(c["gain"], 4),
                       "predicted_relative_sigma": {names[t]: _num(c["relative_sigma"][0][t]) for t in targets},
@@ -402,8 +403,11 @@ def relative_sigmas(Hs, labels, ps, theta_log) -> list:
 
 
 def _batched_sd(Hs):
-    """(B, n) ``sqrt(diag(H⁻¹))`` of each (n, n) ``H`` as :func:`reflab.inverse.fit.uncertainty.covariance`:
-    diagonal scaling, eigenvalues floored at 1e-14 of the largest; inf where the diagonal is 0."""
+    """(B, n) ``sqrt(diag(H⁻¹))`` of each (n, n) ``H`` as :func:`reflab.inverse.fit.uncertainty.covariance`
+    (diagonal scaling, the spectrum held 1e-14 of its top above 0); inf where the diagonal is 0.
+
+    A Cholesky factor per matrix with that floor added (40× faster than the eigen-decomposition
+    on the plan's 500 matrices of 46 parameters); the eigen-decomposition where one is not positive."""
     B, n = Hs.shape[0], Hs.shape[1]
     if n == 0:
         return np.zeros((B, 0))
@@ -412,10 +416,36 @@ def _batched_sd(Hs):
     d = np.where(ok, dg, 1.0)
     Hs = Hs / (d[:, :, None] * d[:, None, :])
     Hs = np.where(ok[:, :, None] & ok[:, None, :], Hs, 0.0) + np.where(ok, 0.0, 1.0)[:, :, None] * np.eye(n)
-    w, V = np.linalg.eigh(Hs)
-    w = np.maximum(w, 1e-14 * np.maximum(w.max(axis=1, keepdims=True), 1e-300))
-    diag = np.einsum("bij,bj->bi", V * V, 1.0 / w)
+    try:  # unit diagonal: the top eigenvalue is between 1 and n
+        L = np.linalg.cholesky(Hs + (1e-14 * n) * np.eye(n))
+        Li = np.linalg.inv(L)
+        diag = np.einsum("bki,bki->bi", Li, Li)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(Hs)
+        w = np.maximum(w, 1e-14 * np.maximum(w.max(axis=1, keepdims=True), 1e-300))
+        diag = np.einsum("bij,bj->bi", V * V, 1.0 / w)
     return np.where(ok, np.sqrt(np.maximum(diag, 0.0)) / d, np.inf)
+
+
+def _label(h: Hypothesis, surface: str) -> str:
+    """A hypothesis named by what it says of ``surface``'s lobe ("ns 128"), else by its label
+    ("fitted": the fit's values)."""
+    lobe = h.lobes.get(surface)
+    if lobe is None:
+        return h.label
+    name = next(k for k in lobe if k not in ("ks", "albedo"))
+    return f"{name} {lobe[name]:.3g}"
+
+
+def why(shot: dict) -> str:
+    """plan.json's shot in words: what it determines, and an open lobe's shape under which shapes of it."""
+    out = ", ".join(shot.get("determines") or []) or "nothing new (narrows)"
+    shapes = {k: [x for x in v if x != "fitted"] for k, v in (shot.get("determines_under") or {}).items()
+              if k.endswith((".ns", ".alpha"))}
+    shapes = {k: v for k, v in shapes.items() if v}
+    if shapes:
+        out += " (" + "; ".join(f"{k} if the lobe is {' or '.join(v)}" for k, v in shapes.items()) + ")"
+    return out
 
 
 def _aligned(H, lab, index, n):
