@@ -251,34 +251,32 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
     free.s[1::2] = np.array([m.transparent for m in mats])[:, None]
     hold(fac, free, held if held is not None else [set() for _ in scene])
     theta_log = Search(fac).log
-    H_now, labels = views_information(stack.trees, models, [h.materials for h in hyps], stack.intensities, noise,
-                                      free)
-    H_now = [_aligned(H, lab, _labels_index(labels[0]), len(labels[0])) for H, lab in zip(H_now, labels)]
-    labels = labels[0]
+    H_now, lab_now = views_information(stack.trees, models, [h.materials for h in hyps], stack.intensities, noise,
+                                       free)
+    labels = lab_now[0]
     index = _labels_index(labels)
-    raw_now = relative_sigmas(np.stack(H_now), labels, ps, theta_log)
-    now = raw_now[0]
+    H_now = np.stack([_aligned(H, lab, index, len(labels)) for H, lab in zip(H_now, lab_now)])
+    # Relative σ = σ / scale × the fit's inflation, per hypothesis (rows) and label (columns).
+    scales = np.stack([_scales(labels, q, theta_log) for q in ps])
+    raw_now = _batched_sd(H_now) / scales
     names = parameter_names(fac, scene)
-    inflate = {}
-    for lab in labels:  # the fit's reported σ over this model-based one (>= 1)
-        rep = (reported or {}).get(names[lab])
-        if rep is not None and np.isfinite(now[lab]) and now[lab] > 0:
-            inflate[lab] = max(1.0, rep / now[lab]) if np.isfinite(rep) else max(1.0, 1.01 * LOOSE / now[lab])
+    inflate = np.ones(len(labels))
+    for j, lab in enumerate(labels):  # the fit's reported σ over this model-based one (>= 1)
+        rep, mine = (reported or {}).get(names[lab]), raw_now[0, j]
+        if rep is not None and np.isfinite(mine) and mine > 0:
+            inflate[j] = max(1.0, rep / mine) if np.isfinite(rep) else max(1.0, 1.01 * LOOSE / mine)
     lay = fac.layout
     # Under a shape hypothesis, the open lobe's ks and shape are its own: not the fitted values' σ.
-    own = [set() for _ in hyps]
+    own = np.zeros((len(hyps), len(labels)), dtype=bool)
     for j, h in enumerate(hyps):
         for i, s in enumerate(scene):
             if s.name in h.lobes:
                 k = lay.x_offset[i] + models[i].linear.index("ks")
-                own[j] |= {lab for lab in labels if lab[:2] == ("x", k)
-                           or (lab[0] == "theta" and lay.theta_names[lab[1]][0] == i)}
-
-    def inflated(j, rel):
-        return {k: v * (1.0 if k in own[j] else inflate.get(k, 1.0)) for k, v in rel.items()}
-
-    nows = [inflated(j, r) for j, r in enumerate(raw_now)]
-    now = nows[0]
+                own[j] |= [lab[:2] == ("x", k) or (lab[0] == "theta" and lay.theta_names[lab[1]][0] == i)
+                           for lab in labels]
+    factor = np.where(own, 1.0, inflate) / scales  # (hypotheses, labels)
+    nows = raw_now * np.where(own, 1.0, inflate)
+    now = dict(zip(labels, nows[0]))
     # Targets: parameters of surfaces the photographs show, loose or undetermined now.
     seen = np.zeros(len(scene), dtype=bool)
     seen[np.unique(stack.trees.surface)] = True
@@ -302,49 +300,52 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
         H_shot.append(None if Hs is None else np.stack([_aligned(H, lab, index, len(labels)) for H, lab in zip(Hs, labs)]))
     task.check()
     weights = np.array([h.weight for h in hyps])
-    clip = np.vectorize(lambda v: np.log(max(v, GOOD_ENOUGH)) if np.isfinite(v) else np.log(1e6), otypes=[float])
+    T = np.array([index[t] for t in targets], dtype=np.int64)
 
-    def log_sigma(rels):  # (hypotheses, targets) clipped log relative σ
-        return clip(np.array([[r[t] for t in targets] for r in rels]).reshape(len(rels), len(targets)))
+    def log_sigma(rel):  # (..., targets) clipped log relative σ: no credit below GOOD_ENOUGH, inf as 1e6
+        r = rel[..., T]
+        return np.where(np.isfinite(r), np.log(np.maximum(r, GOOD_ENOUGH)), np.log(1e6))
 
-    chosen, H_acc, best_rels = [], np.stack(H_now), nows
-    base = log_sigma(nows)
+    chosen, H_acc, rel_acc = [], H_now, nows
+    base = log_sigma(nows)  # (hypotheses, targets)
     for _ in range(max_shots):
         live = [i for i, H in enumerate(H_shot) if H is not None and all(c["index"] != i for c in chosen)]
         if not live:
             break
-        # Every candidate under every hypothesis in one batch of eigen-decompositions.
-        batch = np.concatenate([H_acc + H_shot[i] for i in live])
-        flat = relative_sigmas(batch, labels, ps * len(live), theta_log)
-        rels = [[inflated(j, flat[c * len(hyps) + j]) for j in range(len(hyps))] for c in range(len(live))]
-        gains = [float(weights @ (base - log_sigma(r)).sum(axis=1)) for r in rels]
+        # Every candidate under every hypothesis in one batched inverse.
+        rels = (_batched_sd(np.concatenate([H_acc + H_shot[i] for i in live])).reshape(len(live), len(hyps), -1)
+                * factor)
+        gains = (base - log_sigma(rels)).sum(axis=2) @ weights  # (candidates,)
         c = int(np.argmax(gains))
         if gains[c] < MIN_GAIN:
             break
-        i, rel = live[c], rels[c]
+        i = live[c]
         H_acc = H_acc + H_shot[i]
-        chosen.append({"index": i, "shot": cands[i], "gain": gains[c], "relative_sigma": rel, "before": best_rels})
-        base, best_rels = log_sigma(rel), rel
+        chosen.append({"index": i, "shot": cands[i], "gain": float(gains[c]), "relative_sigma": rels[c],
+                       "before": rel_acc})
+        base, rel_acc = log_sigma(rels[c]), rels[c]
         log(f"plan: {cands[i].name} (turntable {cands[i].angle:g}°, lamps {list(cands[i].lamps)}): gain {gains[c]:.2f}")
 
-    def determined(rels):  # target -> share of the hypotheses' weight under which it is determined
-        return {t: float(sum(w for w, r in zip(weights, rels) if r[t] <= LOOSE)) for t in targets}
+    def determined(rel):  # per target, the share of the hypotheses' weight under which it is determined
+        return weights @ (rel[:, T] <= LOOSE)
 
+    lobed = [t for t in targets if any(scene[surf_of[t[:2]]].name in h.lobes for h in hyps)]
     shots = []
     for c in chosen:
-        after, before = determined(c["relative_sigma"]), determined(c["before"])
-        under = {names[t]: [_label(h, scene[surf_of[t[:2]]].name) for h, r, b in
-                            zip(hyps, c["relative_sigma"], c["before"]) if r[t] <= LOOSE < b[t]]
-                 for t in targets if any(scene[surf_of[t[:2]]].name in h.lobes for h in hyps)}
+        rel, before = c["relative_sigma"], c["before"]
+        after_w, before_w = determined(rel), determined(before)
+        under = {names[t]: [_label(h, scene[surf_of[t[:2]]].name) for j, h in enumerate(hyps)
+                            if rel[j, index[t]] <= LOOSE < before[j, index[t]]] for t in lobed}
         shots.append({"name": c["shot"].name, "angle_deg": c["shot"].angle, "lamps": list(c["shot"].lamps),
                       "gain": round(c["gain"], 4),
-                      "predicted_relative_sigma": {names[t]: _num(c["relative_sigma"][0][t]) for t in targets},
-                      "determines": sorted(names[t] for t in targets if after[t] >= 0.5 > before[t]),
+                      "predicted_relative_sigma": {names[t]: _num(rel[0, index[t]]) for t in targets},
+                      "determines": sorted(names[t] for t, a, b in zip(targets, after_w, before_w) if a >= 0.5 > b),
                       "determines_under": {k: v for k, v in sorted(under.items()) if v},
                       "predicted_relative_sigma_by_hypothesis": {
-                          h.label: {names[t]: _num(r[t]) for t in targets if own[j] and t in own[j]}
-                          for j, (h, r) in enumerate(zip(hyps, c["relative_sigma"])) if j}})
-    final = determined(best_rels)
+                          h.label: {names[t]: _num(rel[j, index[t]]) for t in targets if own[j, index[t]]}
+                          for j, h in enumerate(hyps) if j}})
+    final = determined(rel_acc)
+    sd_after = _batched_sd(H_acc)
     report = {"targets": [names[t] for t in targets],
               "relative_sigma_now": {names[t]: _num(now[t]) for t in targets},
               "hypotheses": [h.to_json() for h in hyps],
@@ -352,9 +353,9 @@ def plan_shots(stack, scene, materials, noise, *, n_lamps: int, lights, camera, 
               "predicted_sigma_now": _sigmas(H_now[0], labels, p, names),
               "predicted_sigma_after": _sigmas(H_acc[0], labels, p, names),
               "predicted_sigma_after_by_hypothesis": {
-                  h.label: {names[t]: _num(sd) for t, sd in zip(labels, _batched_sd(H_acc[j][None])[0]) if t in own[j]}
+                  h.label: {names[t]: _num(sd_after[j, k]) for k, t in enumerate(labels) if own[j, k]}
                   for j, h in enumerate(hyps) if j},
-              "left_open": sorted(names[t] for t in targets if final[t] < 0.5),
+              "left_open": sorted(names[t] for t, w in zip(targets, final) if w < 0.5),
               "candidates": len(cands), "reduce": int(reduce), "time_s": round(time.perf_counter() - t0, 3)}
     return PlanResult([c["shot"] for c in chosen], [names[t] for t in targets], report)
 
@@ -384,21 +385,20 @@ def views_information(trees, models, materials_list, intensities, noise, free, s
 
 
 def relative_sigmas(Hs, labels, ps, theta_log) -> list:
-    """:func:`relative_sigma` (a dict per matrix) of a batch of normal matrices ``Hs`` (B, n, n) at parameters ``ps``
-    (B of them), in one batched eigen-decomposition (as :func:`reflab.inverse.fit.uncertainty.covariance`)."""
-    sd = _batched_sd(np.asarray(Hs, dtype=np.float64))
-    out = []
-    for b, p in enumerate(ps):
-        rel = {}
-        for (kind, i, c), s in zip(labels, sd[b]):
-            if kind == "x":
-                r = s / max(abs(float(p.x[i, c])), PLAUSIBLE)
-            elif kind == "s":
-                r = s
-            else:
-                r = s / (max(float(p.theta[i]), 1e-300) * np.log(2.0)) if theta_log[i] else s
-            rel[(kind, i, c)] = float(r) if np.isfinite(r) else np.inf
-        out.append(rel)
+    """:func:`relative_sigma` (a dict per matrix) of a batch of normal matrices ``Hs`` (B, n, n) at
+    parameters ``ps`` (B of them), in one batched inverse (:func:`_batched_sd`)."""
+    rel = _batched_sd(np.asarray(Hs, dtype=np.float64)) / np.stack([_scales(labels, p, theta_log) for p in ps])
+    return [{lab: float(v) for lab, v in zip(labels, row)} for row in rel]
+
+
+def _scales(labels, p, theta_log) -> np.ndarray:
+    """(n,) what each label's σ is relative to (:func:`relative_sigma`)."""
+    out = np.ones(len(labels))
+    for j, (kind, i, c) in enumerate(labels):
+        if kind == "x":
+            out[j] = max(abs(float(p.x[i, c])), PLAUSIBLE)
+        elif kind == "theta" and theta_log[i]:
+            out[j] = max(float(p.theta[i]), 1e-300) * np.log(2.0)
     return out
 
 
