@@ -122,6 +122,7 @@ def _further_photographs(root: Path, rig, options: dict, truth: dict, rows: list
     shots would fix)."""
     from reflab.app import demo_score as score, steps
     from reflab.core.workspace import Workspace, read_json
+    from reflab.inverse.plan import why
 
     ws = Workspace(root)
     for n in range(1, rounds + 1):
@@ -135,7 +136,7 @@ def _further_photographs(root: Path, rig, options: dict, truth: dict, rows: list
             break
         for shot in plan["shots"]:
             _log(f"[demo] took {shot['name']} (turntable {shot['angle_deg']:g} deg, lamps {shot['lamps']}) because it "
-                 f"determines {', '.join(shot['determines']) or 'nothing alone but narrows the targets'}")
+                 f"determines {why(shot)}")
         r = steps.step("fit").run(root, rig=rig, log=_log, **options.get("fit", {}))
         _log(f"[demo] step fit: {r.summary}")
         if r.value.status == "poor fit":

@@ -292,7 +292,8 @@ def plan(options: PlanOptions, task: Task | None = None, *, log=None) -> PlanRes
     result = plan_shots(stack, scene, materials, noise, n_lamps=len(photos[0].lights), lights=photos[0].lights,
                         camera=photos[0].camera, centre=centre, direction=direction, angles=o.angles,
                         taken=taken_shots(photos), max_shots=int(o.max_shots), reduce=int(o.reduce), depth=depth,
-                        held=[s.material.given for s in scene], reported=reported_relative_sigma(fit_report), task=task, log=log)
+                        held=[s.material.given for s in scene], reported=reported_relative_sigma(fit_report),
+                        lobe_shapes=fit_report.get("lobe_shapes"), task=task, log=log)
     report = dict(result.report, turntable={"centre": [float(v) for v in centre], "direction": direction},
                   photographs=[p.name for p in photos])
     task.check()

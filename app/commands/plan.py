@@ -28,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from reflab.app.console import running
     from reflab.core.options import options_from_args
+    from reflab.inverse.plan import why
     from reflab.inverse.stages import PlanOptions, plan
 
     with running("plan") as task:
@@ -37,8 +38,7 @@ def run(args) -> int:
     LOG.info(f"reflab plan: {len(rep['targets'])} parameters undetermined or loose over {len(rep['photographs'])} "
              f"photograph(s); {rep['candidates']} shots considered in {rep['time_s']:.1f} s")
     for s in rep["shots"]:
-        LOG.info(f"  {s['name']}: turntable {s['angle_deg']:g} deg, lamps {s['lamps']}: determines "
-                 f"{', '.join(s['determines']) or 'nothing new (narrows)'}")
+        LOG.info(f"  {s['name']}: turntable {s['angle_deg']:g} deg, lamps {s['lamps']}: determines {why(s)}")
     if not rep["shots"]:
         LOG.info("reflab plan: no further shot would gain enough")
     if rep["left_open"]:

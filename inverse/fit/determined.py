@@ -313,7 +313,7 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
 
 
 def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free: Free, res, materials=None,
-                    textured=None, fitted: Free | None = None) -> tuple[Params, dict, Free]:
+                    textured=None, fitted: Free | None = None, weighed: dict | None = None) -> tuple[Params, dict, Free]:
     """Every lobe the data leave open at the value they and the prior over the field's lobes agree on.
 
     A lobe is open when its ks is undetermined (``loose``, or held by the holding rounds: not in
@@ -358,6 +358,10 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
         ``"prior"`` (they bound a lobe of that shape more loosely: the prior shapes the value).
     handled : Free
         The lobes weighed, ks and shape: :func:`reflab.inverse.fit.ranges.plausible` leaves them alone.
+
+    ``weighed``, when given, receives per surface index every shape weighed, moved or not, in
+    increasing shape: a list of ``moved``'s records with ``log_posterior`` (fit.json's
+    ``lobe_shapes``), the hypotheses :mod:`reflab.inverse.plan` predicts a shot under.
     """
     fitted = free if fitted is None else fitted
     handled = Free(np.zeros_like(free.x), np.zeros_like(free.s), np.zeros_like(free.theta))
@@ -385,8 +389,11 @@ def plausible_lobes(pb: Problem, p: Params, free: Free, loose: Free, sigma_free:
 
             lo, hi = (float(v[q]) for v in (small.search.to_theta(small.search.lo), small.search.to_theta(small.search.hi)))
             shapes += [float(v) for v in np.append(SHAPE_GRID[name], INITIAL[name]) if lo <= v <= hi]
-        best = max((_weigh(small, p, lin, k, q, value, bands, keep, scale, model, name, res) for value in shapes),
-                   key=lambda w: w[0])
+        shapes = list(dict.fromkeys(shapes))  # the fitted shape may be the prior's centre: weighed once
+        tried = [_weigh(small, p, lin, k, q, value, bands, keep, scale, model, name, res) for value in shapes]
+        best = max(tried, key=lambda w: w[0])
+        if weighed is not None:
+            weighed[s] = [{**rec, "log_posterior": lp} for lp, _, _, rec in sorted(tried, key=lambda w: w[1])]
         _, value, ks, record = best
         cur = p.copy()
         cur.theta[q] = value

@@ -321,7 +321,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     # An undetermined lobe is reported and rendered where the data and the prior over the field's
     # lobes agree (determined.plausible_lobes); any other undetermined value off a range bound.
     before = p
-    p, lobes, handled = plausible_lobes(pb, p, free, loose, sf, res, materials, textured, fitted_free)
+    shapes = {}
+    p, lobes, handled = plausible_lobes(pb, p, free, loose, sf, res, materials, textured, fitted_free, shapes)
     if lobes:
         # The values fitted beside an open lobe depend on where it is held, which the data do not
         # say: what moving it moved them by joins their σ (zoo seed 7 at 640x480: a cylinder's kd
@@ -334,6 +335,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         stats = {**stats, "at_bound": at_bound(fac, p, free)}
     if lobes:  # fit.json says where each moved lobe's value comes from
         stats = {**stats, "plausible_lobes": {(names[s] if names else f"surface {s}"): r for s, r in lobes.items()}}
+    if shapes:  # every shape an open lobe was weighed at: the plan's hypotheses (inverse/plan.py)
+        stats = {**stats, "lobe_shapes": {(names[s] if names else f"surface {s}"): r for s, r in shapes.items()}}
     spent = time.perf_counter() - t0
     elapsed = fitted + spent
     phases = dict(pb.phases, uncertainty=pb.phases["uncertainty"] + spent)  # with the holding rounds and the diagnosis
