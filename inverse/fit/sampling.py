@@ -175,18 +175,27 @@ def fit_sample(trees, materials, intensities, mask, pixels: int = PIXELS, seed: 
 
 def even(trees, mask, surfaces, count: int = EVEN, seed: int = SEED) -> np.ndarray:
     """(H*W,) bool: for an estimate that weighs its pixels alike (the lobes from the texture's
-    colours, :mod:`reflab.inverse.fit.dichromatic`), per surface of ``surfaces`` the pixels of
-    ``mask`` that see it first, all of them up to ``count``, else ``count`` drawn uniformly. The
-    evidence's draw would lean such an estimate toward the favoured pixels; reading every pixel of
-    a large surface would make it slow (a zoo ground's 152 000 pixels at 640x480: 13 s of 64 under
-    cProfile)."""
+    colours, :mod:`reflab.inverse.fit.dichromatic`), per photograph and per surface of ``surfaces``
+    the pixels of ``mask`` that see it first, all of them up to ``count``, else ``count`` drawn
+    uniformly. The evidence's draw would lean such an estimate toward the favoured pixels; reading
+    every pixel of a large surface would make it slow (a zoo ground's 152 000 pixels at 640x480:
+    13 s of 64 under cProfile). Per photograph (stacked trees' ``stats["block_row0"]``): each
+    photograph of several is sampled as one alone would be, so a highlight that only a further
+    photograph shows keeps its pixels (the demo's tile: its lobe undetermined from the reference's
+    pixels alone, ks 0.35 ± 0.09, determined from every photograph's, ± 0.008)."""
     mask = np.asarray(mask, dtype=bool).reshape(-1)
     first = np.full(len(mask), -1, dtype=np.int64)
     top = np.asarray(trees.level) == 1
     first[np.asarray(trees.pixel)[top]] = np.asarray(trees.surface)[top]
+    stats = trees.stats if isinstance(getattr(trees, "stats", None), dict) else {}
+    starts = np.asarray(stats.get("block_row0", [0]), dtype=np.int64) * int(trees.width)
+    photo = np.searchsorted(starts, np.arange(len(mask)), side="right") - 1
     out = np.zeros_like(mask)
-    for k, s in enumerate(surfaces):
-        out |= uniform(mask & (first == int(s)), int(count), seed + 4 + k)
+    for i in range(len(starts)):
+        mine = mask & (photo == i)
+        for k, s in enumerate(surfaces):
+            # photograph 0 keeps the single photograph's seeds (the same draw as before)
+            out |= uniform(mine & (first == int(s)), int(count), seed + 4 + k + 1009 * i)
     return out
 
 

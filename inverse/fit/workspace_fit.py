@@ -211,18 +211,16 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
 
         homogeneous_rms = [float(v) for v in result.rms]
         round_trees = trees
-        # The lobes from the texture's colours weigh their pixels alike: per surface, a uniform sample.
+        # The lobes from the texture's colours weigh their pixels alike: per photograph and surface, a uniform sample.
+        even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
-        several = sampled and ref and int(trees.stats.get("photographs", 1)) > 1
-        colour_frame = frame.copy()
-        if several:
-            colour_frame[int(ref):] = False  # the reference's pixels: the further ones' trees are the sample's
-        even = sampling.even(trees, colour_frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
-        if several:
+        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
             # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
-            # with the sample, not with the photographs.
-            seen = keep.copy()
+            # with the sample, not with the photographs. The colour lobes' pixels join them: cut to
+            # the reference, a lobe whose highlight only a further photograph shows lost it (the
+            # demo's tile: ks σ 7612 sampled, 0.007 reading every pixel).
+            seen = keep | even
             seen[:int(ref)] = True
             round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
