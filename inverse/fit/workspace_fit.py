@@ -20,13 +20,6 @@ from reflab.inverse.fit.result import SceneFit
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
-#: Several photographs are read whole up to 2 MP unless ``sample_above`` is set otherwise: the weighted
-#: sample's σ was checked on one photograph (the zoo, σ calibration), and on the demo's seven
-#: 480x360 photographs it read the textured tile's lobe as undetermined (ks σ 7612; every pixel:
-#: 0.340 ± 0.007 for 0.35, docs/fit.md "Sampling").
-SEVERAL_ABOVE = 2_000_000
-
-
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
                   progress=None, task: Task | None = None, single: bool = False,
@@ -103,9 +96,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
-                         task=task, pixels=pixels, scene_file=ws.scene,
-                         sample_above=SEVERAL_ABOVE if len(photos) > 1 and sample_above == sampling.SAMPLE_ABOVE
-                         else sample_above)
+                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
