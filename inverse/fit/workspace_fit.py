@@ -201,22 +201,25 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
-        round_trees = trees
+        round_trees, view = trees, None
         # The lobes from the texture's colours weigh their pixels alike: per photograph and surface, a uniform sample.
         even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
         if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
-            # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
-            # with the sample, not with the photographs. The colour lobes' pixels join them: cut to
-            # the reference, a lobe whose highlight only a further photograph shows lost it (the
-            # demo's tile: ks σ 7612 sampled, 0.007 reading every pixel).
-            seen = keep | even
+            # sampled pixels (the view): its texels keep the reference's footprint, and the rounds'
+            # cost grows with the sample, not with the photographs. The colour lobes read their own
+            # sample of every photograph: cut to the reference, a lobe whose highlight only a further
+            # photograph shows lost it (the demo's tile: ks σ 7612 sampled, 0.007 reading every
+            # pixel). Those pixels do not feed the texture: fed to it, the mirror's kd and r of
+            # floor_mirror (80x60, three further photographs, 6 000 pixels read) came out 4σ off.
+            seen = keep.copy()
             seen[:int(ref)] = True
-            round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
+            view = (sampling.weighted(trees.of_pixels(seen), trees.weights), image, result.stats.get("noise"))
+            round_trees = sampling.weighted(trees.of_pixels(seen | even), trees.weights)
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
                                            mask=keep, colour_mask=even, rounds=texture_rounds, method=method,
-                                           maxiter=maxiter, progress=progress, task=task, held=held,
+                                           maxiter=maxiter, progress=progress, task=task, held=held, view=view,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     return SceneFit(result, fac, rounds, sample_report,
