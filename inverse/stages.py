@@ -46,7 +46,7 @@ class FitOptions:
                               "2 MP): a pilot, then the pixels that show lobes, reflections and transmissions and "
                               "a share of the rest (0 = never sample)", type=nonneg_int)
     sample_above: float = opt(0.2, "the fit reads every usable pixel of the photographs up to this many megapixels "
-                                   "(all together; several photographs: 2 MP at the default) and samples only above (its rows "
+                                   "(all photographs together) and samples only above (its rows "
                                    "weighed back: docs/fit.md \"Sampling\")", unit="MP", type=nonneg_float)
 
 

@@ -6,6 +6,9 @@ scene.json; the reference photograph and the further ones (``L0``, ``L1``: one l
 ``T35`` ...: the turntable turned) made by the forward model from the true materials, 0.5 % noise.
 Each fit is `python -m reflab.app.cli fit WORKSPACE` in a fresh process with the trees cache
 emptied; ``--repeat`` runs, the fastest kept (the others waited on the rest of the machine).
+Each row also gives that run's CPU time (user + system of the fit's process: on a shared machine
+a steadier measure than the wall), the machine's load average when it started, the fit's
+evaluations and the pixels it read.
 
     .venv/bin/python docs/figures/fit_photographs_speed.py [--size 640x480] [--counts 1,3,7] [--homogeneous] [--json out.json]
 """
@@ -14,11 +17,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 SHOTS = ["L0", "L1", "T35", "T-35", "T70", "T-70"]
 
@@ -48,19 +54,26 @@ def main(argv=None):
     rows = []
     for count in (int(c) for c in args.counts.split(",")):
         ws = workspace(Path(args.root), width, height, count, not args.homogeneous)
-        walls = []
+        walls, cpus, loads = [], [], []
         for _ in range(args.repeat):
             shutil.rmtree(ws / "cache", ignore_errors=True)
+            loads.append(round(os.getloadavg()[0], 2))
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
             out = subprocess.run([sys.executable, "-m", "reflab.app.cli", "-q", "fit", str(ws)],
                                  capture_output=True, text=True, env=dict(os.environ))
             walls.append(time.perf_counter() - t0)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpus.append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
             if out.returncode not in (0, 3):
                 raise SystemExit(out.stderr)
         fit = json.loads((ws / "fit.json").read_text())
+        best = int(np.argmin(walls))
         row = {"photographs": count, "wall_s": round(min(walls), 2), "walls": [round(w, 2) for w in walls],
-               "per_photograph_s": round(min(walls) / count, 2), "trees_s": fit["setup_s"]["trees"],
-               "fit_s": fit["time_s"], "status": fit["status"],
+               "per_photograph_s": round(min(walls) / count, 2), "cpu_s": round(cpus[best], 2),
+               "load": loads[best], "trees_s": fit["setup_s"]["trees"],
+               "fit_s": fit["time_s"], "evaluations": fit["evaluations"],
+               "pixels_read": fit["used_pixels"], "status": fit["status"],
                "undetermined": {s["name"]: s["undetermined"] for s in fit["surfaces"] if s["undetermined"]}}
         rows.append(row)
         print(json.dumps(row), flush=True)

@@ -280,7 +280,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     view : (Trees, image, noise), optional
         Where the rounds recover their texture, when not from ``trees`` and ``image`` themselves:
         a large photograph's binned view (:mod:`reflab.inverse.fit.large`) and its noise σ per
-        band, whose texture the fit's rows, ``trees``' nodes, then look up.
+        band, whose texture the fit's rows, ``trees``' nodes, then look up; or, over several
+        sampled photographs, the reference and the sample without the colour lobes' pixels
+        (:func:`reflab.inverse.fit.workspace_fit.fit_scene`).
     colour_mask : (H*W,) bool, optional
         The pixels the lobes from the texture's colours (:func:`colour_held`) read, when not
         ``mask``: a uniform sample (:func:`reflab.inverse.fit.sampling.even`) where the fit reads

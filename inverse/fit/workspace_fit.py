@@ -20,13 +20,6 @@ from reflab.inverse.fit.result import SceneFit
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
-#: Several photographs are read whole up to 2 MP unless ``sample_above`` is set otherwise: the weighted
-#: sample's σ was checked on one photograph (the zoo, σ calibration), and on the demo's seven
-#: 480x360 photographs it read the textured tile's lobe as undetermined (ks σ 7612; every pixel:
-#: 0.340 ± 0.007 for 0.35, docs/fit.md "Sampling").
-SEVERAL_ABOVE = 2_000_000
-
-
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
                   progress=None, task: Task | None = None, single: bool = False,
@@ -103,9 +96,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
-                         task=task, pixels=pixels, scene_file=ws.scene,
-                         sample_above=SEVERAL_ABOVE if len(photos) > 1 and sample_above == sampling.SAMPLE_ABOVE
-                         else sample_above)
+                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
@@ -210,24 +201,25 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.texture_aware import MIN_SHARE, fit_with_texture
 
         homogeneous_rms = [float(v) for v in result.rms]
-        round_trees = trees
-        # The lobes from the texture's colours weigh their pixels alike: per surface, a uniform sample.
+        round_trees, view = trees, None
+        # The lobes from the texture's colours weigh their pixels alike: per photograph and surface, a uniform sample.
+        even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
-        several = sampled and ref and int(trees.stats.get("photographs", 1)) > 1
-        colour_frame = frame.copy()
-        if several:
-            colour_frame[int(ref):] = False  # the reference's pixels: the further ones' trees are the sample's
-        even = sampling.even(trees, colour_frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
-        if several:
+        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
-            # sampled pixels: its texels keep the reference's footprint, and the rounds' cost grows
-            # with the sample, not with the photographs.
+            # sampled pixels (the view): its texels keep the reference's footprint, and the rounds'
+            # cost grows with the sample, not with the photographs. The colour lobes read their own
+            # sample of every photograph: cut to the reference, a lobe whose highlight only a further
+            # photograph shows lost it (the demo's tile: ks σ 7612 sampled, 0.007 reading every
+            # pixel). Those pixels do not feed the texture: fed to it, the mirror's kd and r of
+            # floor_mirror (80x60, three further photographs, 6 000 pixels read) came out 4σ off.
             seen = keep.copy()
             seen[:int(ref)] = True
-            round_trees = sampling.weighted(trees.of_pixels(seen), trees.weights)
+            view = (sampling.weighted(trees.of_pixels(seen), trees.weights), image, result.stats.get("noise"))
+            round_trees = sampling.weighted(trees.of_pixels(seen | even), trees.weights)
         result, records = fit_with_texture(round_trees, scene, fac.models, intensities, image, result,
                                            mask=keep, colour_mask=even, rounds=texture_rounds, method=method,
-                                           maxiter=maxiter, progress=progress, task=task, held=held,
+                                           maxiter=maxiter, progress=progress, task=task, held=held, view=view,
                                            max_seconds=None if max_seconds is None else max_seconds - result.time_s)
         rounds = {"rounds": records, "homogeneous_rms": homogeneous_rms, "min_share": MIN_SHARE}
     return SceneFit(result, fac, rounds, sample_report,
@@ -244,10 +236,12 @@ def photograph_report(stack, photos, image, unused, fac, result) -> list:
     """
     from reflab.inverse.forward.rendering import render
 
-    model = render(stack.trees, result.materials, stack.intensities).reshape(-1, 3)
     data = np.asarray(image, dtype=np.float64).reshape(-1, 3)
     used = np.zeros(len(data), dtype=bool)
     used[fac.rows] = True
+    # The used pixels' trees alone: a sample of seven photographs is 3 % of their pixels.
+    model = render(stack.trees.of_pixels(used) if used.mean() < 0.5 else stack.trees, result.materials,
+                   stack.intensities).reshape(-1, 3)
     out = []
     for i, (photo, block) in enumerate(zip(photos, stack.blocks)):
         px = stack.pixels(i)
