@@ -279,6 +279,9 @@ class _System:
     n_texels: int
     n_saturated: int
     n_unmodelled: int  # pixel-band rows dropped: their textured node's texels are unsupported
+    #: The three bands have the same rows, columns and entries (none saturated or unlit in one band
+    #: alone: the usual case); only E's values differ.
+    shared: bool = False
 
 
 def _compress(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -489,7 +492,7 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
         surf_of[offsets[s]: offsets[s] + m.n_texels] = s
     prior = kd_table[surf_of[col_global % max(total, 1)], col_global // max(total, 1)]
     return _System(E, rhs, row_pixel, row_band, col_global, prior, coverage, weight,
-                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), n_bad)
+                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), n_bad, shared)
 
 
 class _BandStructure(NamedTuple):
@@ -537,21 +540,34 @@ def _band_structure(ok, idx, w, pix, total: int, min_coverage: float) -> _BandSt
 
 
 def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
-    """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system."""
+    """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system.
+
+    Bands that share their structure: band 0's pairs, repeated for bands 1 and 2 (each column's
+    pairs in the same order as when found over every band, so sums over them are the same)."""
+    if system.shared and len(system.col_global) % 3 == 0:
+        c1 = len(system.col_global) // 3
+        pi, pj = _adjacent(system.col_global[:c1], system, maps)
+        return np.concatenate([pi + b * c1 for b in range(3)]), np.concatenate([pj + b * c1 for b in range(3)])
+    return _adjacent(system.col_global, system, maps)
+
+
+def _adjacent(col_global, system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (i, j) among the columns ``col_global`` (band * n_texels + texel) of adjacent texels."""
     total = system.n_texels
-    texel = system.col_global % total
+    texel = col_global % total
     starts = np.array(sorted(system.offsets.values()))
     by_start = {system.offsets[s]: m for s, m in maps.items()}
     which = np.searchsorted(starts, texel, side="right") - 1
     width = np.array([by_start[o].width for o in starts])[which]
     count = np.array([by_start[o].n_texels for o in starts])[which]
     local = texel - starts[which]
-    position = np.full(3 * total + 1, -1, dtype=np.int64)  # column of each (band, texel); -1: none
-    position[system.col_global] = np.arange(len(system.col_global))
+    bands = int(col_global[-1]) // total + 1 if len(col_global) else 1  # increasing: the last is the largest
+    position = np.full(bands * total + 1, -1, dtype=np.int64)  # column of each (band, texel); -1: none
+    position[col_global] = np.arange(len(col_global))
     pairs_i, pairs_j = [], []
     for step, inside in ((1, local % width != width - 1), (width, local < count - width)):
         cand = np.flatnonzero(inside)
-        j = position[system.col_global[cand] + (step if np.isscalar(step) else step[cand])]
+        j = position[col_global[cand] + (step if np.isscalar(step) else step[cand])]
         pairs_i.append(cand[j >= 0])
         pairs_j.append(j[j >= 0])
     return np.concatenate(pairs_i), np.concatenate(pairs_j)
@@ -632,7 +648,7 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
         return _components(E, pi, pj)
     R1, C1, n1 = R // 3, C // 3, nnz // 3
     texel = system.col_global % max(system.n_texels, 1)
-    alike = (np.array_equal(system.row_band, np.repeat(np.arange(3), R1))
+    alike = system.shared or (np.array_equal(system.row_band, np.repeat(np.arange(3), R1))
              and np.array_equal(system.col_global // max(system.n_texels, 1), np.repeat(np.arange(3), C1))
              and np.all(system.row_pixel.reshape(3, R1) == system.row_pixel[:R1])
              and np.all(texel.reshape(3, C1) == texel[:C1])
@@ -853,8 +869,15 @@ def recover_texture(scene, trees, materials, intensities, image, options: Solver
 
 def _guessed_columns(E, on_guess) -> np.ndarray:
     """(C,) bool: columns of E with more than half their weight (|E|) in the rows ``on_guess``
-    ((R,) bool), summed in float64 a chunk of rows at a time."""
+    ((R,) bool), summed in float64.
+
+    E's entries are positive (a lit node's coefficient times a bilinear weight), so the weights
+    are two products with E's transpose (one pass over E each); a chunked sum of ``|E|`` is
+    kept for a matrix with negative values.
+    """
     R, C = E.shape
+    if E.dtype == np.float64 and (E.nnz == 0 or E.data.min() >= 0):
+        return E.T @ on_guess.astype(np.float64) > 0.5 * (E.T @ np.ones(R))
     guessed, whole = np.zeros(C), np.zeros(C)
     step = max(1, CHUNK // 4)
     for a in range(0, R, step):
