@@ -41,6 +41,8 @@ AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
 #: Nodes (or entries of E) per chunk of the passes that would otherwise make temporaries as large
 #: as E itself (a 12 MP photograph: 150 M entries, 1.2 GB per float64 array).
 CHUNK = 1 << 21
+#: Up to this many connected components the conjugate gradient works on each one's slice.
+FEW_COMPONENTS = 64
 #: Threads writing textures/' images (the EXR and PNG writers release the GIL). Two: at a load of
 #: 1.9 the 3 MP texture's files took 1.20–1.28 s against 1.73–1.75 s in one (the same CPU time).
 #: E's products in two threads over blocks of rows (scipy's kernels release the GIL too) were
@@ -592,14 +594,36 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tup
     summed over the components) after every iteration. Returns (x, iterations of the slowest component).
     """
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    seg = lambda v: np.add.reduceat(v, starts, dtype=np.float64)  # noqa: E731 -- per-component sums
-    each = lambda v: np.repeat(v, sizes)  # noqa: E731 -- per-component value on its unknowns
+    # A few components (the usual case: a handful per band) are taken slice by slice: sums in
+    # float64 by pairwise summation and per-component factors in place, without reduceat's
+    # sequential float64 loop or np.repeat's unknown-sized factor arrays (a quarter of the
+    # iteration's time at 3 MP besides the sparse products).
+    few = len(sizes) <= FEW_COMPONENTS
+    spans = list(zip(starts.tolist(), (starts + sizes).tolist()))
+
+    def seg(v):
+        """Per-component sums of ``v``, float64."""
+        if few:
+            return np.array([np.add.reduce(v[a:b], dtype=np.float64) for a, b in spans])
+        return np.add.reduceat(v, starts, dtype=np.float64)
+
+    def scale(v, f):
+        """``v`` times each component's factor ``f`` (float32), in place."""
+        if few:
+            for (a, b), fk in zip(spans, f):
+                v[a:b] *= fk
+        else:
+            v *= np.repeat(f, sizes)
+
+    dtype = x.dtype
     r = b - apply(x)
     if free is not None:
         r *= free
-    gamma = seg(r * r)
+    work = r * r  # the products summed below, one buffer for every iteration
+    gamma = seg(work)
     active = gamma > stop
-    p = r * each(active)
+    p = r.copy()
+    scale(p, active.astype(dtype))
     it = 0
     while it < max_iter and active.any():
         if check is not None:
@@ -607,17 +631,29 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tup
         q = apply(p)
         if free is not None:
             q *= free
-        delta = seg(p * q)
-        alpha = each(np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0)).astype(x.dtype))
-        x += alpha * p
-        q *= alpha
+        delta = seg(np.multiply(p, q, out=work))
+        alpha = np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0)).astype(dtype)
+        scale(q, alpha)  # alpha q, then x += alpha p by the same factors
+        if few:
+            for (a, b), ak in zip(spans, alpha):
+                if ak:
+                    x[a:b] += ak * p[a:b]
+        else:
+            x += np.repeat(alpha, sizes) * p
         r -= q
-        new = seg(r * r)
+        new = seg(np.multiply(r, r, out=work))
         if trace is not None:
             trace.append((time.perf_counter(), float(new.sum())))
         active &= (new > stop) & (delta > 0)
-        p *= each(np.divide(new, gamma, out=np.zeros_like(gamma), where=active).astype(x.dtype))
-        p += r * each(active).astype(x.dtype) if not active.all() else r
+        scale(p, np.divide(new, gamma, out=np.zeros_like(gamma), where=active).astype(dtype))
+        if active.all():
+            p += r
+        elif few:
+            for (a, b), on in zip(spans, active):
+                if on:
+                    p[a:b] += r[a:b]
+        else:
+            p += r * np.repeat(active, sizes).astype(dtype)
         gamma = new
         it += 1
     return x, it
@@ -691,6 +727,44 @@ def _column_sums(E, values) -> np.ndarray:
     for a in range(0, E.nnz, CHUNK):
         out += np.bincount(E.indices[a:a + CHUNK], weights=values(E.data[a:a + CHUNK]), minlength=E.shape[1])
     return out
+
+
+class _Normal:
+    """The scaled normal-equation product ``s·Eᵀ(E(s·p)) + d·p + P p`` (``P`` the smoothness pairs),
+    written into buffers kept from one iteration to the next.
+
+    Its values are scipy's ``s * (E.T @ (E @ (s * p))) + d * p + P @ p`` bit for bit (the same
+    kernels in the same order); only the arrays are reused: at 12 MP a product's row vector is
+    144 MB and a column vector 64 MB, and fresh ones every iteration cost their pages' faults
+    (system time) each time. The returned array is overwritten by the next call.
+    """
+
+    def __init__(self, E, s, d, pairs):
+        self.E, self.s, self.d, self.pairs = E, s, d, pairs
+        rows, cols = E.shape
+        # scipy's kernels with our outputs when the index types agree (else its own products)
+        self.kernels = E.indptr.dtype == E.indices.dtype and pairs.indptr.dtype == pairs.indices.dtype
+        self.rows, self.c1, self.out = np.empty(rows, E.dtype), np.empty(cols, E.dtype), np.empty(cols, E.dtype)
+
+    def __call__(self, p):
+        E, pairs, c1, out = self.E, self.pairs, self.c1, self.out
+        if not self.kernels:
+            return self.s * (E.T @ (E @ (self.s * p))) + self.d * p + pairs @ p
+        from scipy.sparse import _sparsetools
+
+        R, C = E.shape
+        np.multiply(self.s, p, out=c1)
+        self.rows.fill(0)
+        _sparsetools.csr_matvec(R, C, E.indptr, E.indices, E.data, c1, self.rows)  # E (s p)
+        c1.fill(0)
+        _sparsetools.csc_matvec(C, R, E.indptr, E.indices, E.data, self.rows, c1)  # Eᵀ(...), E's CSC view
+        np.multiply(self.s, c1, out=out)
+        np.multiply(self.d, p, out=c1)
+        out += c1
+        c1.fill(0)
+        _sparsetools.csr_matvec(C, C, pairs.indptr, pairs.indices, pairs.data, p, c1)
+        out += c1
+        return out
 
 
 def _to_float32(E) -> None:
@@ -786,9 +860,7 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     # at 320x240 and 640x480), far below the stopping level's effect.
     F = np.float32
     _to_float32(E)
-    ET = E.T
-    s32, d32, pairs = scale.astype(F), diag.astype(F), pairs.astype(F)
-    apply = lambda p: s32 * (ET @ (E @ (s32 * p))) + d32 * p + pairs @ p  # noqa: E731
+    apply = _Normal(E, scale.astype(F), diag.astype(F), pairs.astype(F))
 
     def bounded(b, y, stop, steps):
         """CG, then up to four active-set rounds (violators fixed at their bound, the rest re-solved warm)."""
