@@ -43,11 +43,22 @@ AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
 CHUNK = 1 << 21
 #: Up to this many connected components the conjugate gradient works on each one's slice.
 FEW_COMPONENTS = 64
-#: Threads writing textures/' images (the EXR and PNG writers release the GIL). Two: at a load of
-#: 1.9 the 3 MP texture's files took 1.20–1.28 s against 1.73–1.75 s in one (the same CPU time).
+#: Threads for the assembly's chunks (bilinear lookups, E's entries: numpy releases the GIL in
+#: them) and for writing textures/' images (so do the EXR and PNG writers), each chunk half of
+#: :data:`CHUNK` so that the temporaries in flight stay one chunk's. At a load of 1.9 the 3 MP
+#: texture's files took 1.20–1.28 s against 1.73–1.75 s in one thread (the same CPU time).
 #: E's products in two threads over blocks of rows (scipy's kernels release the GIL too) were
-#: slower at loads of 2–4 on this shared 2-core machine: the iteration stays in one.
-WRITE_THREADS = 2
+#: slower at loads of 2–4 on this shared 2-core machine (memory-bound): the iteration stays in one.
+THREADS = 2
+
+
+def _in_threads(jobs) -> list:
+    """Run the callables ``jobs`` in :data:`THREADS` threads; their results in order (the first
+    error raised once all are done)."""
+    if THREADS <= 1 or len(jobs) <= 1:
+        return [job() for job in jobs]
+    with ThreadPoolExecutor(THREADS) as pool:
+        return [f.result() for f in [pool.submit(job) for job in jobs]]
 
 
 @dataclass
@@ -422,13 +433,18 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
     n = len(pix)
     idx = np.zeros((n, 4), dtype=np.int64)
     w = np.zeros((n, 4))
-    for s, m in maps.items():
+    step = max(1, CHUNK // max(1, THREADS))  # the lookup's temporaries are a dozen arrays a node
+
+    def lookup(s, part):
+        i, ww = maps[s].bilinear(nodes.triangle[part], nodes.barycentric[part])
+        idx[part], w[part] = i + offsets[s], ww
+
+    jobs = []
+    for s in maps:
         sel = np.flatnonzero(surface == s)
-        for a in range(0, len(sel), CHUNK):  # the lookup's temporaries are a dozen arrays a node
-            part = sel[a:a + CHUNK]
-            i, ww = m.bilinear(nodes.triangle[part], nodes.barycentric[part])
-            idx[part], w[part] = i + offsets[s], ww
-    del surface
+        jobs += [lambda s=s, part=sel[a:a + step]: lookup(s, part) for a in range(0, len(sel), step)]
+    _in_threads(jobs)
+    del surface, jobs
     if release:
         nodes.triangle = nodes.barycentric = nodes.surface = None
     coef, seen = nodes.coef, nodes.seen
@@ -460,21 +476,28 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
         indptr[row + 1:row + r + 1] = np.cumsum(e.row_nnz) + band_at[b]
         row_ids[row:row + r], col_global[col:col + k] = e.row_pixels + b * npix, e.col_texels + b * total
         row += r
-    # Entries a chunk of nodes at a time, each chunk's structure worked out once for the bands
-    # that share it.
+    # Entries a chunk of nodes at a time (chunks in threads, each writing its own slice), each
+    # chunk's structure worked out once for the bands that share it.
+    def entries(e, same, a, at):
+        wk = e.wk[a:a + step].ravel()
+        flat = np.flatnonzero(wk)  # node (pixel order), then corner: row order
+        m, node, wv = len(flat), flat // 4 + a, wk[flat]
+        cols = e.col_rank[idx[a:a + step].ravel()[flat]]
+        for b in same:
+            o = band_at[b] + at
+            np.multiply(coef[b][node], wv, out=data[o:o + m])
+            np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
+
+    jobs = []
     for e in {id(e): e for e in bands}.values():
         same = [b for b in range(3) if bands[b] is e]
-        at = 0
-        for a in range(0, n, CHUNK):
-            wk = e.wk[a:a + CHUNK].ravel()
-            flat = np.flatnonzero(wk)  # node (pixel order), then corner: row order
-            m, node, wv = len(flat), flat // 4 + a, wk[flat]
-            cols = e.col_rank[idx[a:a + CHUNK].ravel()[flat]]
-            for b in same:
-                o = band_at[b] + at
-                np.multiply(coef[b][node], wv, out=data[o:o + m])
-                np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
-            at += m
+        firsts = np.arange(0, n, step)
+        ats = np.zeros(len(firsts), dtype=np.int64)  # where each chunk's entries start
+        if len(firsts) > 1:
+            np.cumsum(np.add.reduceat(np.count_nonzero(e.wk, axis=1), firsts)[:-1], out=ats[1:])
+        jobs += [lambda e=e, same=same, a=int(a), at=int(at): entries(e, same, a, at) for a, at in zip(firsts, ats)]
+    _in_threads(jobs)
+    del jobs
     for b, e in enumerate(bands):
         # Entries with zero weight add nothing: the sums over every corner are those over the entries.
         # A shared band's coverage is band 0's (same entries, same weights): a copy, not a count
@@ -1085,12 +1108,7 @@ def write_textures(workspace, scene, result: TextureSolution, extra: dict | None
                      texels_amplified=int(np.count_nonzero(result.flags[s] & AMPLIFIED)),
                      texels_guessed=int(np.count_nonzero(result.flags[s] & GUESSED)))
         entries.append(entry)
-    # A failed write raises here, before index.json could name its file.
-    if WRITE_THREADS > 1 and len(jobs) > 1:
-        with ThreadPoolExecutor(WRITE_THREADS) as pool:
-            written = [f.result() for f in [pool.submit(job) for job in jobs]]
-    else:
-        written = [job() for job in jobs]
+    written = _in_threads(jobs)  # a failed write raises here, before index.json could name its file
     index = {"surfaces": entries, "stats": result.stats, **(extra or {})}
     written.append(write_json(ws.texture_index, index))
     return written
