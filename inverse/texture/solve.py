@@ -43,12 +43,11 @@ AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
 CHUNK = 1 << 21
 #: Up to this many connected components the conjugate gradient works on each one's slice.
 FEW_COMPONENTS = 64
-#: Threads for the assembly's chunks (bilinear lookups, E's entries: numpy releases the GIL in
-#: them) and for writing textures/' images (so do the EXR and PNG writers), each chunk half of
-#: :data:`CHUNK` so that the temporaries in flight stay one chunk's. At a load of 1.9 the 3 MP
-#: texture's files took 1.20–1.28 s against 1.73–1.75 s in one thread (the same CPU time).
-#: E's products in two threads over blocks of rows (scipy's kernels release the GIL too) were
-#: slower at loads of 2–4 on this shared 2-core machine (memory-bound): the iteration stays in one.
+#: Threads writing textures/' images (the EXR and PNG writers release the GIL). Two: at a load of
+#: 1.9 the 3 MP texture's files took 1.20–1.28 s against 1.73–1.75 s in one (the same CPU time).
+#: Not used for E's products (two threads over blocks of rows were slower at loads of 2–4 on this
+#: shared 2-core machine: memory-bound) nor for the assembly's chunks (8 % faster, +0.1 GB of
+#: peak memory at half the 3 MP system: the threads' malloc arenas).
 THREADS = 2
 
 
@@ -433,18 +432,13 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
     n = len(pix)
     idx = np.zeros((n, 4), dtype=np.int64)
     w = np.zeros((n, 4))
-    step = max(1, CHUNK // max(1, THREADS))  # the lookup's temporaries are a dozen arrays a node
-
-    def lookup(s, part):
-        i, ww = maps[s].bilinear(nodes.triangle[part], nodes.barycentric[part])
-        idx[part], w[part] = i + offsets[s], ww
-
-    jobs = []
-    for s in maps:
+    for s, m in maps.items():
         sel = np.flatnonzero(surface == s)
-        jobs += [lambda s=s, part=sel[a:a + step]: lookup(s, part) for a in range(0, len(sel), step)]
-    _in_threads(jobs)
-    del surface, jobs
+        for a in range(0, len(sel), CHUNK):  # the lookup's temporaries are a dozen arrays a node
+            part = sel[a:a + CHUNK]
+            i, ww = m.bilinear(nodes.triangle[part], nodes.barycentric[part])
+            idx[part], w[part] = i + offsets[s], ww
+    del surface
     if release:
         nodes.triangle = nodes.barycentric = nodes.surface = None
     coef, seen = nodes.coef, nodes.seen
@@ -476,28 +470,21 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
         indptr[row + 1:row + r + 1] = np.cumsum(e.row_nnz) + band_at[b]
         row_ids[row:row + r], col_global[col:col + k] = e.row_pixels + b * npix, e.col_texels + b * total
         row += r
-    # Entries a chunk of nodes at a time (chunks in threads, each writing its own slice), each
-    # chunk's structure worked out once for the bands that share it.
-    def entries(e, same, a, at):
-        wk = e.wk[a:a + step].ravel()
-        flat = np.flatnonzero(wk)  # node (pixel order), then corner: row order
-        m, node, wv = len(flat), flat // 4 + a, wk[flat]
-        cols = e.col_rank[idx[a:a + step].ravel()[flat]]
-        for b in same:
-            o = band_at[b] + at
-            np.multiply(coef[b][node], wv, out=data[o:o + m])
-            np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
-
-    jobs = []
+    # Entries a chunk of nodes at a time, each chunk's structure worked out once for the bands
+    # that share it.
     for e in {id(e): e for e in bands}.values():
         same = [b for b in range(3) if bands[b] is e]
-        firsts = np.arange(0, n, step)
-        ats = np.zeros(len(firsts), dtype=np.int64)  # where each chunk's entries start
-        if len(firsts) > 1:
-            np.cumsum(np.add.reduceat(np.count_nonzero(e.wk, axis=1), firsts)[:-1], out=ats[1:])
-        jobs += [lambda e=e, same=same, a=int(a), at=int(at): entries(e, same, a, at) for a, at in zip(firsts, ats)]
-    _in_threads(jobs)
-    del jobs
+        at = 0
+        for a in range(0, n, CHUNK):
+            wk = e.wk[a:a + CHUNK].ravel()
+            flat = np.flatnonzero(wk)  # node (pixel order), then corner: row order
+            m, node, wv = len(flat), flat // 4 + a, wk[flat]
+            cols = e.col_rank[idx[a:a + CHUNK].ravel()[flat]]
+            for b in same:
+                o = band_at[b] + at
+                np.multiply(coef[b][node], wv, out=data[o:o + m])
+                np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
+            at += m
     for b, e in enumerate(bands):
         # Entries with zero weight add nothing: the sums over every corner are those over the entries.
         # A shared band's coverage is band 0's (same entries, same weights): a copy, not a count
