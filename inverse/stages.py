@@ -109,8 +109,9 @@ class TextureOptions:
                                    type=positive_float)
     max_albedo: float = opt(1.0, "upper bound of kd", type=positive_float)
     single: bool = opt(False, "use the reference photograph alone, ignoring inputs/", flag="--single-photograph")
-    tile_pixels: int = opt(1 << 19, "a photograph larger than this is textured a tile of this many pixels at a time "
-                                    "(its trees built, reduced and released per tile, not cached): bounds memory",
+    tile_pixels: int = opt(1 << 19, "a photograph larger than this is textured this many pixels at a time, in two "
+                                    "tiles of half as many reduced at once (their trees built, reduced and released "
+                                    "per tile, not cached): bounds memory",
                            type=positive_int)
 
 
