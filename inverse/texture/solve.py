@@ -647,9 +647,9 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tup
         if few:
             for (a, b), ak in zip(spans, alpha):
                 if ak:
-                    x[a:b] += ak * p[a:b]
+                    x[a:b] += np.multiply(p[a:b], ak, out=work[a:b])
         else:
-            x += np.repeat(alpha, sizes) * p
+            x += np.multiply(p, np.repeat(alpha, sizes), out=work)
         r -= q
         new = seg(np.multiply(r, r, out=work))
         if trace is not None:
