@@ -811,22 +811,7 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
         return np.zeros(0), {"components": 0, "largest_component": 0, "iterations": 0, "active_set_rounds": 0,
                              "solve_s": 0.0}
     pi, pj = _smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2
-    # The components (a graph search; scipy releases the GIL) in a second thread while this one
-    # takes what needs E in float64 and not the columns' numbering — column sums, the right-hand
-    # sides, the warm start's denominator: a column's value is the same under any numbering (its
-    # entries are summed in row order either way), so they are taken first and permuted.
-    f64 = E.dtype == np.float64
-    ET = E.T  # CSC view of the same arrays
-    with ThreadPoolExecutor(1) as pool:
-        found = pool.submit(_band_components, system, pi, pj)
-        colnorm2 = _column_sums(E, lambda d: np.square(d, dtype=np.float64))
-        Etrhs = ET @ (system.rhs if f64 else system.rhs.astype(np.float32))
-        Etalso = None
-        if also is not None:
-            also = np.asarray(also, dtype=np.float64)
-            Etalso = ET @ (also if f64 else also.astype(np.float32))
-        den = ET @ (E @ np.ones(ncol, dtype=E.dtype))  # the predicted radiance's part per texel
-        label, sizes = found.result()
+    label, sizes = _band_components(system, pi, pj)
     # Unknowns renumbered component by component: per-component sums become contiguous segments.
     order = np.argsort(label, kind="stable")
     del label
@@ -834,9 +819,8 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     pi, pj = rank[pi], rank[pj]
     del rank
     prior = system.prior
-    colnorm2, Etrhs, den = colnorm2[order], Etrhs[order], den[order]
-    Etalso = None if Etalso is None else Etalso[order]
-    del order
+
+    colnorm2 = _column_sums(E, lambda d: np.square(d, dtype=np.float64))
     # The prior's weight is relative to the data a texel would have if seen directly: a texel seen
     # only through an attenuation a gets (1/a)² times more, so faint reflections and sheets lean
     # on the homogeneous kd instead of making the system ill-conditioned.
@@ -858,14 +842,21 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     pairs = sp.coo_matrix((np.concatenate([off, off]), (np.concatenate([pi, pj]), np.concatenate([pj, pi]))),
                           shape=(ncol, ncol)).tocsr()
     del off, mu, lap_diag, pi, pj
+    ET = E.T  # CSC view of the same arrays
+    f64 = E.dtype == np.float64
     # What needs E in float64 is done before it turns float32: the right-hand sides, the warm
     # start's ratio and the stopping level (gradient at the homogeneous kd).
-    Etrhs = scale * Etrhs
+    Etrhs = scale * (ET @ system.rhs) if f64 else scale * (ET @ system.rhs.astype(np.float32))
     b = Etrhs + scale * prior_w * prior
-    b_also = None if Etalso is None else scale * Etalso + scale * prior_w * prior
-    del prior_w, Etalso
+    b_also = None
+    if also is not None:
+        also = np.asarray(also, dtype=np.float64)
+        b_also = scale * (ET @ (also if f64 else also.astype(np.float32))) + scale * prior_w * prior
+    del prior_w
     # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
-    den = scale * den
+    row_sum = E @ np.ones(ncol, dtype=E.dtype)
+    den = scale * (ET @ row_sum)
+    del row_sum
     ratio = np.divide(Etrhs, den, out=prior.copy(), where=den > 0)
     del den, Etrhs
     lo, hi = options.bounds
