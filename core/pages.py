@@ -1,4 +1,6 @@
-"""numpy's large arrays on ordinary pages while a stage runs (:func:`without_huge_pages`).
+"""Process memory while a large stage runs: numpy's large arrays on ordinary pages
+(:func:`without_huge_pages`), and the free memory worker threads' heaps keep given back
+(:func:`release_free_memory`).
 
 numpy asks the kernel for transparent huge pages (``madvise``) for every large array it
 allocates. Where the kernel then compacts memory to find them on the first touch of each
@@ -28,3 +30,23 @@ def without_huge_pages() -> Iterator[None]:
         yield
     finally:
         _set_madvise_hugepage(previous)
+
+
+def release_free_memory() -> None:
+    """Give the free memory of every malloc heap back to the system (glibc's ``malloc_trim``).
+
+    Worker threads allocate from heaps of their own, which keep what was freed in them: after
+    the tiles of a 3 MP texture, reduced in two threads, 0.3 GB stayed resident through the
+    assembly (the stage's peak: 2.58–2.70 GB against 2.24–2.36 GB in one thread). Nothing
+    happens where the C library has no ``malloc_trim``.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):
+        return
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)

@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from reflab.core.pages import release_free_memory
 from reflab.inverse.texture.solve import (SolverOptions, TextureSolution, TexturedNodes, assemble_system,
                                           maps_from_footprints, solve_texture, textured_nodes)
 from reflab.inverse.texture.texels import pixel_footprint
@@ -142,6 +143,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)  # a cancel or an error: no further tile starts
+            release_free_memory()  # what the workers' heaps kept, before the assembly's peak
     if task is not None:
         task.step(len(tiles), len(tiles), "texture: the system")
     footprint = {}
