@@ -109,8 +109,9 @@ class TextureOptions:
                                    type=positive_float)
     max_albedo: float = opt(1.0, "upper bound of kd", type=positive_float)
     single: bool = opt(False, "use the reference photograph alone, ignoring inputs/", flag="--single-photograph")
-    tile_pixels: int = opt(1 << 19, "a photograph larger than this is textured a tile of this many pixels at a time "
-                                    "(its trees built, reduced and released per tile, not cached): bounds memory",
+    tile_pixels: int = opt(1 << 19, "a photograph larger than this is textured this many pixels at a time, in two "
+                                    "tiles of half as many reduced at once (their trees built, reduced and released "
+                                    "per tile, not cached): bounds memory",
                            type=positive_int)
 
 
@@ -167,7 +168,10 @@ def texture(options: TextureOptions, task: Task | None = None, *, log=None) -> T
     solver.validate()
     photos = load_photographs(ws, reference_only=o.single)
     if max(p.camera.width * p.camera.height for p in photos) > o.tile_pixels:
-        return _texture_tiled(ws, scene, photos, materials, source, depth, solver, o, task, log)
+        from reflab.core.pages import without_huge_pages
+
+        with without_huge_pages():  # many large temporaries: ordinary pages cost less here
+            return _texture_tiled(ws, scene, photos, materials, source, depth, solver, o, task, log)
     # Every photograph adds rows to one system (one albedo per texel), the reference alone with
     # ``single``; the solver finds each photograph's saturated pixels in the stacked image.
     stack, image, _, photos = stack_photographs(ws, scene, depth, saturation=o.saturation, single=o.single,

@@ -60,13 +60,17 @@ def _texture_files(root):
 
 
 def test_tiled_texture_is_the_untiled_one(zoo):
+    import reflab.inverse.texture.tiles as tiles
+
     root, _ = zoo
     one = texture(TextureOptions(root))
     assert one.trees["cache"] in ("built", "reused")
     files_one = _texture_files(root)
     lines = []
-    tiled = texture(TextureOptions(root, tile_pixels=TINY), log=lines.append)
+    # The texture's workers (tiles.TILE_WORKERS) each take a share of tile_pixels: 10 tiles of TINY.
+    tiled = texture(TextureOptions(root, tile_pixels=TINY * tiles.TILE_WORKERS), log=lines.append)
     assert tiled.trees["cache"] == "tiled" and tiled.trees["tiles"] == 10 and "10 tiles" in lines[0]
+    assert tiled.trees["tile_pixels"] == TINY and tiled.trees["workers"] == min(tiles.TILE_WORKERS, 10)
     a, b = one.result, tiled.result
     assert list(a.kd) == list(b.kd) and len(a.kd) >= 2
     for s in a.kd:
@@ -125,7 +129,7 @@ def test_cancel_between_tiles_leaves_nothing_half_written(zoo, tmp_path, monkeyp
         monkeypatch.setattr(tiles, "TILE_WORKERS", workers)
         seen = []
         with pytest.raises(Cancelled):
-            texture(TextureOptions(root, tile_pixels=TINY), _cancel_at_tile(4, seen))
+            texture(TextureOptions(root, tile_pixels=TINY * workers), _cancel_at_tile(4, seen))
         assert any("tile 4 of 10" in m for m in seen) and not any("tile 10 of" in m for m in seen)
         if workers == 1:
             assert any("tile 3 of 10" in m for m in seen) and not any("tile 5 of" in m for m in seen)
@@ -155,7 +159,9 @@ def test_two_photographs_tiled_stack_as_untiled(tmp_path):
     write_input(tmp_path, "relit", render_reference(z.scene, cam, lights, depth=3, albedo=z.albedo), cam, lights)
     fit(FitOptions(tmp_path))
     one = texture(TextureOptions(tmp_path)).result
-    tiled = texture(TextureOptions(tmp_path, tile_pixels=TINY))
+    import reflab.inverse.texture.tiles as tiles
+
+    tiled = texture(TextureOptions(tmp_path, tile_pixels=TINY * tiles.TILE_WORKERS))
     assert tiled.trees["tiles"] == 20
     b = tiled.result
     assert b.stats["rows"] == one.stats["rows"] > 0 and b.stats["texels_guessed"] == one.stats["texels_guessed"]

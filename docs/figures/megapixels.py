@@ -8,8 +8,8 @@ box, a glass cylinder and a mirror box under two lamps; the workspace holds what
 ``python -m reflab.app.cli STAGE WORKSPACE`` in a fresh process with the trees cache emptied;
 its wall time and peak resident memory come from ``os.wait4`` (the child's own rusage).
 
-A texture above ``--texture-max-mp`` (default 12.5: the 12 MP texture peaks at 6.7 GB, the 24 MP
-one extrapolates to 12.5 GB, more than a run may take on the shared machine) is not run: the
+A texture above ``--texture-max-mp`` (default 12.5: the 12 MP texture peaks at 7.1 GB, the 24 MP
+one extrapolates to about 13 GB, more than a run may take on the shared machine) is not run: the
 render then uses the largest texture made before, its texel maps being independent of the
 photograph's size. ``--reuse`` keeps a size's workspace (photograph, fit.json) from an earlier run
 under the same ``--root``, ``--stages`` picks the stages after the fit (``--stages texture,albedo``:

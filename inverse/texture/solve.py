@@ -26,6 +26,7 @@ ties neighbouring texels. Texels that no lit, unsaturated pixel sees are left ou
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -40,6 +41,23 @@ AMPLIFIED, SATURATED, CLIPPED, GUESSED = 1, 2, 4, 8
 #: Nodes (or entries of E) per chunk of the passes that would otherwise make temporaries as large
 #: as E itself (a 12 MP photograph: 150 M entries, 1.2 GB per float64 array).
 CHUNK = 1 << 21
+#: Up to this many connected components the conjugate gradient works on each one's slice.
+FEW_COMPONENTS = 64
+#: Threads writing textures/' images (the EXR and PNG writers release the GIL). Two: at a load of
+#: 1.9 the 3 MP texture's files took 1.20–1.28 s against 1.73–1.75 s in one (the same CPU time).
+#: Not used for E's products (two threads over blocks of rows were slower at loads of 2–4 on this
+#: shared 2-core machine: memory-bound) nor for the assembly's chunks (8 % faster, +0.1 GB of
+#: peak memory at half the 3 MP system: the threads' malloc arenas).
+THREADS = 2
+
+
+def _in_threads(jobs) -> list:
+    """Run the callables ``jobs`` in :data:`THREADS` threads; their results in order (the first
+    error raised once all are done)."""
+    if THREADS <= 1 or len(jobs) <= 1:
+        return [job() for job in jobs]
+    with ThreadPoolExecutor(THREADS) as pool:
+        return [f.result() for f in [pool.submit(job) for job in jobs]]
 
 
 @dataclass
@@ -279,6 +297,9 @@ class _System:
     n_texels: int
     n_saturated: int
     n_unmodelled: int  # pixel-band rows dropped: their textured node's texels are unsupported
+    #: The three bands have the same rows, columns and entries (none saturated or unlit in one band
+    #: alone: the usual case); only E's values differ.
+    shared: bool = False
 
 
 def _compress(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -489,7 +510,7 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
         surf_of[offsets[s]: offsets[s] + m.n_texels] = s
     prior = kd_table[surf_of[col_global % max(total, 1)], col_global // max(total, 1)]
     return _System(E, rhs, row_pixel, row_band, col_global, prior, coverage, weight,
-                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), n_bad)
+                   saturated_touch, offsets, total, int(np.count_nonzero(saturated)), n_bad, shared)
 
 
 class _BandStructure(NamedTuple):
@@ -537,21 +558,34 @@ def _band_structure(ok, idx, w, pix, total: int, min_coverage: float) -> _BandSt
 
 
 def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
-    """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system."""
+    """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system.
+
+    Bands that share their structure: band 0's pairs, repeated for bands 1 and 2 (each column's
+    pairs in the same order as when found over every band, so sums over them are the same)."""
+    if system.shared and len(system.col_global) % 3 == 0:
+        c1 = len(system.col_global) // 3
+        pi, pj = _adjacent(system.col_global[:c1], system, maps)
+        return np.concatenate([pi + b * c1 for b in range(3)]), np.concatenate([pj + b * c1 for b in range(3)])
+    return _adjacent(system.col_global, system, maps)
+
+
+def _adjacent(col_global, system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (i, j) among the columns ``col_global`` (band * n_texels + texel) of adjacent texels."""
     total = system.n_texels
-    texel = system.col_global % total
+    texel = col_global % total
     starts = np.array(sorted(system.offsets.values()))
     by_start = {system.offsets[s]: m for s, m in maps.items()}
     which = np.searchsorted(starts, texel, side="right") - 1
     width = np.array([by_start[o].width for o in starts])[which]
     count = np.array([by_start[o].n_texels for o in starts])[which]
     local = texel - starts[which]
-    position = np.full(3 * total + 1, -1, dtype=np.int64)  # column of each (band, texel); -1: none
-    position[system.col_global] = np.arange(len(system.col_global))
+    bands = int(col_global[-1]) // total + 1 if len(col_global) else 1  # increasing: the last is the largest
+    position = np.full(bands * total + 1, -1, dtype=np.int64)  # column of each (band, texel); -1: none
+    position[col_global] = np.arange(len(col_global))
     pairs_i, pairs_j = [], []
     for step, inside in ((1, local % width != width - 1), (width, local < count - width)):
         cand = np.flatnonzero(inside)
-        j = position[system.col_global[cand] + (step if np.isscalar(step) else step[cand])]
+        j = position[col_global[cand] + (step if np.isscalar(step) else step[cand])]
         pairs_i.append(cand[j >= 0])
         pairs_j.append(j[j >= 0])
     return np.concatenate(pairs_i), np.concatenate(pairs_j)
@@ -570,14 +604,36 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tup
     summed over the components) after every iteration. Returns (x, iterations of the slowest component).
     """
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    seg = lambda v: np.add.reduceat(v, starts, dtype=np.float64)  # noqa: E731 -- per-component sums
-    each = lambda v: np.repeat(v, sizes)  # noqa: E731 -- per-component value on its unknowns
+    # A few components (the usual case: a handful per band) are taken slice by slice: sums in
+    # float64 by pairwise summation and per-component factors in place, without reduceat's
+    # sequential float64 loop or np.repeat's unknown-sized factor arrays (a quarter of the
+    # iteration's time at 3 MP besides the sparse products).
+    few = len(sizes) <= FEW_COMPONENTS
+    spans = list(zip(starts.tolist(), (starts + sizes).tolist()))
+
+    def seg(v):
+        """Per-component sums of ``v``, float64."""
+        if few:
+            return np.array([np.add.reduce(v[a:b], dtype=np.float64) for a, b in spans])
+        return np.add.reduceat(v, starts, dtype=np.float64)
+
+    def scale(v, f):
+        """``v`` times each component's factor ``f`` (float32), in place."""
+        if few:
+            for (a, b), fk in zip(spans, f):
+                v[a:b] *= fk
+        else:
+            v *= np.repeat(f, sizes)
+
+    dtype = x.dtype
     r = b - apply(x)
     if free is not None:
         r *= free
-    gamma = seg(r * r)
+    work = r * r  # the products summed below, one buffer for every iteration
+    gamma = seg(work)
     active = gamma > stop
-    p = r * each(active)
+    p = r.copy()
+    scale(p, active.astype(dtype))
     it = 0
     while it < max_iter and active.any():
         if check is not None:
@@ -585,17 +641,29 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tup
         q = apply(p)
         if free is not None:
             q *= free
-        delta = seg(p * q)
-        alpha = each(np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0)).astype(x.dtype))
-        x += alpha * p
-        q *= alpha
+        delta = seg(np.multiply(p, q, out=work))
+        alpha = np.divide(gamma, delta, out=np.zeros_like(gamma), where=active & (delta > 0)).astype(dtype)
+        scale(q, alpha)  # alpha q, then x += alpha p by the same factors
+        if few:
+            for (a, b), ak in zip(spans, alpha):
+                if ak:
+                    x[a:b] += np.multiply(p[a:b], ak, out=work[a:b])
+        else:
+            x += np.multiply(p, np.repeat(alpha, sizes), out=work)
         r -= q
-        new = seg(r * r)
+        new = seg(np.multiply(r, r, out=work))
         if trace is not None:
             trace.append((time.perf_counter(), float(new.sum())))
         active &= (new > stop) & (delta > 0)
-        p *= each(np.divide(new, gamma, out=np.zeros_like(gamma), where=active).astype(x.dtype))
-        p += r * each(active).astype(x.dtype) if not active.all() else r
+        scale(p, np.divide(new, gamma, out=np.zeros_like(gamma), where=active).astype(dtype))
+        if active.all():
+            p += r
+        elif few:
+            for (a, b), on in zip(spans, active):
+                if on:
+                    p[a:b] += r[a:b]
+        else:
+            p += r * np.repeat(active, sizes).astype(dtype)
         gamma = new
         it += 1
     return x, it
@@ -632,7 +700,7 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
         return _components(E, pi, pj)
     R1, C1, n1 = R // 3, C // 3, nnz // 3
     texel = system.col_global % max(system.n_texels, 1)
-    alike = (np.array_equal(system.row_band, np.repeat(np.arange(3), R1))
+    alike = system.shared or (np.array_equal(system.row_band, np.repeat(np.arange(3), R1))
              and np.array_equal(system.col_global // max(system.n_texels, 1), np.repeat(np.arange(3), C1))
              and np.all(system.row_pixel.reshape(3, R1) == system.row_pixel[:R1])
              and np.all(texel.reshape(3, C1) == texel[:C1])
@@ -669,6 +737,44 @@ def _column_sums(E, values) -> np.ndarray:
     for a in range(0, E.nnz, CHUNK):
         out += np.bincount(E.indices[a:a + CHUNK], weights=values(E.data[a:a + CHUNK]), minlength=E.shape[1])
     return out
+
+
+class _Normal:
+    """The scaled normal-equation product ``s·Eᵀ(E(s·p)) + d·p + P p`` (``P`` the smoothness pairs),
+    written into buffers kept from one iteration to the next.
+
+    Its values are scipy's ``s * (E.T @ (E @ (s * p))) + d * p + P @ p`` bit for bit (the same
+    kernels in the same order); only the arrays are reused: at 12 MP a product's row vector is
+    144 MB and a column vector 64 MB, and fresh ones every iteration cost their pages' faults
+    (system time) each time. The returned array is overwritten by the next call.
+    """
+
+    def __init__(self, E, s, d, pairs):
+        self.E, self.s, self.d, self.pairs = E, s, d, pairs
+        rows, cols = E.shape
+        # scipy's kernels with our outputs when the index types agree (else its own products)
+        self.kernels = E.indptr.dtype == E.indices.dtype and pairs.indptr.dtype == pairs.indices.dtype
+        self.rows, self.c1, self.out = np.empty(rows, E.dtype), np.empty(cols, E.dtype), np.empty(cols, E.dtype)
+
+    def __call__(self, p):
+        E, pairs, c1, out = self.E, self.pairs, self.c1, self.out
+        if not self.kernels:
+            return self.s * (E.T @ (E @ (self.s * p))) + self.d * p + pairs @ p
+        from scipy.sparse import _sparsetools
+
+        R, C = E.shape
+        np.multiply(self.s, p, out=c1)
+        self.rows.fill(0)
+        _sparsetools.csr_matvec(R, C, E.indptr, E.indices, E.data, c1, self.rows)  # E (s p)
+        c1.fill(0)
+        _sparsetools.csc_matvec(C, R, E.indptr, E.indices, E.data, self.rows, c1)  # Eᵀ(...), E's CSC view
+        np.multiply(self.s, c1, out=out)
+        np.multiply(self.d, p, out=c1)
+        out += c1
+        c1.fill(0)
+        _sparsetools.csr_matvec(C, C, pairs.indptr, pairs.indices, pairs.data, p, c1)
+        out += c1
+        return out
 
 
 def _to_float32(E) -> None:
@@ -764,9 +870,7 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     # at 320x240 and 640x480), far below the stopping level's effect.
     F = np.float32
     _to_float32(E)
-    ET = E.T
-    s32, d32, pairs = scale.astype(F), diag.astype(F), pairs.astype(F)
-    apply = lambda p: s32 * (ET @ (E @ (s32 * p))) + d32 * p + pairs @ p  # noqa: E731
+    apply = _Normal(E, scale.astype(F), diag.astype(F), pairs.astype(F))
 
     def bounded(b, y, stop, steps):
         """CG, then up to four active-set rounds (violators fixed at their bound, the rest re-solved warm)."""
@@ -853,8 +957,15 @@ def recover_texture(scene, trees, materials, intensities, image, options: Solver
 
 def _guessed_columns(E, on_guess) -> np.ndarray:
     """(C,) bool: columns of E with more than half their weight (|E|) in the rows ``on_guess``
-    ((R,) bool), summed in float64 a chunk of rows at a time."""
+    ((R,) bool), summed in float64.
+
+    E's entries are positive (a lit node's coefficient times a bilinear weight), so the weights
+    are two products with E's transpose (one pass over E each); a chunked sum of ``|E|`` is
+    kept for a matrix with negative values.
+    """
     R, C = E.shape
+    if E.dtype == np.float64 and (E.nnz == 0 or E.data.min() >= 0):
+        return E.T @ on_guess.astype(np.float64) > 0.5 * (E.T @ np.ones(R))
     guessed, whole = np.zeros(C), np.zeros(C)
     step = max(1, CHUNK // 4)
     for a in range(0, R, step):
@@ -967,28 +1078,34 @@ def write_textures(workspace, scene, result: TextureSolution, extra: dict | None
     from reflab.core.images import write_image
 
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    written, entries = [], []
+    jobs, entries = [], []
     for s, m in result.maps.items():
         name = scene[s].name
         files = {"kd": f"{name}.exr", "mask": f"{name}_mask.png", "diag": f"{name}_diag.exr"}
-        written.append(write_image(ws.textures / files["kd"], result.kd[s]))
-        written.append(write_image(ws.textures / files["mask"], result.mask[s].astype(np.float32)))
-        diag = np.stack([result.weight[s].min(axis=2), result.amplification[s].max(axis=2),
-                         result.flags[s].astype(np.float32)], axis=2)
-        written.append(write_image(ws.textures / files["diag"], diag))
+        jobs.append(lambda s=s, path=ws.textures / files["kd"]: write_image(path, result.kd[s]))
+        jobs.append(lambda s=s, path=ws.textures / files["mask"]: write_image(path, result.mask[s].astype(np.float32)))
+        jobs.append(lambda s=s, path=ws.textures / files["diag"]: write_image(path, np.stack(
+            [result.weight[s].min(axis=2), result.amplification[s].max(axis=2), result.flags[s].astype(np.float32)],
+            axis=2)))
         if m.kind == "uvatlas":
             files["uv"] = f"{name}_uv.npy"
-            with atomic_write(ws.textures / files["uv"], "wb") as f:
-                np.save(f, m.tri_uv.astype(np.float64))
-            written.append(ws.textures / files["uv"])
+            jobs.append(lambda m=m, path=ws.textures / files["uv"]: _write_npy(path, m.tri_uv.astype(np.float64)))
         entry = m.to_json()
         entry.update(files=files, texels_known=int(result.mask[s].sum()),
                      texels_amplified=int(np.count_nonzero(result.flags[s] & AMPLIFIED)),
                      texels_guessed=int(np.count_nonzero(result.flags[s] & GUESSED)))
         entries.append(entry)
+    written = _in_threads(jobs)  # a failed write raises here, before index.json could name its file
     index = {"surfaces": entries, "stats": result.stats, **(extra or {})}
     written.append(write_json(ws.texture_index, index))
     return written
+
+
+def _write_npy(path, array):
+    """``array`` to ``path`` (.npy), atomically; returns the path."""
+    with atomic_write(path, "wb") as f:
+        np.save(f, array)
+    return path
 
 
 def load_texture_maps(workspace, scene) -> dict[int, tuple[TexelMap, np.ndarray, np.ndarray]]:

@@ -22,14 +22,18 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from reflab.core.pages import release_free_memory
 from reflab.inverse.texture.solve import (SolverOptions, TextureSolution, TexturedNodes, assemble_system,
                                           maps_from_footprints, solve_texture, textured_nodes)
 from reflab.inverse.texture.texels import pixel_footprint
 
-#: Tiles reduced at once (threads). One: on this shared 2-core machine at a load of 10, two
-#: workers gave the 3 MP tiles in 34.0 and 40.8 s against 37.8 and 33.4 s for one, and a
-#: second tile's trees in memory (+0.4 GB at 3 MP, +1.2 GB at 12 MP: over the 8 GB bar).
-TILE_WORKERS = 1
+#: Tiles reduced at once (threads; Embree's casts and numpy's loops release the GIL), each of
+#: ``tile_pixels / TILE_WORKERS`` pixels so that the trees in memory stay about ``tile_pixels``'
+#: (two whole tiles took a second tile's trees: +1.2 GB at 12 MP, over the 8 GB bar). Two: the
+#: 3 MP tiles in 5.95 and 6.29 s against 8.86 and 8.58 s in one (load 1.8–2.0, back to back;
+#: 8 % more CPU time, +0.15 GB); at a load of 10 two whole tiles gained nothing (34.0 and 40.8 s
+#: against 37.8 and 33.4 s): a busy machine has no second core to give.
+TILE_WORKERS = 2
 
 def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, depth: int, tile_pixels: int,
                   uncertainty=None, task=None, log=None) -> tuple[TextureSolution, dict]:
@@ -82,7 +86,9 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     textured = [s for s, surf in enumerate(scene) if surf.textured]
     is_textured = [surf.textured for surf in scene]
 
-    tiles = [(i, r0, r1) for i, p in enumerate(photos) for r0, r1 in tile_rows(p.camera.height, p.camera.width, tile_pixels)]
+    # Pixels in flight stay ``tile_pixels``: each of the workers' tiles a share of them.
+    per_tile = max(1, int(tile_pixels) // max(1, TILE_WORKERS))
+    tiles = [(i, r0, r1) for i, p in enumerate(photos) for r0, r1 in tile_rows(p.camera.height, p.camera.width, per_tile)]
     Q = np.zeros((npix, 3))
 
     def reduce_tile(k):
@@ -137,6 +143,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)  # a cancel or an error: no further tile starts
+            release_free_memory()  # what the workers' heaps kept, before the assembly's peak
     if task is not None:
         task.step(len(tiles), len(tiles), "texture: the system")
     footprint = {}
@@ -153,8 +160,8 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     result = solve_texture(system, maps, materials, solver, guess=guess, task=task,
                            times=(t0, t_maps, time.perf_counter()))
     stats = {"cache": "tiled", "build_s": build_s, "nodes": n_nodes, "tiles": len(tiles),
-             "tile_pixels": int(tile_pixels)}
+             "tile_pixels": per_tile, "workers": workers}
     if log is not None:
-        log(f"trees: built in {len(tiles)} tiles of up to {tile_pixels} pixels, {build_s:.2f} s ({n_nodes} nodes), "
-            "not cached")
+        log(f"trees: built in {len(tiles)} tiles of up to {per_tile} pixels ({workers} at a time), {build_s:.2f} s "
+            f"({n_nodes} nodes), not cached")
     return result, {"trees": stats, "guess": guess, "blocks": blocks, "width": width, "height": height}
