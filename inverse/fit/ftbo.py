@@ -72,7 +72,7 @@ def ftbo(pb: Problem, p: Params, free: Free, t0, trace, maxiter=100, scan=True, 
     q = np.flatnonzero(free.theta)
     evaluate = _evaluator(pb, free, q)
     u = srch.to_u(p.theta)[q]
-    E, g, cur, A, grad, res = evaluate(u, p)
+    E, g, cur, A, grad, res = evaluate(u, p, gradient=len(q) > 0)  # no θ: the linear solve alone
     trace.append(trace_point(t0, pb.rms(res)))
     if len(q) == 0:
         return cur, 0, "no nonlinear parameter to fit: one exact linear solve"
