@@ -140,6 +140,15 @@ def _surface_terms(trees, model, idx) -> tuple:
     return derived(trees, f"surface terms {model.name} {id(idx)}", (trees.normal, idx), terms)
 
 
+def surface_terms(trees, model, s: int) -> tuple[tuple, np.ndarray]:
+    """``model``'s θ-independent terms on the (node, light) pairs of surface ``s`` (rows node-major,
+    :func:`node_geometry`'s order) and the surface's nodes, increasing: kept on the trees, so that
+    the factorizations of one fit (its sample, coarse scan, outliers left out, texture rounds)
+    take theirs from one computation (:meth:`reflab.inverse.forward.factorization.Factorization`)."""
+    idx = next((part for t, part in _groups(trees) if t == s), np.zeros(0, dtype=np.int64))
+    return _surface_terms(trees, model, idx), idx
+
+
 def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> None:
     """Fill ``basis`` (and ``dbasis``) at the nodes ``idx`` of one surface, whose material is ``material``."""
     k = trees.n_lights
