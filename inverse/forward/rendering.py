@@ -134,8 +134,9 @@ def _surface_terms(trees, model, idx) -> tuple:
     its lobe alone (640x480 zoo scene: the half vectors' norms and logarithms were a sixth of a
     fit's texture rounds, recomputed at every θ). The same numbers as the model on (n, l, v)."""
     def terms():
-        normal, light, view, _ = _surface_geometry(trees, idx)
-        return model.geometry(normal, light, view)
+        k = np.shape(trees.light_dir)[1]  # node_geometry's (n, l, v), without its weights
+        return model.geometry(np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
+                              np.repeat(trees.view[idx], k, axis=0))
 
     return derived(trees, f"surface terms {model.name} {id(idx)}", (trees.normal, idx), terms)
 
