@@ -93,7 +93,7 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
 def node_geometry(trees, idx) -> tuple:
     """Normals, light directions and views per (node, light) of the nodes ``idx`` (n·K, 3), and
     their known weights ``fresnel · visible / dist²`` (n, K): what a model needs at those nodes
-    (:func:`basis_on`)."""
+    (:func:`model_geometry` turns them into :func:`basis_on`'s input)."""
     k = trees.n_lights
     return (np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
             np.repeat(trees.view[idx], k, axis=0), trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
