@@ -76,11 +76,15 @@ def fit(options: FitOptions, task: Task | None = None, *, on_round=None) -> FitR
     """
     from reflab.core.workspace import Workspace, check_folder
     from reflab.inverse.fit.workspace_fit import fit_workspace
+    from reflab.inverse.forward.factorization import one_blas_thread
 
     task = ensure(task)
     o = options
     check_folder(o.workspace, write=True)  # before any work: missing or read-only, named in one line
-    report, result = fit_workspace(o.workspace, o.method, o.depth, saturation=o.saturation,
+    # BLAS on one thread for the whole stage, not only F-TBO's rounds: the colour lobes, the albedo
+    # model and the texture rounds' products are as small, and OpenBLAS's spin-waiting threads
+    # made them several times slower on the loaded two-core machine (docs/fit.md, "Speed").
+    report, result = one_blas_thread(fit_workspace)(o.workspace, o.method, o.depth, saturation=o.saturation,
                                    maxiter=o.max_iterations, max_seconds=o.max_seconds,
                                    texture_rounds=o.texture_rounds, progress=on_round, task=task, single=o.single,
                                    pixels=o.pixels, sample_above=int(round(o.sample_above * 1e6)))

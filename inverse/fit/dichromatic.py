@@ -37,7 +37,7 @@ from scipy.optimize import minimize_scalar
 from reflab.inverse.forward.models import get_model
 from reflab.inverse.fit.problem import NOISE_FLOOR
 from reflab.inverse.fit.ranges import FIT_RANGE, ks_upper
-from reflab.inverse.forward.rendering import basis_on, linear_basis, node_geometry, node_radiance, path_products
+from reflab.inverse.forward.rendering import basis_on, linear_basis, model_geometry, node_geometry, node_radiance, path_products
 from reflab.inverse.fit.uncertainty import robust_sd, tile_index
 
 #: A colour set is accepted when its misfit per degree of freedom is at most this many times what
@@ -137,7 +137,7 @@ class _Pixels:
         # The model evaluated on these nodes alone (as rendering.linear_basis does on all of them):
         # the scan asks for dozens of θ, and the whole trees' basis is 20 MB at 640x480.
         self.model = get_model(materials[s].brdf)
-        self.geometry = node_geometry(trees, nodes)
+        self.geometry = model_geometry(self.model, node_geometry(trees, nodes))  # its θ-independent terms once
         self.intensities = np.asarray(intensities, dtype=np.float64).reshape(trees.n_lights, 3)
 
     def lobe(self, theta: float, rows=None) -> np.ndarray:
@@ -148,10 +148,10 @@ class _Pixels:
 
     def geometry_at(self, keep: np.ndarray) -> tuple:
         """(rows, their node geometry) of the pixels ``keep`` (bool (m,)), for :meth:`lobe`."""
-        normal, light, view, weight = self.geometry
+        terms, weight = self.geometry
         k = weight.shape[1]
         at = (np.flatnonzero(keep)[:, None] * k + np.arange(k)).ravel()
-        return keep, (normal[at], light[at], view[at], weight[keep])
+        return keep, (tuple(t[at] for t in terms), weight[keep])
 
 
 def _colour_set(albedo: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:

@@ -330,10 +330,13 @@ class Factorization:
             w = self.weight[idx]  # (n, K, 3)
             K = w.shape[1]
             if s not in self._geometry:
-                # All lights in one model call, stacked along N as the models expect (built once).
-                nodes = self.node[idx]
-                self._geometry[s] = model.geometry(np.repeat(tr.normal[nodes], K, axis=0), tr.light_dir[nodes].reshape(-1, 3),
-                                                   np.repeat(tr.view[nodes], K, axis=0))
+                # All lights stacked along N as the models expect: the rows of this system's nodes
+                # among the surface's terms on the trees (formed once per trees, the same numbers).
+                from reflab.inverse.forward.rendering import surface_terms
+
+                terms, every = surface_terms(tr, model, s)
+                at = (np.searchsorted(every, self.node[idx])[:, None] * K + np.arange(K)[None, :]).ravel()
+                self._geometry[s] = tuple(t[at] for t in terms)
             g, dg = model.g_and_dg_on(th, self._geometry[s], grad=grad and P > 0)
             g = g.reshape(n, K, J)
             block = a[start:start + n * J].reshape(n, J, BANDS)

@@ -50,13 +50,16 @@ def node_parameters(trees, materials) -> tuple[np.ndarray, np.ndarray]:
     of every model.
     """
     _check(trees, materials)
-    x = np.zeros((len(trees), 3, MAX_LINEAR))
-    theta = np.zeros((len(trees), MAX_NONLINEAR))
-    for s, idx in _groups(trees):
+    # One row per surface, gathered by node: the same numbers as filling each surface's nodes (a
+    # fit asks a dozen times for 300 000 nodes' worth).
+    x = np.zeros((len(materials), 3, MAX_LINEAR))
+    theta = np.zeros((len(materials), MAX_NONLINEAR))
+    for s, _ in _groups(trees):
         model = get_model(materials[s].brdf)
-        x[idx, :, : model.n_linear] = model.x_of(materials[s])
-        theta[idx, : model.n_nonlinear] = model.theta_of(materials[s])
-    return x, theta
+        x[s, :, : model.n_linear] = model.x_of(materials[s])
+        theta[s, : model.n_nonlinear] = model.theta_of(materials[s])
+    surface = np.asarray(trees.surface, dtype=np.int64)
+    return x[surface], theta[surface]
 
 
 def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
@@ -90,17 +93,25 @@ def linear_basis_and_grad(trees, materials, intensities, *, grad: bool = True):
 def node_geometry(trees, idx) -> tuple:
     """Normals, light directions and views per (node, light) of the nodes ``idx`` (n·K, 3), and
     their known weights ``fresnel · visible / dist²`` (n, K): what a model needs at those nodes
-    (:func:`basis_on`)."""
+    (:func:`model_geometry` turns them into :func:`basis_on`'s input)."""
     k = trees.n_lights
     return (np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
             np.repeat(trees.view[idx], k, axis=0), trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
 
 
+def model_geometry(model, geometry) -> tuple:
+    """(``model``'s θ-independent terms, weights) from a :func:`node_geometry` tuple: what
+    :func:`basis_on` needs, formed once for the many θ a few nodes are evaluated at (the half
+    vector, its logarithm: most of a model's cost)."""
+    normal, light, view, weight = geometry
+    return model.geometry(normal, light, view), weight
+
+
 def basis_on(model, theta, geometry, intensities) -> np.ndarray:
     """(n, 3, L) coefficients of ``model``'s linear parameters at nonlinear parameters ``theta``
-    (P,) on nodes of :func:`node_geometry` (a few nodes at many θ: :mod:`reflab.inverse.fit.dichromatic`)."""
-    normal, light, view, weight = geometry
-    g = model.g(np.broadcast_to(np.asarray(theta, dtype=np.float64), (len(normal), model.n_nonlinear)), normal, light, view)
+    (P,) on nodes of :func:`model_geometry` (a few nodes at many θ: :mod:`reflab.inverse.fit.dichromatic`)."""
+    terms, weight = geometry
+    g = model.g_and_dg_on(np.asarray(theta, dtype=np.float64), terms, grad=False)[0]
     return _weighted(weight, intensities, g)
 
 
@@ -120,19 +131,38 @@ def _surface_geometry(trees, idx) -> tuple:
     return derived(trees, f"surface geometry {id(idx)}", (trees.normal, idx), lambda: node_geometry(trees, idx))
 
 
+def _surface_terms(trees, model, idx) -> tuple:
+    """``model``'s θ-independent terms (:meth:`Model.geometry`) on one surface's (node, light)
+    pairs, kept on the trees like :func:`_surface_geometry`: each new θ of the surface then costs
+    its lobe alone (640x480 zoo scene: the half vectors' norms and logarithms were a sixth of a
+    fit's texture rounds, recomputed at every θ). The same numbers as the model on (n, l, v)."""
+    def terms():
+        k = np.shape(trees.light_dir)[1]  # node_geometry's (n, l, v), without its weights
+        return model.geometry(np.repeat(trees.normal[idx], k, axis=0), trees.light_dir[idx].reshape(-1, 3),
+                              np.repeat(trees.view[idx], k, axis=0))
+
+    return derived(trees, f"surface terms {model.name} {id(idx)}", (trees.normal, idx), terms)
+
+
+def surface_terms(trees, model, s: int) -> tuple[tuple, np.ndarray]:
+    """``model``'s θ-independent terms on the (node, light) pairs of surface ``s`` (rows node-major,
+    :func:`node_geometry`'s order) and the surface's nodes, increasing: kept on the trees, so that
+    the factorizations of one fit (its sample, coarse scan, outliers left out, texture rounds)
+    take theirs from one computation (:meth:`reflab.inverse.forward.factorization.Factorization`)."""
+    idx = next((part for t, part in _groups(trees) if t == s), np.zeros(0, dtype=np.int64))
+    return _surface_terms(trees, model, idx), idx
+
+
 def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> None:
     """Fill ``basis`` (and ``dbasis``) at the nodes ``idx`` of one surface, whose material is ``material``."""
     k = trees.n_lights
     model = get_model(material.brdf)
-    normal, light, view, weight = _surface_geometry(trees, idx)
-    theta = np.broadcast_to(model.theta_of(material), (len(idx) * k, model.n_nonlinear))
+    weight = _surface_geometry(trees, idx)[3]
+    g, dg = model.g_and_dg_on(model.theta_of(material), _surface_terms(trees, model, idx), grad=dbasis is not None)
     L, P = model.n_linear, model.n_nonlinear
     if dbasis is not None:
-        g, dg = model.g_and_dg(theta, normal, light, view)
         dbasis[idx, :, :L, :P] = np.einsum("nk,kc,nklp->nclp", weight, intensities, dg.reshape(len(idx), k, L, P),
                                            optimize=True)
-    else:
-        g = model.g(theta, normal, light, view)
     basis[idx, :, :L] = _weighted(weight, intensities, g)
 
 
@@ -389,8 +419,8 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
             continue
         model = get_model(materials[s].brdf)
         L, P, k = model.n_linear, model.n_nonlinear, trees.n_lights
-        normal, light, view, weight = _surface_geometry(trees, idx)
-        _, dg = model.g_and_dg(np.broadcast_to(model.theta_of(materials[s]), (len(idx) * k, P)), normal, light, view)
+        weight = _surface_geometry(trees, idx)[3]
+        _, dg = model.g_and_dg_on(model.theta_of(materials[s]), _surface_terms(trees, model, idx))
         dbasis = _weighted(weight, intensities, dg.reshape(len(idx) * k, L * P)).reshape(len(idx), 3, L, P)
         dtheta = np.einsum("nclp,ncl->ncp", dbasis, x[idx, :, :L]) * st[s, :P]
         var[idx] += (dtheta**2).sum(axis=2) * prod[idx] ** 2
