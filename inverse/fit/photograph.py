@@ -121,10 +121,16 @@ def read_photograph(photo, saturation: float | None = None):
 
 
 def stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
-                      task=None, log=None):
+                      task=None, log=None, further: int = 0, above: int = 0):
     """The workspace's photographs (the reference and ``inputs/``, or the reference alone with
     ``single``) checked, their trees built or read from the cache, stacked into one system
     (:mod:`reflab.inverse.forward.photographs`).
+
+    With ``further`` > 0 and more than ``above`` usable pixels in all the photographs together (a
+    fit that samples), a further photograph's trees are built only for a uniform share of its
+    pixels, tiles holding about ``further`` of its usable ones (:func:`reflab.inverse.fit.sampling.tiles`;
+    never cached: a sample), and ``stack.reach`` holds each pixel's probability to be among them;
+    the others count as unusable. The reference keeps every pixel's trees.
 
     Returns
     -------
@@ -144,9 +150,30 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
         img, sat = read_photograph(photo, saturation)
         images.append(img)
         masks.append(sat)
-        trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
-                                         task=task))
+    shares = [None] * len(photos)
+    if further > 0 and len(photos) > 1 and sum(int((~m).sum()) for m in masks) > int(above):
+        from reflab.inverse.fit import sampling
+
+        # The fit reads a sample anyway: a further photograph's trees only where it may draw it.
+        shares = [None] + [sampling.tiles(~m.reshape(p.camera.height, p.camera.width), further, sampling.SEED + i)
+                           for i, (p, m) in enumerate(zip(photos[1:], masks[1:]), start=1)]
+    for photo, share in zip(photos, shares):
+        if share is not None and share[1] < 1.0:
+            from reflab.inverse.fit.large import trees_of_pixels
+
+            trees.append(trees_of_pixels(scene, photo.camera, photo.lights, share[0], depth=depth, task=task))
+        else:
+            trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
+                                             task=task))
     stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
+    if any(s is not None and s[1] < 1.0 for s in shares):
+        stack.reach = np.zeros(stack.width * stack.height)
+        for i, share in enumerate(shares):
+            px = stack.pixels(i)
+            if share is None or share[1] >= 1.0:
+                stack.reach[px] = 1.0
+            else:
+                stack.reach[px[share[0]]] = share[1]
     image = stack.image(images)
     if len(photos) == 1:
         return stack, image, masks[0], photos

@@ -91,12 +91,14 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                     task=task, pixels=pixels)
         stack, image, saturated = big.stack, big.image, big.saturated
     else:
+        # A fit that samples several photographs builds the further ones' trees for a share of their pixels.
         stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
-                                                            task=task)
+                                                            task=task, further=sampling.FURTHER if pixels else 0,
+                                                            above=max(int(sample_above), int(pixels)))
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
-                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above)
+                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above, reach=stack.reach)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
@@ -132,13 +134,15 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
 def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
               texture_rounds: int = 2, progress=None, task=None, pixels: int = sampling.PIXELS,
               sample_above: int = sampling.SAMPLE_ABOVE,
-              scene_file="scene.json") -> SceneFit:
+              scene_file="scene.json", reach=None) -> SceneFit:
     """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
     evidence when the photographs hold more than ``sample_above`` usable pixels (and more than
     ``pixels``; :mod:`reflab.inverse.fit.sampling`),
     and the texture rounds when a seen surface is textured. Parameters as :func:`fit_workspace`;
     ``usable`` (H*W,) bool: the pixels the fit may read (not saturated). A scene with no lit
-    surface in view raises WorkspaceError naming ``scene_file``.
+    surface in view raises WorkspaceError naming ``scene_file``. ``reach`` (H*W,), optional: each
+    pixel's probability that its trees were built (``Stack.reach``), multiplied into its inclusion
+    probability: the rows of a further photograph built for a share of its pixels weigh for all.
     """
     from reflab.inverse.forward.models import get_model
 
@@ -155,7 +159,12 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.photograph import remember_noise
 
         remember_noise(image, usable)
-    fac = Factorization(trees, models, intensities, mask=sampling.pilot(frame, pixels) if sampled else usable)
+    first = sampling.pilot(frame, pixels) if sampled else usable
+    if reach is not None:  # the first fit's rows (the pilot's, or all) weighed as every pixel's sample
+        reach = np.asarray(reach, dtype=np.float64).reshape(-1)
+        first_trees = sampling.weighted(trees, sampling.weights(first & frame, reach))
+        trees = trees if sampled else first_trees
+    fac = Factorization(trees if reach is None else first_trees, models, intensities, mask=first)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
@@ -178,6 +187,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame, pixels,
                                                                open_lobes=sampling.open_lobes(result))
         sample_report["pilot"] = int(fac.n_rows)
+        if reach is not None:
+            probability = probability * reach
         # Each row weighed by 1/(its inclusion probability): the evidence is favoured in the draw,
         # not in the estimate (Horvitz–Thompson; docs/fit.md "Sampling").
         trees = sampling.weighted(trees, sampling.weights(keep, probability))

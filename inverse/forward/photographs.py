@@ -112,12 +112,17 @@ class Stack:
     blocks : list of Block
     valid : (H·W,) bool ndarray
         False on the padding right of a narrower photograph.
+    reach : (H·W,) float ndarray, optional
+        Each pixel's probability that its trees were built, when a further photograph's were
+        built for a uniform share of its pixels alone (:func:`reflab.inverse.fit.sampling.tiles`);
+        None: every pixel's.
     """
 
     trees: object
     intensities: np.ndarray
     blocks: list = field(default_factory=list)
     valid: np.ndarray | None = None
+    reach: np.ndarray | None = None
 
     @property
     def width(self) -> int:
