@@ -159,7 +159,7 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
                            for i, (p, m) in enumerate(zip(photos[1:], masks[1:]), start=1)]
     for photo, share in zip(photos, shares):
         if share is not None and share[1] < 1.0:
-            from reflab.inverse.fit.large import trees_of_pixels
+            from reflab.inverse.forward.trees import trees_of_pixels
 
             trees.append(trees_of_pixels(scene, photo.camera, photo.lights, share[0], depth=depth, task=task))
         else:
