@@ -157,35 +157,74 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
         # The fit reads a sample anyway: a further photograph's trees only where it may draw it.
         shares = [None] + [sampling.tiles(~m.reshape(p.camera.height, p.camera.width), further, sampling.SEED + i)
                            for i, (p, m) in enumerate(zip(photos[1:], masks[1:]), start=1)]
-    for photo, share in zip(photos, shares):
-        if share is not None and share[1] < 1.0:
-            from reflab.inverse.forward.trees import trees_of_pixels
-
-            trees.append(trees_of_pixels(scene, photo.camera, photo.lights, share[0], depth=depth, task=task))
-        else:
+    if not any(s is not None and s[1] < 1.0 for s in shares):
+        for photo in photos:
             trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
                                              task=task))
-    stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
-    if any(s is not None and s[1] < 1.0 for s in shares):
-        stack.reach = np.zeros(stack.width * stack.height)
-        for i, share in enumerate(shares):
-            px = stack.pixels(i)
-            if share is None or share[1] >= 1.0:
-                stack.reach[px] = 1.0
-            else:
-                stack.reach[px[share[0]]] = share[1]
-    image = stack.image(images)
-    if len(photos) == 1:
-        return stack, image, masks[0], photos
+        stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
+        image = stack.image(images)
+        if len(photos) == 1:
+            return stack, image, masks[0], photos
+        seen = np.zeros(stack.width * stack.height, dtype=bool)
+        seen[stack.trees.pixel] = True
+        return stack, image, _unusable(stack, masks, seen), photos
+    return _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log)
+
+
+def _unusable(stack, masks, seen) -> np.ndarray:
+    """(H·W,) the stacked photographs' saturated pixels, padding, and a further photograph's
+    pixels that see no surface (``seen`` False)."""
     saturated = np.ones(stack.width * stack.height, dtype=bool)  # padding counts as unusable
     for i, sat in enumerate(masks):
         saturated[stack.pixels(i)] = sat
     # A further photograph's pixels where the model sees no surface (the table top beyond the
     # reconstructed ground, the room) say nothing about the materials: left out. The reference
     # keeps them, as the single-photograph fit always has (its diagnosis counts them).
-    seen = np.zeros_like(saturated)
-    seen[stack.trees.pixel] = True
     further = np.ones_like(saturated)
     further[stack.pixels(0)] = False
-    saturated |= further & ~seen
-    return stack, image, saturated, photos
+    return saturated | (further & ~seen)
+
+
+def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log):
+    """:func:`stack_photographs` with further photographs' trees built for ``shares`` (pixels, q)
+    of their pixels, and for the colour lobes' uniform sample of each textured surface
+    (:func:`reflab.inverse.fit.sampling.even_of`, drawn on every pixel's first seen surface as
+    from whole trees: the same pixels), which ``stack.reach`` leaves at 0: the fit does not draw them."""
+    from reflab.inverse.fit import sampling
+    from reflab.inverse.forward.photographs import stack_trees
+    from reflab.inverse.forward.trees import first_surfaces, trees_for_workspace, trees_of_pixels
+
+    ref = trees_for_workspace(workspace, scene, photos[0].camera, photos[0].lights, depth=depth, log=log, task=task)
+    width = max(int(p.camera.width) for p in photos)
+    row0 = np.cumsum([0] + [int(p.camera.height) for p in photos])
+    first = np.full(width * int(row0[-1]), -1, dtype=np.int64)
+    usable = np.zeros(len(first), dtype=bool)
+    for i, (photo, sat) in enumerate(zip(photos, masks)):
+        w, h = int(photo.camera.width), int(photo.camera.height)
+        if i == 0:
+            mine = np.full(w * h, -1, dtype=np.int64)
+            top = np.asarray(ref.level) == 1
+            mine[np.asarray(ref.pixel)[top]] = np.asarray(ref.surface)[top]
+        else:
+            mine = first_surfaces(scene, photo.camera)
+        v, u = np.divmod(np.arange(w * h), w)
+        first[(v + row0[i]) * width + u] = mine
+        usable[(v + row0[i]) * width + u] = ~np.asarray(sat, dtype=bool).reshape(-1)
+    even = sampling.even_of(first, usable & (first >= 0), row0[:-1] * width,
+                            [i for i, s in enumerate(scene) if s.textured])
+    trees, local = [ref], []
+    for i, (photo, share) in enumerate(zip(photos, shares)):
+        if i == 0:
+            continue
+        w = int(photo.camera.width)
+        block = even[row0[i] * width:row0[i + 1] * width].reshape(-1, width)[:, :w].reshape(-1)
+        local.append(share[0])
+        trees.append(trees_of_pixels(scene, photo.camera, photo.lights, np.union1d(share[0], np.flatnonzero(block)),
+                                     depth=depth, task=task))
+    stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
+    stack.reach = np.zeros(stack.width * stack.height)
+    stack.reach[stack.pixels(0)] = 1.0
+    for i, (share, px) in enumerate(zip(shares[1:], local), start=1):
+        stack.reach[stack.pixels(i)[px]] = share[1]
+    stack.even = even
+    return stack, stack.image(images), _unusable(stack, masks, first >= 0), photos

@@ -244,6 +244,15 @@ def even(trees, mask, surfaces, count: int = EVEN, seed: int = SEED) -> np.ndarr
     first[np.asarray(trees.pixel)[top]] = np.asarray(trees.surface)[top]
     stats = trees.stats if isinstance(getattr(trees, "stats", None), dict) else {}
     starts = np.asarray(stats.get("block_row0", [0]), dtype=np.int64) * int(trees.width)
+    return even_of(first, mask, starts, surfaces, count, seed)
+
+
+def even_of(first, mask, starts, surfaces, count: int = EVEN, seed: int = SEED) -> np.ndarray:
+    """:func:`even` from each pixel's first seen surface ``first`` (H*W,) (−1: none) and the flat
+    index where each photograph starts, ``starts``: the same draw without trees of every pixel."""
+    mask = np.asarray(mask, dtype=bool).reshape(-1)
+    first = np.asarray(first, dtype=np.int64).reshape(-1)
+    starts = np.asarray(starts, dtype=np.int64)
     photo = np.searchsorted(starts, np.arange(len(mask)), side="right") - 1
     out = np.zeros_like(mask)
     for i in range(len(starts)):

@@ -98,7 +98,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
-                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above, reach=stack.reach)
+                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above, reach=stack.reach,
+                         colour_pixels=stack.even)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
@@ -134,7 +135,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
 def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
               texture_rounds: int = 2, progress=None, task=None, pixels: int = sampling.PIXELS,
               sample_above: int = sampling.SAMPLE_ABOVE,
-              scene_file="scene.json", reach=None) -> SceneFit:
+              scene_file="scene.json", reach=None, colour_pixels=None) -> SceneFit:
     """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
     evidence when the photographs hold more than ``sample_above`` usable pixels (and more than
     ``pixels``; :mod:`reflab.inverse.fit.sampling`),
@@ -142,13 +143,18 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     ``usable`` (H*W,) bool: the pixels the fit may read (not saturated). A scene with no lit
     surface in view raises WorkspaceError naming ``scene_file``. ``reach`` (H*W,), optional: each
     pixel's probability that its trees were built (``Stack.reach``), multiplied into its inclusion
-    probability: the rows of a further photograph built for a share of its pixels weigh for all.
+    probability: the rows of a further photograph built for a share of its pixels weigh for all;
+    a pixel at 0 is never read by the fit. ``colour_pixels`` (H*W,) bool, optional: the colour
+    lobes' sample (``Stack.even``), else drawn here (:func:`reflab.inverse.fit.sampling.even`).
     """
     from reflab.inverse.forward.models import get_model
 
     t1 = time.perf_counter()
     models = [get_model(s.material.brdf) for s in scene]
-    usable = np.asarray(usable, dtype=bool).reshape(-1)
+    usable = noise_usable = np.asarray(usable, dtype=bool).reshape(-1)
+    if reach is not None:  # pixels whose trees were built for the colour lobes alone: not the fit's
+        reach = np.asarray(reach, dtype=np.float64).reshape(-1)
+        usable = usable & (reach > 0)
     # What a sample stands for: the usable pixels that see something (a pixel without a tree
     # is a zero row, nothing to read).
     frame = np.zeros_like(usable)
@@ -158,10 +164,9 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     if sampled:  # the pixels read are too sparse for the noise's 3×3 windows: the usable ones say it
         from reflab.inverse.fit.photograph import remember_noise
 
-        remember_noise(image, usable)
+        remember_noise(image, noise_usable)
     first = sampling.pilot(frame, pixels) if sampled else usable
     if reach is not None:  # the first fit's rows (the pilot's, or all) weighed as every pixel's sample
-        reach = np.asarray(reach, dtype=np.float64).reshape(-1)
         first_trees = sampling.weighted(trees, sampling.weights(first & frame, reach))
         trees = trees if sampled else first_trees
     fac = Factorization(trees if reach is None else first_trees, models, intensities, mask=first)
@@ -214,7 +219,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         homogeneous_rms = [float(v) for v in result.rms]
         round_trees, view = trees, None
         # The lobes from the texture's colours weigh their pixels alike: per photograph and surface, a uniform sample.
-        even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
+        even = None if not sampled else colour_pixels if colour_pixels is not None else \
+            sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene]))
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
         if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'

@@ -116,6 +116,9 @@ class Stack:
         Each pixel's probability that its trees were built, when a further photograph's were
         built for a uniform share of its pixels alone (:func:`reflab.inverse.fit.sampling.tiles`);
         None: every pixel's.
+    even : (H·W,) bool ndarray, optional
+        With ``reach``: the colour lobes' uniform sample of each textured surface
+        (:func:`reflab.inverse.fit.sampling.even_of`), whose trees were built too.
     """
 
     trees: object
@@ -123,6 +126,7 @@ class Stack:
     blocks: list = field(default_factory=list)
     valid: np.ndarray | None = None
     reach: np.ndarray | None = None
+    even: np.ndarray | None = None
 
     @property
     def width(self) -> int:

@@ -541,6 +541,15 @@ def trees_of_pixels(scene, camera, lights, pixels, depth: int = 3, task=None):
     return trees
 
 
+def first_surfaces(scene, camera) -> np.ndarray:
+    """(H·W,) int64: the surface each of ``camera``'s pixels sees first (−1: none), the level-1
+    nodes' of :func:`build_trees` without the rest of its work (no shadow rays, no deeper levels)."""
+    caster = _Caster(scene)
+    origin, direction = camera.pixel_rays()
+    hit, surface, *_ = caster.cast(origin, direction)
+    return np.where(hit, surface, -1).astype(np.int64)
+
+
 def tile_rows(height: int, width: int, tile_pixels: int) -> list[tuple[int, int]]:
     """Row ranges ``[r0, r1)`` of at most ``tile_pixels`` pixels each (one row at least): the tiles
     a large photograph's trees are built in (``build_trees(rows=)``)."""
