@@ -39,9 +39,10 @@ PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
 SEED = 0
 #: Pixels per surface at most for an estimate that weighs its pixels alike (:func:`even`).
 EVEN = 5_000
-#: A further photograph of a sampled fit of several has its trees built only for about this many of
-#: its usable pixels (:func:`tiles`); the reference photograph keeps every pixel's.
-FURTHER = 75_000
+#: A further photograph of a sampled fit of several has its trees built only for about this share of
+#: the budget ``pixels`` of its usable pixels (:func:`tiles`; 76 500 of the default budget: a
+#: quarter of 640x480), the reference photograph for all: the sample reads 3–4 % of those.
+FURTHER = 0.9
 #: ... in square tiles of this side (uniformly drawn): the image noise's 3×3 windows fit inside.
 TILE = 4
 #: Shapes at which a lobe the pilot left undetermined is looked for: where a broad, a glossy or a
@@ -63,7 +64,7 @@ def uniform(mask, count: int, seed: int = SEED) -> np.ndarray:
     return out
 
 
-def tiles(usable, count: int = FURTHER, seed: int = SEED, tile: int = TILE) -> tuple[np.ndarray, float]:
+def tiles(usable, count: int, seed: int = SEED, tile: int = TILE) -> tuple[np.ndarray, float]:
     """A uniform share of a photograph's pixels, in ``tile`` × ``tile`` tiles, holding about ``count``
     of its ``usable`` (H, W) pixels: the pixels a further photograph's trees are built for.
 

@@ -93,7 +93,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     else:
         # A fit that samples several photographs builds the further ones' trees for a share of their pixels.
         stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
-                                                            task=task, further=sampling.FURTHER if pixels else 0,
+                                                            task=task, further=int(sampling.FURTHER * int(pixels)),
                                                             above=max(int(sample_above), int(pixels)))
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
@@ -122,6 +122,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         extra["texture_rounds"] = rounds
     if done.sampling is not None:
         extra["sampling"] = done.sampling
+        if stack.reach is not None:  # the share of each photograph whose trees the sample drew from
+            extra["sampling"]["trees_share"] = [round(float(stack.reach[stack.pixels(i)].max()), 6)
+                                                for i in range(len(photos))]
     report = fit_json(result, fac, scene, depth, extra)
     annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:
