@@ -129,8 +129,9 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
     With ``further`` > 0 and more than ``above`` usable pixels in all the photographs together (a
     fit that samples), a further photograph's trees are built only for a uniform share of its
     pixels, tiles holding about ``further`` of its usable ones (:func:`reflab.inverse.fit.sampling.tiles`;
-    never cached: a sample), and ``stack.reach`` holds each pixel's probability to be among them;
-    the others count as unusable. The reference keeps every pixel's trees.
+    never cached: a sample) where that is at most :data:`reflab.inverse.fit.sampling.MAX_SHARE` of
+    them, and ``stack.reach`` holds each pixel's probability to be among them; the others count as
+    unusable. The reference keeps every pixel's trees.
 
     Returns
     -------
@@ -157,7 +158,8 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
         # The fit reads a sample anyway: a further photograph's trees only where it may draw it.
         shares = [None] + [sampling.tiles(~m.reshape(p.camera.height, p.camera.width), further, sampling.SEED + i)
                            for i, (p, m) in enumerate(zip(photos[1:], masks[1:]), start=1)]
-    if not any(s is not None and s[1] < 1.0 for s in shares):
+        shares = [s if s is not None and s[1] <= sampling.MAX_SHARE else None for s in shares]
+    if not any(s is not None for s in shares):
         for photo in photos:
             trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
                                              task=task))
@@ -194,17 +196,19 @@ def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, 
     from reflab.inverse.forward.photographs import stack_trees
     from reflab.inverse.forward.trees import first_surfaces, trees_for_workspace, trees_of_pixels
 
-    ref = trees_for_workspace(workspace, scene, photos[0].camera, photos[0].lights, depth=depth, log=log, task=task)
+    whole = [None if share is not None else trees_for_workspace(workspace, scene, photo.camera, photo.lights,
+                                                                depth=depth, log=log, task=task)
+             for photo, share in zip(photos, shares)]
     width = max(int(p.camera.width) for p in photos)
     row0 = np.cumsum([0] + [int(p.camera.height) for p in photos])
     first = np.full(width * int(row0[-1]), -1, dtype=np.int64)
     usable = np.zeros(len(first), dtype=bool)
-    for i, (photo, sat) in enumerate(zip(photos, masks)):
+    for i, (photo, sat, t) in enumerate(zip(photos, masks, whole)):
         w, h = int(photo.camera.width), int(photo.camera.height)
-        if i == 0:
+        if t is not None:
             mine = np.full(w * h, -1, dtype=np.int64)
-            top = np.asarray(ref.level) == 1
-            mine[np.asarray(ref.pixel)[top]] = np.asarray(ref.surface)[top]
+            top = np.asarray(t.level) == 1
+            mine[np.asarray(t.pixel)[top]] = np.asarray(t.surface)[top]
         else:
             mine = first_surfaces(scene, photo.camera)
         v, u = np.divmod(np.arange(w * h), w)
@@ -212,19 +216,20 @@ def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, 
         usable[(v + row0[i]) * width + u] = ~np.asarray(sat, dtype=bool).reshape(-1)
     even = sampling.even_of(first, usable & (first >= 0), row0[:-1] * width,
                             [i for i, s in enumerate(scene) if s.textured])
-    trees, local = [ref], []
-    for i, (photo, share) in enumerate(zip(photos, shares)):
-        if i == 0:
-            continue
-        w = int(photo.camera.width)
-        block = even[row0[i] * width:row0[i + 1] * width].reshape(-1, width)[:, :w].reshape(-1)
-        local.append(share[0])
-        trees.append(trees_of_pixels(scene, photo.camera, photo.lights, np.union1d(share[0], np.flatnonzero(block)),
-                                     depth=depth, task=task))
+    trees = []
+    for i, (photo, share, t) in enumerate(zip(photos, shares, whole)):
+        if t is None:
+            w = int(photo.camera.width)
+            block = even[row0[i] * width:row0[i + 1] * width].reshape(-1, width)[:, :w].reshape(-1)
+            t = trees_of_pixels(scene, photo.camera, photo.lights, np.union1d(share[0], np.flatnonzero(block)),
+                                depth=depth, task=task)
+        trees.append(t)
     stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
     stack.reach = np.zeros(stack.width * stack.height)
-    stack.reach[stack.pixels(0)] = 1.0
-    for i, (share, px) in enumerate(zip(shares[1:], local), start=1):
-        stack.reach[stack.pixels(i)[px]] = share[1]
+    for i, share in enumerate(shares):
+        if share is None:
+            stack.reach[stack.pixels(i)] = 1.0
+        else:
+            stack.reach[stack.pixels(i)[share[0]]] = share[1]
     stack.even = even
     return stack, stack.image(images), _unusable(stack, masks, first >= 0), photos
