@@ -78,9 +78,10 @@ def test_a_sampled_fit_is_honest_and_agrees_with_the_full_one(tmp_path, seed):
 def test_a_sampled_fit_over_several_photographs_keeps_a_lobe_only_a_further_one_shows(tmp_path):
     """The textured lab at 80x60 with lamp 1 alone as the reference (the tile's highlight out of its
     view: from it alone the tile's lobe is undetermined) and the input view and the turntable at 35°
-    as further photographs: a fit reading a seventh of the pixels determines the tile's lobe, within
-    3σ + 2 % of the truth and within its σ of the fit reading every pixel. Cut to the reference's
-    pixels, the lobe from the texture's colours lost the highlight (ks σ 2e4, the demo's tile 7612)."""
+    as further photographs: a fit reading a tenth of the pixels determines the tile's lobe, within
+    3σ + 2 % of the truth and within its σ of the fit reading every pixel, with the further
+    photographs' trees built for 28 % of their pixels alone. Cut to the reference's pixels, the lobe
+    from the texture's colours lost the highlight (ks σ 2e4, the demo's tile 7612)."""
     from reflab.core.images import write_image
     from reflab.core.workspace import Workspace, write_json
     from reflab.hardware.sim.lab import named_views, user_workspace
@@ -95,8 +96,12 @@ def test_a_sampled_fit_over_several_photographs_keeps_a_lobe_only_a_further_one_
     for name, c, li in named_views(lab.camera, lab.lights, "T0,T35"):
         write_input(tmp_path, name, photo(c, li), c, li)
     full = fit(FitOptions(tmp_path, pixels=0)).report
-    sampled = fit(FitOptions(tmp_path, pixels=2000, sample_above=0.001)).report
-    assert sampled["sampling"]["of"] == 3 * 80 * 60 and sampled["used_pixels"] < 0.2 * full["used_pixels"]
+    sampled = fit(FitOptions(tmp_path, pixels=1500, sample_above=0.001)).report
+    # The further photographs' trees only for 4x4 tiles holding about 0.9 x 1500 of their pixels
+    # (each pixel of them sees a surface): the reference's every pixel, and those the sample drew from.
+    share = sampled["sampling"]["trees_share"]
+    assert share[0] == 1.0 and all(abs(q - 0.9 * 1500 / (80 * 60)) < 0.01 for q in share[1:]), share
+    assert sampled["sampling"]["of"] == round(80 * 60 * sum(share)) and sampled["used_pixels"] < 0.2 * full["used_pixels"]
     true = lab.scene[lab.scene.index("tile")].material
     for report in (full, sampled):
         tile = next(s for s in report["surfaces"] if s["name"] == "tile")
@@ -278,3 +283,53 @@ def test_even_keeps_every_pixel_of_a_small_surface_and_a_uniform_share_of_a_larg
     assert np.array_equal(got & (first == small), first == small)  # all of the small one
     assert (got & (first == large)).sum() == count and not (got & ~np.isin(first, [small, large])).any()
     assert np.array_equal(got, even(trees, mask, [small, large], count))  # seeded
+
+
+def test_tiles_draw_every_pixel_alike_and_keep_whole_noise_windows():
+    """A further photograph's share (sampling.tiles): over 400 seeds each pixel is drawn as often as
+    its probability q says (the Horvitz–Thompson sum of a field by 1/q then estimates its whole
+    sum), the share holds about the count asked of the usable pixels, and its 4x4 tiles leave
+    whole 3x3 windows for the image noise."""
+    from reflab.inverse.fit.photograph import image_noise
+    from reflab.inverse.fit.sampling import tiles
+
+    h, w = 42, 61  # not multiples of the tile: the border tiles are cut
+    usable = np.ones((h, w), dtype=bool)
+    usable[:, :10] = False  # saturated: counted out of the usable pixels, not out of the draw
+    count = np.zeros(h * w)
+    field = np.random.default_rng(1).random(h * w) ** 3
+    sums = []
+    for seed in range(400):
+        px, q = tiles(usable, 700, seed)
+        count[px] += 1
+        sums.append(field[px].sum() / q)
+        assert 700 <= q * usable.sum() < 720 and np.array_equal(px, np.unique(px))  # a tile at most above
+    spread = np.sqrt(q * (1 - q) * 400)
+    assert abs(count.mean() - 400 * q) < 0.02 * 400 * q and np.abs(count - 400 * q).max() < 5 * spread
+    assert abs(np.mean(sums) - field.sum()) < 4 * np.std(sums) / np.sqrt(len(sums))
+    assert np.array_equal(tiles(usable, 700, 3)[0], tiles(usable, 700, 3)[0])  # seeded
+    assert tiles(usable, usable.sum(), 0)[1] == 1.0  # every pixel when the count holds them all
+    img = np.random.default_rng(2).normal(0.5, 0.01, (h, w, 3))
+    mask = np.zeros(h * w, dtype=bool)
+    mask[tiles(usable, 700, 0)[0]] = True
+    sigma = image_noise(img, mask.reshape(h, w) & usable)
+    assert np.allclose(sigma, 0.01, rtol=0.15), sigma
+
+
+def test_first_surfaces_and_even_of_match_whole_trees():
+    """A further photograph's first seen surfaces from one primary ray a pixel are the level-1 nodes'
+    of its whole trees, and the colour lobes' sample drawn from them (even_of) is even's from the trees."""
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.sampling import even, even_of
+    from reflab.inverse.forward.trees import build_trees, first_surfaces
+
+    lab = build_lab(80, 60, textured=True)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    first = np.full(80 * 60, -1)
+    top = trees.level == 1
+    first[trees.pixel[top]] = trees.surface[top]
+    got = first_surfaces(lab.scene, lab.camera)
+    assert (got >= 0).sum() > 1000 and np.array_equal(got, first)
+    mask = np.random.default_rng(0).random(80 * 60) < 0.8
+    surfaces = [i for i, s in enumerate(lab.scene) if s.textured]
+    assert np.array_equal(even_of(got, mask & (got >= 0), [0], surfaces, 300), even(trees, mask, surfaces, 300))

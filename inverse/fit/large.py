@@ -12,7 +12,7 @@ The fit reads a sample of the pixels anyway (:mod:`reflab.inverse.fit.sampling`)
 3. the **pixels read**: view pixels drawn by their evidence under the pilot's parameters
    (:func:`reflab.inverse.fit.sampling.fit_sample`), each replaced by one pixel of its block
    chosen at random, and a uniform share of the photograph's own pixels;
-4. their trees, each pixel's own ray (:func:`trees_of_pixels`), and the fit on them: the homogeneous
+4. their trees, each pixel's own ray (:func:`reflab.inverse.forward.trees.trees_of_pixels`), and the fit on them: the homogeneous
    fit from the pilot's values, then on textured scenes the texture rounds, whose texture comes
    from the view (where directly seen diffuse light dominates, binning is the texels' own
    averaging) and is looked up at the read pixels' nodes.
@@ -50,33 +50,6 @@ def bin_image(image, saturated, factor: int):
     return img, sat.reshape(h, f, w, f).any(axis=(1, 3)).reshape(-1)
 
 
-class _Pixels:
-    """A camera through some of its pixels only: :func:`build_trees` casts their rays as a one-row image."""
-
-    def __init__(self, camera, pixels):
-        self.camera, self.pixels = camera, np.asarray(pixels, dtype=np.int64)
-        self.width, self.height = len(self.pixels), 1
-        # trees_key reads these
-        self.K, self.dist, self.R, self.t = camera.K, camera.dist, camera.R, camera.t
-
-    def pixel_rays(self):
-        v, u = np.divmod(self.pixels, int(self.camera.width))
-        return self.camera.rays(np.stack([u, v], axis=1).astype(np.float64))
-
-
-def trees_of_pixels(scene, camera, lights, pixels, depth: int = 3, task=None):
-    """The trees of ``camera``'s flat pixel indices ``pixels`` alone, each through its own centre;
-    the trees' image is the camera's (``width``, ``height``), pixel indices the camera's."""
-    from reflab.inverse.forward.trees import build_trees
-
-    pixels = np.unique(np.asarray(pixels, dtype=np.int64))
-    trees = build_trees(scene, _Pixels(camera, pixels), lights, depth=depth, task=task)
-    trees.stats["cache"] = "built"  # never cached: the pixels read change with the fit
-    trees.pixel = pixels[np.asarray(trees.pixel, dtype=np.int64)]
-    trees.width, trees.height = int(camera.width), int(camera.height)
-    return trees
-
-
 def is_large(photos) -> bool:
     """Whether some photograph is above :data:`LARGE` pixels."""
     return any(p.camera.width * p.camera.height > LARGE for p in photos)
@@ -86,7 +59,7 @@ def is_large(photos) -> bool:
 class LargeStack:
     """The large photographs' stack of read pixels, their image, what is usable, and the view."""
 
-    stack: object  # reflab.inverse.forward.photographs.Stack of trees_of_pixels
+    stack: object  # reflab.inverse.forward.photographs.Stack of trees_of_pixels (reflab.inverse.forward.trees)
     image: np.ndarray
     saturated: np.ndarray
     photos: list
@@ -106,7 +79,7 @@ def fit_large(workspace, scene, depth: int, photos, images, saturated, models, *
     from reflab.inverse.fit.result import SceneFit
     from reflab.inverse.forward.factorization import Factorization
     from reflab.inverse.forward.photographs import stack_trees
-    from reflab.inverse.forward.trees import trees_for_workspace
+    from reflab.inverse.forward.trees import trees_for_workspace, trees_of_pixels
 
     t0 = time.perf_counter()
     pixels = int(pixels) or sampling.PIXELS

@@ -121,10 +121,17 @@ def read_photograph(photo, saturation: float | None = None):
 
 
 def stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
-                      task=None, log=None):
+                      task=None, log=None, further: int = 0, above: int = 0):
     """The workspace's photographs (the reference and ``inputs/``, or the reference alone with
     ``single``) checked, their trees built or read from the cache, stacked into one system
     (:mod:`reflab.inverse.forward.photographs`).
+
+    With ``further`` > 0 and more than ``above`` usable pixels in all the photographs together (a
+    fit that samples), a further photograph's trees are built only for a uniform share of its
+    pixels, tiles holding about ``further`` of its usable ones (:func:`reflab.inverse.fit.sampling.tiles`;
+    never cached: a sample) where that is at most :data:`reflab.inverse.fit.sampling.MAX_SHARE` of
+    them, and ``stack.reach`` holds each pixel's probability to be among them; the others count as
+    unusable. The reference keeps every pixel's trees.
 
     Returns
     -------
@@ -144,21 +151,85 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
         img, sat = read_photograph(photo, saturation)
         images.append(img)
         masks.append(sat)
-        trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
-                                         task=task))
-    stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
-    image = stack.image(images)
-    if len(photos) == 1:
-        return stack, image, masks[0], photos
+    shares = [None] * len(photos)
+    if further > 0 and len(photos) > 1 and sum(int((~m).sum()) for m in masks) > int(above):
+        from reflab.inverse.fit import sampling
+
+        # The fit reads a sample anyway: a further photograph's trees only where it may draw it.
+        shares = [None] + [sampling.tiles(~m.reshape(p.camera.height, p.camera.width), further, sampling.SEED + i)
+                           for i, (p, m) in enumerate(zip(photos[1:], masks[1:]), start=1)]
+        shares = [s if s is not None and s[1] <= sampling.MAX_SHARE else None for s in shares]
+    if not any(s is not None for s in shares):
+        for photo in photos:
+            trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
+                                             task=task))
+        stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
+        image = stack.image(images)
+        if len(photos) == 1:
+            return stack, image, masks[0], photos
+        seen = np.zeros(stack.width * stack.height, dtype=bool)
+        seen[stack.trees.pixel] = True
+        return stack, image, _unusable(stack, masks, seen), photos
+    return _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log)
+
+
+def _unusable(stack, masks, seen) -> np.ndarray:
+    """(H·W,) the stacked photographs' saturated pixels, padding, and a further photograph's
+    pixels that see no surface (``seen`` False)."""
     saturated = np.ones(stack.width * stack.height, dtype=bool)  # padding counts as unusable
     for i, sat in enumerate(masks):
         saturated[stack.pixels(i)] = sat
     # A further photograph's pixels where the model sees no surface (the table top beyond the
     # reconstructed ground, the room) say nothing about the materials: left out. The reference
     # keeps them, as the single-photograph fit always has (its diagnosis counts them).
-    seen = np.zeros_like(saturated)
-    seen[stack.trees.pixel] = True
     further = np.ones_like(saturated)
     further[stack.pixels(0)] = False
-    saturated |= further & ~seen
-    return stack, image, saturated, photos
+    return saturated | (further & ~seen)
+
+
+def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log):
+    """:func:`stack_photographs` with further photographs' trees built for ``shares`` (pixels, q)
+    of their pixels, and for the colour lobes' uniform sample of each textured surface
+    (:func:`reflab.inverse.fit.sampling.even_of`, drawn on every pixel's first seen surface as
+    from whole trees: the same pixels), which ``stack.reach`` leaves at 0: the fit does not draw them."""
+    from reflab.inverse.fit import sampling
+    from reflab.inverse.forward.photographs import stack_trees
+    from reflab.inverse.forward.trees import first_surfaces, trees_for_workspace, trees_of_pixels
+
+    whole = [None if share is not None else trees_for_workspace(workspace, scene, photo.camera, photo.lights,
+                                                                depth=depth, log=log, task=task)
+             for photo, share in zip(photos, shares)]
+    width = max(int(p.camera.width) for p in photos)
+    row0 = np.cumsum([0] + [int(p.camera.height) for p in photos])
+    first = np.full(width * int(row0[-1]), -1, dtype=np.int64)
+    usable = np.zeros(len(first), dtype=bool)
+    for i, (photo, sat, t) in enumerate(zip(photos, masks, whole)):
+        w, h = int(photo.camera.width), int(photo.camera.height)
+        if t is not None:
+            mine = np.full(w * h, -1, dtype=np.int64)
+            top = np.asarray(t.level) == 1
+            mine[np.asarray(t.pixel)[top]] = np.asarray(t.surface)[top]
+        else:
+            mine = first_surfaces(scene, photo.camera)
+        v, u = np.divmod(np.arange(w * h), w)
+        first[(v + row0[i]) * width + u] = mine
+        usable[(v + row0[i]) * width + u] = ~np.asarray(sat, dtype=bool).reshape(-1)
+    even = sampling.even_of(first, usable & (first >= 0), row0[:-1] * width,
+                            [i for i, s in enumerate(scene) if s.textured])
+    trees = []
+    for i, (photo, share, t) in enumerate(zip(photos, shares, whole)):
+        if t is None:
+            w = int(photo.camera.width)
+            block = even[row0[i] * width:row0[i + 1] * width].reshape(-1, width)[:, :w].reshape(-1)
+            t = trees_of_pixels(scene, photo.camera, photo.lights, np.union1d(share[0], np.flatnonzero(block)),
+                                depth=depth, task=task)
+        trees.append(t)
+    stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
+    stack.reach = np.zeros(stack.width * stack.height)
+    for i, share in enumerate(shares):
+        if share is None:
+            stack.reach[stack.pixels(i)] = 1.0
+        else:
+            stack.reach[stack.pixels(i)[share[0]]] = share[1]
+    stack.even = even
+    return stack, stack.image(images), _unusable(stack, masks, first >= 0), photos

@@ -91,12 +91,15 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                                     task=task, pixels=pixels)
         stack, image, saturated = big.stack, big.image, big.saturated
     else:
+        # A fit that samples several photographs builds the further ones' trees for a share of their pixels.
         stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
-                                                            task=task)
+                                                            task=task, further=int(sampling.FURTHER * int(pixels)),
+                                                            above=max(int(sample_above), int(pixels)))
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
-                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above)
+                         task=task, pixels=pixels, scene_file=ws.scene, sample_above=sample_above, reach=stack.reach,
+                         colour_pixels=stack.even)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
     # The reference photograph's own pixels and their saturation (the stack's first block).
@@ -119,6 +122,9 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         extra["texture_rounds"] = rounds
     if done.sampling is not None:
         extra["sampling"] = done.sampling
+        if stack.reach is not None:  # the share of each photograph whose trees the sample drew from
+            extra["sampling"]["trees_share"] = [round(float(stack.reach[stack.pixels(i)].max()), 6)
+                                                for i in range(len(photos))]
     report = fit_json(result, fac, scene, depth, extra)
     annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:
@@ -132,19 +138,26 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
 def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *, maxiter=None, max_seconds=None,
               texture_rounds: int = 2, progress=None, task=None, pixels: int = sampling.PIXELS,
               sample_above: int = sampling.SAMPLE_ABOVE,
-              scene_file="scene.json") -> SceneFit:
+              scene_file="scene.json", reach=None, colour_pixels=None) -> SceneFit:
     """The fit of a scene's (stacked) photographs: the homogeneous fit, on a pilot sample then on the
     evidence when the photographs hold more than ``sample_above`` usable pixels (and more than
     ``pixels``; :mod:`reflab.inverse.fit.sampling`),
     and the texture rounds when a seen surface is textured. Parameters as :func:`fit_workspace`;
     ``usable`` (H*W,) bool: the pixels the fit may read (not saturated). A scene with no lit
-    surface in view raises WorkspaceError naming ``scene_file``.
+    surface in view raises WorkspaceError naming ``scene_file``. ``reach`` (H*W,), optional: each
+    pixel's probability that its trees were built (``Stack.reach``), multiplied into its inclusion
+    probability: the rows of a further photograph built for a share of its pixels weigh for all;
+    a pixel at 0 is never read by the fit. ``colour_pixels`` (H*W,) bool, optional: the colour
+    lobes' sample (``Stack.even``), else drawn here (:func:`reflab.inverse.fit.sampling.even`).
     """
     from reflab.inverse.forward.models import get_model
 
     t1 = time.perf_counter()
     models = [get_model(s.material.brdf) for s in scene]
-    usable = np.asarray(usable, dtype=bool).reshape(-1)
+    usable = noise_usable = np.asarray(usable, dtype=bool).reshape(-1)
+    if reach is not None:  # pixels whose trees were built for the colour lobes alone: not the fit's
+        reach = np.asarray(reach, dtype=np.float64).reshape(-1)
+        usable = usable & (reach > 0)
     # What a sample stands for: the usable pixels that see something (a pixel without a tree
     # is a zero row, nothing to read).
     frame = np.zeros_like(usable)
@@ -154,8 +167,12 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     if sampled:  # the pixels read are too sparse for the noise's 3×3 windows: the usable ones say it
         from reflab.inverse.fit.photograph import remember_noise
 
-        remember_noise(image, usable)
-    fac = Factorization(trees, models, intensities, mask=sampling.pilot(frame, pixels) if sampled else usable)
+        remember_noise(image, noise_usable)
+    first = sampling.pilot(frame, pixels) if sampled else usable
+    if reach is not None:  # the first fit's rows (the pilot's, or all) weighed as every pixel's sample
+        first_trees = sampling.weighted(trees, sampling.weights(first & frame, reach))
+        trees = trees if sampled else first_trees
+    fac = Factorization(trees if reach is None else first_trees, models, intensities, mask=first)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
@@ -178,6 +195,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame, pixels,
                                                                open_lobes=sampling.open_lobes(result))
         sample_report["pilot"] = int(fac.n_rows)
+        if reach is not None:
+            probability = probability * reach
         # Each row weighed by 1/(its inclusion probability): the evidence is favoured in the draw,
         # not in the estimate (Horvitz–Thompson; docs/fit.md "Sampling").
         trees = sampling.weighted(trees, sampling.weights(keep, probability))
@@ -203,7 +222,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         homogeneous_rms = [float(v) for v in result.rms]
         round_trees, view = trees, None
         # The lobes from the texture's colours weigh their pixels alike: per photograph and surface, a uniform sample.
-        even = sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene])) if sampled else None
+        even = None if not sampled else colour_pixels if colour_pixels is not None else \
+            sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene]))
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
         if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'

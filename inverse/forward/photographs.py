@@ -112,12 +112,21 @@ class Stack:
     blocks : list of Block
     valid : (H·W,) bool ndarray
         False on the padding right of a narrower photograph.
+    reach : (H·W,) float ndarray, optional
+        Each pixel's probability that its trees were built, when a further photograph's were
+        built for a uniform share of its pixels alone (:func:`reflab.inverse.fit.sampling.tiles`);
+        None: every pixel's.
+    even : (H·W,) bool ndarray, optional
+        With ``reach``: the colour lobes' uniform sample of each textured surface
+        (:func:`reflab.inverse.fit.sampling.even_of`), whose trees were built too.
     """
 
     trees: object
     intensities: np.ndarray
     blocks: list = field(default_factory=list)
     valid: np.ndarray | None = None
+    reach: np.ndarray | None = None
+    even: np.ndarray | None = None
 
     @property
     def width(self) -> int:

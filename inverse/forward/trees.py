@@ -516,6 +516,40 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     )
 
 
+class _Pixels:
+    """A camera through some of its pixels only: :func:`build_trees` casts their rays as a one-row image."""
+
+    def __init__(self, camera, pixels):
+        self.camera, self.pixels = camera, np.asarray(pixels, dtype=np.int64)
+        self.width, self.height = len(self.pixels), 1
+        # trees_key reads these
+        self.K, self.dist, self.R, self.t = camera.K, camera.dist, camera.R, camera.t
+
+    def pixel_rays(self):
+        v, u = np.divmod(self.pixels, int(self.camera.width))
+        return self.camera.rays(np.stack([u, v], axis=1).astype(np.float64))
+
+
+def trees_of_pixels(scene, camera, lights, pixels, depth: int = 3, task=None):
+    """The trees of ``camera``'s flat pixel indices ``pixels`` alone, each through its own centre;
+    the trees' image is the camera's (``width``, ``height``), pixel indices the camera's."""
+    pixels = np.unique(np.asarray(pixels, dtype=np.int64))
+    trees = build_trees(scene, _Pixels(camera, pixels), lights, depth=depth, task=task)
+    trees.stats["cache"] = "built"  # never cached: the pixels read change with the fit
+    trees.pixel = pixels[np.asarray(trees.pixel, dtype=np.int64)]
+    trees.width, trees.height = int(camera.width), int(camera.height)
+    return trees
+
+
+def first_surfaces(scene, camera) -> np.ndarray:
+    """(H·W,) int64: the surface each of ``camera``'s pixels sees first (−1: none), the level-1
+    nodes' of :func:`build_trees` without the rest of its work (no shadow rays, no deeper levels)."""
+    caster = _Caster(scene)
+    origin, direction = camera.pixel_rays()
+    hit, surface, *_ = caster.cast(origin, direction)
+    return np.where(hit, surface, -1).astype(np.int64)
+
+
 def tile_rows(height: int, width: int, tile_pixels: int) -> list[tuple[int, int]]:
     """Row ranges ``[r0, r1)`` of at most ``tile_pixels`` pixels each (one row at least): the tiles
     a large photograph's trees are built in (``build_trees(rows=)``)."""
