@@ -1,0 +1,245 @@
+"""The reconstructed geometry's uncertainty propagated into every fitted value's σ.
+
+The fit's σ (:mod:`reflab.inverse.fit.uncertainty`) knows the photographs' noise and misfit, not
+that the meshes it models them with are themselves measured: the demo's transparent sheet, its
+mesh from marked corners 1.5 mrad and 0.2 mm off the truth, fitted ks 0.182 ± 0.004 for a true
+0.20 (docs/fit.md). scene.json may give each surface a ``pose_sigma`` (docs/formats.md, written by
+``reflab reconstruct``): the one-sigma tilt about two axes in its plane and offset along its normal.
+Each of those three pose changes g moves the model's pixels by ∂m/∂g (finite differences: the
+trees of the rows that see the surface rebuilt with its mesh moved by ±σ_g), which moves the fitted
+values by dθ/dg = −H⁻¹ JᵀW ∂m/∂g; ``Cov_θ += Σ_g (dθ/dg) σ_g² (dθ/dg)ᵀ``. A surface without
+``pose_sigma`` (a user's own mesh, the simulated zoo's exact geometry) adds nothing.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+#: scene.json's per-surface field (docs/formats.md).
+FIELD = "pose_sigma"
+#: The rows of a photograph rebuilt around a surface's pixels: this many more above and below
+#: (a moved edge may cover a pixel that did not see it).
+ROW_PAD = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseSigma:
+    """A plane's pose uncertainty: tilts about ``axes`` through ``centre``, offset along ``normal``."""
+
+    centre: np.ndarray
+    normal: np.ndarray
+    axes: np.ndarray  # (2, 3) unit vectors in the plane
+    tilt_rad: np.ndarray  # (2,) one-sigma tilt about each axis
+    offset_m: float  # one-sigma offset along the normal
+
+    def to_json(self, source: str = "") -> dict:
+        out = {"centre": [float(v) for v in self.centre], "normal": [float(v) for v in self.normal],
+               "axes": [[float(v) for v in a] for a in self.axes],
+               "tilt_rad": [float(v) for v in self.tilt_rad], "offset_m": float(self.offset_m)}
+        if source:
+            out["from"] = source
+        return out
+
+    @classmethod
+    def from_json(cls, obj, path="scene.json", where: str = FIELD) -> "PoseSigma":
+        """Parse scene.json's ``pose_sigma``; WorkspaceError naming the bad field."""
+        from reflab.core.workspace import WorkspaceError
+
+        if not isinstance(obj, dict):
+            raise WorkspaceError(path, where, "an object with centre, normal, axes, tilt_rad, offset_m", got=obj)
+
+        def arr(key, shape):
+            try:
+                a = np.asarray(obj.get(key), dtype=np.float64).reshape(shape)
+            except (TypeError, ValueError):
+                raise WorkspaceError(path, f"{where}.{key}", f"{int(np.prod(shape))} numbers", got=obj.get(key)) from None
+            if not np.all(np.isfinite(a)):
+                raise WorkspaceError(path, f"{where}.{key}", "finite numbers", got=obj.get(key))
+            return a
+
+        tilt, offset = arr("tilt_rad", (2,)), float(arr("offset_m", (1,))[0])
+        if np.any(tilt < 0) or offset < 0:
+            raise WorkspaceError(path, where, "tilt_rad and offset_m >= 0 (one-sigma values)",
+                                 got={"tilt_rad": obj.get("tilt_rad"), "offset_m": obj.get("offset_m")})
+        normal, axes = arr("normal", (3,)), arr("axes", (2, 3))
+        unit = lambda v: v / max(np.linalg.norm(v), 1e-300)  # noqa: E731
+        return cls(arr("centre", (3,)), unit(normal), np.stack([unit(a) for a in axes]), tilt, offset)
+
+    def moves(self) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
+        """Each pose change of nonzero σ: ``(name, σ, rotation vector per unit, translation per unit)``."""
+        out = [(f"tilt{k}", float(self.tilt_rad[k]), self.axes[k], np.zeros(3)) for k in range(2)]
+        out.append(("offset", float(self.offset_m), np.zeros(3), self.normal))
+        return [m for m in out if m[1] > 0]
+
+
+def pose_sigma(surface, path="scene.json") -> PoseSigma | None:
+    """The surface's ``pose_sigma`` from scene.json, or None when it has none."""
+    obj = surface.extra.get(FIELD) if surface.extra else None
+    return None if obj is None else PoseSigma.from_json(obj, path, f"{surface.name}.{FIELD}")
+
+
+def moved_scene(scene, index: int, pose: PoseSigma, rvec, shift):
+    """A copy of ``scene`` with surface ``index``'s mesh turned by ``rvec`` about the pose's centre and shifted."""
+    from reflab.calibration.rotations import rodrigues
+    from reflab.reconstruction.scene import Mesh, Scene
+
+    R = rodrigues(np.asarray(rvec, dtype=np.float64))
+    s = scene.surfaces[index]
+    m = s.mesh
+    verts = (m.vertices - pose.centre) @ R.T + pose.centre + shift
+    mesh = Mesh(verts, m.triangles, None if m.normals is None else m.normals @ R.T)
+    surfaces = list(scene.surfaces)
+    surfaces[index] = dataclasses.replace(s, mesh=mesh)
+    return Scene(surfaces, scene.root)
+
+
+def _solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``H⁻¹ g`` on the constrained directions (diagonal scaling, eigenvalues floored as σ's are)."""
+    out = np.zeros_like(g)
+    dg = np.sqrt(np.maximum(np.diag(H), 0.0))
+    ok = dg > 0
+    if not ok.any():
+        return out
+    w, V = np.linalg.eigh(H[np.ix_(ok, ok)] / np.outer(dg[ok], dg[ok]))
+    w = np.maximum(w, 1e-14 * max(w.max(), 1e-300))
+    out[ok] = ((V / w) @ (V.T @ (g[ok] / dg[ok]))) / dg[ok]
+    return out
+
+
+def propagate(stack, photos, scene, depth: int, fac, image, result, *, task=None):
+    """The variance the surfaces' pose uncertainty adds to each fitted value.
+
+    Parameters
+    ----------
+    stack, photos
+        The fitted photographs' stacked trees and the photographs
+        (:func:`reflab.inverse.fit.photograph.stack_photographs`).
+    scene : reflab.reconstruction.scene.Scene
+    depth : int
+        The trees' depth.
+    fac : Factorization
+        The system the fit was judged on (its ``rows`` the pixels read).
+    image : (H, W, 3) ndarray
+        The stacked photograph.
+    result : FitSolution
+
+    Returns
+    -------
+    var : Params or None
+        Added variance per parameter (0 where nothing moves it); None when no surface that the
+        used pixels see has a ``pose_sigma``.
+    report : dict
+        Per surface: its pose σ, the pixels it moves and the seconds spent; ``time_s`` in all.
+    """
+    from reflab.core.task import ensure
+    from reflab.inverse.forward.rendering import render
+    from reflab.inverse.forward.trees import build_trees
+    from reflab.inverse.fit.problem import Params, Problem
+    from reflab.inverse.fit.uncertainty import normal_matrix
+
+    t0 = time.perf_counter()
+    task = ensure(task)
+    trees = stack.trees
+    poses = {i: pose_sigma(s) for i, s in enumerate(scene)}
+    poses = {i: p for i, p in poses.items() if p is not None and p.moves()}
+    report = {}
+    if not poses or fac.n_rows == 0:
+        return None, {"surfaces": report, "time_s": round(time.perf_counter() - t0, 6)}
+    pb = Problem(fac, image, [m.transparent for m in result.materials])
+    noise = np.maximum(np.asarray(result.stats.get("noise") or pb.noise, dtype=np.float64), 1e-300)
+    weights = 1.0 / noise ** 2
+    rows = np.asarray(fac.rows, dtype=np.int64)
+    at = np.full(trees.width * trees.height, -1, dtype=np.int64)
+    at[rows] = np.arange(len(rows))
+    scale = getattr(pb, "scale", None)
+    H = None
+    acc = None
+    for index, pose in poses.items():
+        ts = time.perf_counter()
+        px = np.unique(np.asarray(trees.pixel)[np.asarray(trees.surface) == index])
+        px = px[at[px] >= 0]  # the used pixels whose trees meet the surface
+        if len(px) == 0:
+            continue
+        which = stack.photograph_of(px)
+        deltas = []
+        for name, sd, rvec, shift in pose.moves():
+            dm = np.zeros((3, len(rows)))
+            for i in np.unique(which):
+                block, photo = stack.blocks[i], photos[i]
+                mine = px[which == i]
+                v, u = np.divmod(mine, trees.width)
+                v = v - block.row0
+                r0, r1 = max(int(v.min()) - ROW_PAD, 0), min(int(v.max()) + 1 + ROW_PAD, block.height)
+                side = []
+                for sign in (1.0, -1.0):
+                    task.check()
+                    moved = moved_scene(scene, index, pose, sign * sd * rvec, sign * sd * shift)
+                    part = build_trees(moved, photo.camera, photo.lights, depth, rows=(r0, r1))
+                    img = render(part, result.materials, photo.lights.intensities).reshape(-1, 3)
+                    side.append(img[(v - r0) * block.width + u])
+                dm[:, at[mine]] = ((side[0] - side[1]) / 2.0).T  # ∂m/∂g σ_g: the pixels' change over one σ
+            if scale is not None:
+                dm = dm * scale
+            if H is None:
+                H, labels, g = normal_matrix(pb, result.params, result.free, weights, res=dm,
+                                             tiles=(np.zeros(len(rows), np.int64), 1))
+            else:
+                _, _, g = normal_matrix(pb, result.params, result.free, weights, res=dm,
+                                        tiles=(np.zeros(len(rows), np.int64), 1))
+            deltas.append(-_solve(H, g[:, 0]))
+        d = np.array(deltas)
+        acc = (d ** 2).sum(axis=0) if acc is None else acc + (d ** 2).sum(axis=0)
+        report[scene.names[index]] = {"pose_sigma": pose.to_json(), "pixels": int(len(px)),
+                                      "time_s": round(time.perf_counter() - ts, 6)}
+    if acc is None:
+        return None, {"surfaces": report, "time_s": round(time.perf_counter() - t0, 6)}
+    p = result.params
+    var = Params(np.zeros_like(p.x), np.zeros_like(p.s), np.zeros_like(p.theta))
+    for (kind, i, c), v in zip(labels, acc):
+        if kind == "x":
+            var.x[i, c] = v
+        elif kind == "s":
+            var.s[i, c] = v
+        else:
+            var.theta[i] = v
+    return var, {"surfaces": report, "time_s": round(time.perf_counter() - t0, 6)}
+
+
+def widened(result, fac, image, scene, var):
+    """``result`` with ``var`` added to its σ² and what the wider σ leaves loose reported undetermined.
+
+    Judged as the fit judges its own σ (:func:`reflab.inverse.fit.determined.unresolved`, a lobe's
+    height and width together); a value the geometry makes loose keeps its fitted value, reported
+    undetermined. fit.json's ``geometry_sigma`` keeps the σ without the geometry's share.
+    """
+    from reflab.inverse.fit.determined import RESOLVE_THETA, undetermined_names, unresolved
+    from reflab.inverse.fit.problem import Free, Params, Problem, params_of
+
+    old = result.sigma
+    sig = Params(*(np.where(np.isfinite(o), np.sqrt(o ** 2 + v), o) for o, v in
+                   ((old.x, var.x), (old.s, var.s), (old.theta, var.theta))))
+    pb = Problem(fac, image, [m.transparent for m in result.materials])
+    init = params_of(fac, [s.material for s in scene])
+    init.theta = pb.search.to_theta(pb.search.to_u(init.theta))
+    A = fac.matrices(result.params.theta)
+    free = result.free
+
+    def judged(s):
+        return unresolved(pb, result.params, init, free, s, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+
+    was, now = judged(old), judged(sig)
+    loose = Free(now.x & ~was.x, now.s & ~was.s, now.theta & ~was.theta)
+    lay = fac.layout
+    for s, model in enumerate(fac.models):  # a lobe's height and width stand or fall together
+        th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
+        lobe = [lay.x_offset[s] + j for j, name in enumerate(model.linear) if name != "kd"]
+        if loose.theta[th].any():
+            for k in lobe:
+                loose.x[k] |= free.x[k]
+        if lobe and any(loose.x[k].any() for k in lobe) and all(np.all(~free.x[k] | loose.x[k] | was.x[k]) for k in lobe):
+            loose.theta[th] |= free.theta[th]
+    names = undetermined_names(fac, free, result.materials, loose)
+    undetermined = [list(a) + [n for n in b if n not in a] for a, b in zip(result.undetermined, names)]
+    return dataclasses.replace(result, sigma=sig, undetermined=undetermined)
