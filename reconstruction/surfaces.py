@@ -745,9 +745,10 @@ def marked_pose_sigma(fit, unpack, face: tuple[int, float], n_free_sizes: int) -
     def plane(v):  # tilt about each in-plane axis, offset along the normal at the face's centre
         f, R = frame(v)
         dn = R[:, a] - n0
-        return np.array([dn @ np.cross(R0[:, inplane[0]], n0), dn @ np.cross(R0[:, inplane[1]], n0), (f - centre) @ n0])
+        return np.array([dn @ np.cross(R0[:, inplane[0]], n0), dn @ np.cross(R0[:, inplane[1]], n0), (f - centre) @ n0,
+                         (f - centre) @ R0[:, inplane[0]], (f - centre) @ R0[:, inplane[1]]])
 
-    G = np.zeros((3, len(x)))
+    G = np.zeros((5, len(x)))
     for k in range(len(x)):
         h = 1e-6 if k >= 3 else 1e-7
         e = np.zeros(len(x))
@@ -755,7 +756,7 @@ def marked_pose_sigma(fit, unpack, face: tuple[int, float], n_free_sizes: int) -
         G[:, k] = (plane(x + e) - plane(x - e)) / (2 * h)
     sd = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
     return {"centre": centre.tolist(), "normal": n0.tolist(), "axes": [R0[:, k].tolist() for k in inplane],
-            "tilt_rad": [float(sd[0]), float(sd[1])], "offset_m": float(sd[2]),
+            "tilt_rad": [float(sd[0]), float(sd[1])], "offset_m": float(sd[2]), "shift_m": [float(sd[3]), float(sd[4])],
             "from": f"marked corners ({np.sqrt(s2):.2f} px per mark)"}
 
 
@@ -782,11 +783,15 @@ def refined_pose_sigma(mesh: Mesh, face_axis: int, face_sign: float, found: dict
         return marked
     sd = step * np.sqrt(np.diag(np.linalg.inv(rows.T @ rows)))  # offset, slope along inplane[0], along inplane[1]
     n = face_sign * R[:, face_axis]
-    return {"centre": (centre + face_sign * size[face_axis] / 2 * R[:, face_axis]).tolist(), "normal": n.tolist(),
-            "axes": [R[:, a].tolist() for a in inplane],
-            # a slope along one in-plane axis is a tilt about the other
-            "tilt_rad": [float(sd[2]), float(sd[1])], "offset_m": float(sd[0]),
-            "from": f"{len(rows)} edges in the shots ({1e3 * step:.1f} mm each)"}
+    out = {"centre": (centre + face_sign * size[face_axis] / 2 * R[:, face_axis]).tolist(), "normal": n.tolist(),
+           "axes": [R[:, a].tolist() for a in inplane],
+           # a slope along one in-plane axis is a tilt about the other
+           "tilt_rad": [float(sd[2]), float(sd[1])], "offset_m": float(sd[0]),
+           "from": f"{len(rows)} edges in the shots ({1e3 * step:.1f} mm each)"}
+    if marked.get("shift_m") is not None:  # an axis whose two edges were found: their mean, else the marks'
+        both = [all(found.get(f"{sg}{'xyz'[a]}") is not None for sg in "-+") for a in inplane]
+        out["shift_m"] = [step / np.sqrt(2.0) if b else float(m) for b, m in zip(both, marked["shift_m"])]
+    return out
 
 
 # ---------------------------------------------------------------- imported

@@ -19,9 +19,9 @@ import numpy as np
 
 #: scene.json's per-surface field (docs/formats.md).
 FIELD = "pose_sigma"
-#: The rows of a photograph rebuilt around a surface's pixels: this many more above and below
-#: (a moved edge may cover a pixel that did not see it).
-ROW_PAD = 2
+#: The pixels rebuilt: those whose trees meet the moved surface and this many around them (a
+#: moved edge may cover a pixel that did not see it).
+EDGE_PAD = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,11 +33,14 @@ class PoseSigma:
     axes: np.ndarray  # (2, 3) unit vectors in the plane
     tilt_rad: np.ndarray  # (2,) one-sigma tilt about each axis
     offset_m: float  # one-sigma offset along the normal
+    shift_m: np.ndarray | None = None  # (2,) one-sigma shift along each axis (where a bounded face's edges lie)
 
     def to_json(self, source: str = "") -> dict:
         out = {"centre": [float(v) for v in self.centre], "normal": [float(v) for v in self.normal],
                "axes": [[float(v) for v in a] for a in self.axes],
                "tilt_rad": [float(v) for v in self.tilt_rad], "offset_m": float(self.offset_m)}
+        if self.shift_m is not None:
+            out["shift_m"] = [float(v) for v in self.shift_m]
         if source:
             out["from"] = source
         return out
@@ -63,14 +66,19 @@ class PoseSigma:
         if np.any(tilt < 0) or offset < 0:
             raise WorkspaceError(path, where, "tilt_rad and offset_m >= 0 (one-sigma values)",
                                  got={"tilt_rad": obj.get("tilt_rad"), "offset_m": obj.get("offset_m")})
+        shift = None if obj.get("shift_m") is None else arr("shift_m", (2,))
+        if shift is not None and np.any(shift < 0):
+            raise WorkspaceError(path, f"{where}.shift_m", "two one-sigma values >= 0", got=obj.get("shift_m"))
         normal, axes = arr("normal", (3,)), arr("axes", (2, 3))
         unit = lambda v: v / max(np.linalg.norm(v), 1e-300)  # noqa: E731
-        return cls(arr("centre", (3,)), unit(normal), np.stack([unit(a) for a in axes]), tilt, offset)
+        return cls(arr("centre", (3,)), unit(normal), np.stack([unit(a) for a in axes]), tilt, offset, shift)
 
     def moves(self) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
         """Each pose change of nonzero σ: ``(name, σ, rotation vector per unit, translation per unit)``."""
         out = [(f"tilt{k}", float(self.tilt_rad[k]), self.axes[k], np.zeros(3)) for k in range(2)]
         out.append(("offset", float(self.offset_m), np.zeros(3), self.normal))
+        if self.shift_m is not None:
+            out += [(f"shift{k}", float(self.shift_m[k]), np.zeros(3), self.axes[k]) for k in range(2)]
         return [m for m in out if m[1] > 0]
 
 
@@ -133,11 +141,13 @@ def propagate(stack, photos, scene, depth: int, fac, image, result, *, task=None
     report : dict
         Per surface: its pose σ, the pixels it moves and the seconds spent; ``time_s`` in all.
     """
+    from scipy.ndimage import binary_dilation
+
     from reflab.core.task import ensure
     from reflab.inverse.forward.rendering import render
     from reflab.inverse.forward.trees import build_trees
     from reflab.inverse.fit.problem import Params, Problem
-    from reflab.inverse.fit.uncertainty import normal_matrix
+    from reflab.inverse.fit.uncertainty import normal_matrix, row_jacobian
 
     t0 = time.perf_counter()
     task = ensure(task)
@@ -158,37 +168,44 @@ def propagate(stack, photos, scene, depth: int, fac, image, result, *, task=None
     acc = None
     for index, pose in poses.items():
         ts = time.perf_counter()
-        px = np.unique(np.asarray(trees.pixel)[np.asarray(trees.surface) == index])
-        px = px[at[px] >= 0]  # the used pixels whose trees meet the surface
+        # The used pixels whose trees meet the surface, and their neighbours (a moved edge covers them).
+        near = np.zeros((trees.height, trees.width), dtype=bool)
+        near.flat[np.asarray(trees.pixel)[np.asarray(trees.surface) == index]] = True
+        near = binary_dilation(near, iterations=EDGE_PAD).reshape(-1)
+        px = np.flatnonzero(near & (at >= 0))
         if len(px) == 0:
             continue
         which = stack.photograph_of(px)
-        deltas = []
-        for name, sd, rvec, shift in pose.moves():
-            dm = np.zeros((3, len(rows)))
-            for i in np.unique(which):
-                block, photo = stack.blocks[i], photos[i]
-                mine = px[which == i]
-                v, u = np.divmod(mine, trees.width)
-                v = v - block.row0
-                r0, r1 = max(int(v.min()) - ROW_PAD, 0), min(int(v.max()) + 1 + ROW_PAD, block.height)
-                side = []
-                for sign in (1.0, -1.0):
-                    task.check()
-                    moved = moved_scene(scene, index, pose, sign * sd * rvec, sign * sd * shift)
-                    part = build_trees(moved, photo.camera, photo.lights, depth, rows=(r0, r1))
-                    img = render(part, result.materials, photo.lights.intensities).reshape(-1, 3)
-                    side.append(img[(v - r0) * block.width + u])
-                dm[:, at[mine]] = ((side[0] - side[1]) / 2.0).T  # ∂m/∂g σ_g: the pixels' change over one σ
-            if scale is not None:
-                dm = dm * scale
-            if H is None:
-                H, labels, g = normal_matrix(pb, result.params, result.free, weights, res=dm,
-                                             tiles=(np.zeros(len(rows), np.int64), 1))
-            else:
-                _, _, g = normal_matrix(pb, result.params, result.free, weights, res=dm,
-                                        tiles=(np.zeros(len(rows), np.int64), 1))
-            deltas.append(-_solve(H, g[:, 0]))
+        moves = pose.moves()
+        dms = np.zeros((len(moves), 3, len(px)))
+        for i in np.unique(which):
+            block, photo = stack.blocks[i], photos[i]
+            sel = which == i
+            v, u = np.divmod(px[sel], trees.width)
+            v = v - block.row0
+            r0, r1 = int(v.min()), int(v.max()) + 1
+            at_px = (v - r0) * block.width + u
+
+            def model(sc):
+                task.check()
+                part = build_trees(sc, photo.camera, photo.lights, depth, rows=(r0, r1), pixels=at_px)
+                return render(part, result.materials, photo.lights.intensities).reshape(-1, 3)[at_px]
+
+            # At full resolution: a moved edge flips whole pixels, each with its own Jacobian
+            # (the sheet's parameters act on one side only); binned 2x2 it lost half the sheet's
+            # blue ks term. One side, a whole σ away: the secant over the pose's likely range.
+            base = model(scene)
+            for k, (_, sd, rvec, shift) in enumerate(moves):
+                dms[k][:, sel] = (model(moved_scene(scene, index, pose, sd * rvec, sd * shift)) - base).T
+        if H is None:
+            H, labels = normal_matrix(pb, result.params, result.free, weights)
+        # JᵀW ∂m/∂g over the surface's pixels only (dm is 0 elsewhere).
+        J = row_jacobian(pb, result.params, result.free, at[px])  # (3, m, n)
+        if scale is not None:
+            dms = dms * scale[at[px]]
+        g = np.einsum("c,cmn,kcm->kn", weights, J, dms)
+        del J
+        deltas = [-_solve(H, gk) for gk in g]
         d = np.array(deltas)
         acc = (d ** 2).sum(axis=0) if acc is None else acc + (d ** 2).sum(axis=0)
         report[scene.names[index]] = {"pose_sigma": pose.to_json(), "pixels": int(len(px)),
