@@ -251,6 +251,7 @@ def _refine_marked(views, gradients: dict, m, task: Task | None = None):
     if shown:
         m.mesh = mesh
         m.info["size_m"] = surf.box_frame(m.mesh)[2].tolist()
+        m.info["pose_sigma"] = surf.refined_pose_sigma(mesh, *m.info["face"], found, m.info["pose_sigma"])
     m.info["edges"] = ("from the shots: " + ", ".join(f"{k} {1e3 * a:+.1f}/{1e3 * b:+.1f} mm" for k, (a, b) in shown.items())
                        if shown else "as marked (no clear edge in the shots)")
     kept = [k for k, v in found.items() if v is None]

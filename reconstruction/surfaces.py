@@ -704,10 +704,99 @@ def box_from_marks(spec: dict, views: Views) -> Modelled:
     rms = float(np.sqrt(np.mean(fit.fun**2)))
     mesh = box_mesh(c, R, 2 * half) if dims == 3 else quad_mesh(c, R, 2 * half)
     info = {"corners": int(len(P)), "marks": len(obs), "reprojection_px": rms, "size_m": (2 * half[:dims]).tolist()}
+    face = None
     if dims == 3 and len(varying) == 2:  # the corners of one face: refine_marked_face can move it
         a = ({0, 1, 2} - set(varying)).pop()
         info["face"] = [a, float(labels[0, a])]
+        face = (a, float(labels[0, a]))
+    info["pose_sigma"] = marked_pose_sigma(fit, unpack, face if face is not None else (2, 0.0), len(free))
     return Modelled(spec["name"], mesh, spec["brdf"], spec["ior"], spec["textured"], "marked corners", info)
+
+
+#: One-sigma floor of a marked corner's reprojection error (px): marks are clicked to about a pixel's
+#: tenth at best, and the shots' registration adds its own (sfm.json's ``reprojection_px``).
+MARK_FLOOR_PX = 0.3
+
+
+def marked_pose_sigma(fit, unpack, face: tuple[int, float], n_free_sizes: int) -> dict:
+    """The marked face's plane pose σ (scene.json's ``pose_sigma``, docs/formats.md) from the marks' fit.
+
+    The fitted centre, rotation and sizes have covariance ``s² (JᵀJ)⁻¹`` (``J`` the marks'
+    reprojection Jacobian at the optimum, ``s`` their residual RMS over the degrees of freedom,
+    at least :data:`MARK_FLOOR_PX`): the marks' pixel error carried through the registered cameras
+    to the corners in space. It is mapped to the face's tilt about its two in-plane axes and its
+    offset along its normal at its centre, numerically (the plane's three degrees of freedom).
+    """
+    x = np.asarray(fit.x, dtype=np.float64)
+    J = np.asarray(fit.jac, dtype=np.float64)
+    dof = max(J.shape[0] - J.shape[1], 1)
+    s2 = max(float(np.sum(fit.fun ** 2)) / dof, MARK_FLOOR_PX ** 2)
+    cov = s2 * np.linalg.pinv(J.T @ J)
+    a, sign = face
+    inplane = [k for k in range(3) if k != a]
+
+    def frame(v):
+        c, R, half = unpack(v)
+        return c + sign * half[a] * R[:, a], R
+
+    centre, R0 = frame(x)
+    n0 = R0[:, a]
+
+    def plane(v):  # tilt about each in-plane axis, offset along the normal at the face's centre
+        f, R = frame(v)
+        dn = R[:, a] - n0
+        return np.array([dn @ np.cross(R0[:, inplane[0]], n0), dn @ np.cross(R0[:, inplane[1]], n0), (f - centre) @ n0,
+                         (f - centre) @ R0[:, inplane[0]], (f - centre) @ R0[:, inplane[1]]])
+
+    G = np.zeros((5, len(x)))
+    for k in range(len(x)):
+        h = 1e-6 if k >= 3 else 1e-7
+        e = np.zeros(len(x))
+        e[k] = h
+        G[:, k] = (plane(x + e) - plane(x - e)) / (2 * h)
+    sd = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
+    return {"centre": centre.tolist(), "normal": n0.tolist(), "axes": [R0[:, k].tolist() for k in inplane],
+            "tilt_rad": [float(sd[0]), float(sd[1])], "offset_m": float(sd[2]), "shift_m": [float(sd[3]), float(sd[4])],
+            "from": f"marked corners ({np.sqrt(s2):.2f} px per mark)"}
+
+
+#: One-sigma error of an edge :func:`refine_marked_face` found (m): the demo's mirror (480x360, about
+#: 1 mm per pixel there) had its edges 0.15-0.3 mm from the truth, three search steps.
+EDGE_SIGMA = 3e-4
+
+
+def refined_pose_sigma(mesh: Mesh, face_axis: int, face_sign: float, found: dict, marked: dict,
+                       edge: float = EDGE_SIGMA) -> dict:
+    """The pose σ of a face :func:`refine_marked_face` moved to its edges in the shots.
+
+    Each found edge fixes the face's normal shift at its middle to ``edge`` (one-sigma); with three
+    or more edges spanning the plane, the offset and both tilts have the least-squares covariance
+    ``edge² (RᵀR)⁻¹`` of the edges' rows, and an in-plane axis whose two edges were found the shift
+    σ edge/√2. With fewer edges, ``marked`` (the marks' own, :func:`marked_pose_sigma`) is kept.
+    """
+    centre, R, size = box_frame(mesh)
+    inplane = [a for a in range(3) if a != face_axis]
+    rows = []
+    for label, shift in found.items():
+        if shift is None:
+            continue
+        sign, a = (-1.0 if label[0] == "-" else 1.0), "xyz".index(label[1])
+        i = inplane.index(a)
+        rows.append([1.0, sign * size[a] / 2 if i == 0 else 0.0, sign * size[a] / 2 if i == 1 else 0.0])
+    rows = np.array(rows)
+    if len(rows) < 3 or np.linalg.matrix_rank(rows) < 3:
+        return marked
+    sd = edge * np.sqrt(np.diag(np.linalg.inv(rows.T @ rows)))  # offset, slope along inplane[0], along inplane[1]
+    n = face_sign * R[:, face_axis]
+    out = {"centre": (centre + face_sign * size[face_axis] / 2 * R[:, face_axis]).tolist(), "normal": n.tolist(),
+           "axes": [R[:, a].tolist() for a in inplane],
+           # a slope along one in-plane axis is a tilt about the other
+           "tilt_rad": [float(sd[2]), float(sd[1])], "offset_m": float(sd[0]),
+           "from": f"{len(rows)} edges in the shots ({1e3 * edge:.1f} mm each)"}
+    if marked.get("shift_m") is not None:  # an axis whose two edges were found: their mean, else the marks'
+        both = [all(found.get(f"{sg}{'xyz'[a]}") is not None for sg in "-+") for a in inplane]
+        out["shift_m"] = [edge / np.sqrt(2.0) if b else float(m) for b, m in zip(both, marked["shift_m"])]
+    return out
 
 
 # ---------------------------------------------------------------- imported
@@ -733,8 +822,10 @@ def write_scene(root, modelled: list[Modelled], existing: Scene | None = None) -
             raise WorkspaceError(ws.mesh(m.name), expected=f"a closed mesh for transparent surface '{m.name}'",
                                  got="an open mesh")
         material = Material.from_json({"brdf": m.brdf, "ior": m.ior}, ws.scene, m.name)
-        s = Surface(m.name, ws.mesh(m.name).relative_to(root).as_posix(), material, m.textured, m.mesh,
-                    {"source": m.source})
+        extra = {"source": m.source}
+        if m.info and "pose_sigma" in m.info:  # the pose's one-sigma (inverse/fit/geometry_sigma.py)
+            extra["pose_sigma"] = m.info["pose_sigma"]
+        s = Surface(m.name, ws.mesh(m.name).relative_to(root).as_posix(), material, m.textured, m.mesh, extra)
         names = [x.name for x in surfaces]
         if m.name in names:
             surfaces[names.index(m.name)] = s

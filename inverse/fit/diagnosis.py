@@ -87,13 +87,8 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None) -> tuple
         "or geometry, lights or camera that do not match the image"]
 
 
-def outliers(pb: Problem, p: Params, A, res, textured=None) -> np.ndarray:
-    """Flat pixel indices whose residual exceeds :data:`REJECT_SIGMAS` σ in some band (σ the image
-    noise or 1.4826 × the median absolute residual, the larger).
-
-    The same test as :func:`diagnose`'s (plus :data:`DIAG_FLOOR` of the peak, plus on textured
-    surfaces the diffuse radiance their homogeneous kd predicts), at a lower threshold.
-    """
+def outlier_tolerance(pb: Problem, p: Params, A, res, textured=None) -> np.ndarray:
+    """(3, R) the residual beyond which :func:`outliers` calls a pixel an outlier."""
     fac = pb.fac
     textured = [False] * len(fac.models) if textured is None else [bool(t) for t in textured]
     # The scale: the image noise, or the residual's own robust spread when larger (an outlier that
@@ -104,7 +99,18 @@ def outliers(pb: Problem, p: Params, A, res, textured=None) -> np.ndarray:
     if diffuse.any() and fac.albedo is None:
         y = fac.y(p.x, p.s)
         tol += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
-    excess = np.max(np.abs(res) / tol, axis=0)
+    return tol
+
+
+def outliers(pb: Problem, p: Params, A, res, textured=None) -> np.ndarray:
+    """Flat pixel indices whose residual exceeds :data:`REJECT_SIGMAS` σ in some band (σ the image
+    noise or 1.4826 × the median absolute residual, the larger).
+
+    The same test as :func:`diagnose`'s (plus :data:`DIAG_FLOOR` of the peak, plus on textured
+    surfaces the diffuse radiance their homogeneous kd predicts), at a lower threshold.
+    """
+    fac = pb.fac
+    excess = np.max(np.abs(res) / outlier_tolerance(pb, p, A, res, textured), axis=0)
     over = excess > 1.0
     if over.sum() > REJECT_SHARE * fac.n_rows:
         # Too many to be outliers — unless a few strong ones pulled the fit so that the rest

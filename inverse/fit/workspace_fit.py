@@ -102,6 +102,13 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
                          colour_pixels=stack.even)
     trees, camera = stack.trees, photos[0].camera
     result, fac, rounds = done.result, done.fac, done.rounds
+    geometry = None
+    if not through_view:  # the meshes' pose σ (scene.json) joins every σ: inverse/fit/geometry_sigma.py
+        from reflab.inverse.fit import geometry_sigma
+
+        var, geometry = geometry_sigma.propagate(stack, photos, scene, depth, fac, image, result, task=task)
+        if var is not None:
+            result = geometry_sigma.widened(result, fac, image, scene, var)
     # The reference photograph's own pixels and their saturation (the stack's first block).
     if through_view:  # the reference's own saturation, not the pixels left unread
         ref_image, ref_saturated = read[0]
@@ -125,6 +132,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         if stack.reach is not None:  # the share of each photograph whose trees the sample drew from
             extra["sampling"]["trees_share"] = [round(float(stack.reach[stack.pixels(i)].max()), 6)
                                                 for i in range(len(photos))]
+    if geometry is not None and geometry["surfaces"]:
+        extra["geometry_sigma"] = geometry
     report = fit_json(result, fac, scene, depth, extra)
     annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:

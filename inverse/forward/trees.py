@@ -341,7 +341,7 @@ def _dot(a, b):
 
 
 def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-4, task=None,
-                rows: tuple[int, int] | None = None) -> Trees:
+                rows: tuple[int, int] | None = None, pixels=None) -> Trees:
     """Cast the pixel-intensity trees of ``scene`` seen by ``camera`` under point ``lights``.
 
     Parameters
@@ -361,6 +361,10 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         Image rows ``[r0, r1)`` only (a tile of a large photograph): the trees are those rows'
         own, as a ``width`` x ``r1 - r0`` image whose pixel ``(v - r0) * width + u`` is the
         photograph's ``v * width + u``; each node is the same as in the whole photograph's trees.
+    pixels : (N,) int array_like, optional
+        Only these pixels (indices in the image, or in the tile of ``rows``): their trees as the
+        whole image's, the other pixels left without any (the pose sensitivities of
+        :mod:`reflab.inverse.fit.geometry_sigma`, which need a surface's pixels only).
 
     Returns
     -------
@@ -401,13 +405,18 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
     r0, r1 = (0, camera.height) if rows is None else (int(rows[0]), int(rows[1]))
     if not 0 <= r0 < r1 <= camera.height:
         raise ValueError(f"rows must lie within [0, {camera.height}] with r0 < r1, got {rows!r}")
-    if rows is None:
+    if pixels is not None:  # only these pixels' rays (pixel_rays' per pixel)
+        ray_pixel = np.unique(np.asarray(pixels, dtype=np.int64))
+        v, u = np.divmod(ray_pixel, camera.width)
+        origin, direction = camera.rays(np.stack([u, v + r0], axis=1).astype(np.float64))
+    elif rows is None:
         origin, direction = camera.pixel_rays()
     else:  # the same rays as pixel_rays' rows r0..r1-1
         origin, direction = camera.pixel_rays(rows=(r0, r1))
     offset = None
+    if pixels is None:
+        ray_pixel = np.arange(len(origin), dtype=np.int64)
     n_pix = len(origin)
-    ray_pixel = np.arange(n_pix, dtype=np.int64)
     ray_path = np.zeros(n_pix, dtype=np.int64)
     ray_fresnel = np.ones(n_pix)
     ray_parent = np.full(n_pix, -1, dtype=np.int64)
