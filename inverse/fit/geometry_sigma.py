@@ -148,7 +148,7 @@ def propagate(stack, photos, scene, depth: int, fac, image, result, *, task=None
     from reflab.inverse.forward.trees import build_trees
     from reflab.inverse.fit.diagnosis import REJECT_SHARE, outlier_tolerance
     from reflab.inverse.fit.problem import Params, Problem
-    from reflab.inverse.fit.uncertainty import normal_matrix, row_jacobian
+    from reflab.inverse.fit.uncertainty import normal_matrix, row_jacobian, scatter
 
     t0 = time.perf_counter()
     task = ensure(task)
@@ -230,14 +230,7 @@ def propagate(stack, photos, scene, depth: int, fac, image, result, *, task=None
     if acc is None:
         return None, {"surfaces": report, "time_s": round(time.perf_counter() - t0, 6)}
     p = result.params
-    var = Params(np.zeros_like(p.x), np.zeros_like(p.s), np.zeros_like(p.theta))
-    for (kind, i, c), v in zip(labels, acc):
-        if kind == "x":
-            var.x[i, c] = v
-        elif kind == "s":
-            var.s[i, c] = v
-        else:
-            var.theta[i] = v
+    var = scatter(labels, acc, Params(np.zeros_like(p.x), np.zeros_like(p.s), np.zeros_like(p.theta)))
     return var, {"surfaces": report, "time_s": round(time.perf_counter() - t0, 6)}
 
 

@@ -306,11 +306,16 @@ def sigmas(pb: Problem, p: Params, free: Free, res, robust: bool = True, keep=No
     stats = getattr(pb.fac.trees, "stats", None)
     blocks = stats.get("block_row0") if isinstance(stats, dict) else None
     sd = robust_sd(H, scores, pb.fac.rows, pb.fac.width, pb.fac.height, blocks, middle)
-    for (kind, i, c), v in zip(labels, sd):
+    return scatter(labels, sd, sig)
+
+
+def scatter(labels, values, into):
+    """``into`` (Params) with each of ``values`` written where its label (kind, surface, band) says."""
+    for (kind, i, c), v in zip(labels, values):
         if kind == "x":
-            sig.x[i, c] = v
+            into.x[i, c] = v
         elif kind == "s":
-            sig.s[i, c] = v
+            into.s[i, c] = v
         else:
-            sig.theta[i] = v
-    return sig
+            into.theta[i] = v
+    return into
