@@ -58,8 +58,21 @@ def views(root: Path, width: int, height: int, lab, scene: str):
             ("novel view" + (" (box back face)" if scene == "lab" else ""), root / "novel.json", None)]
 
 
+def parameters(fitted: Path, true: Path) -> dict:
+    """The fitted workspace's fit.json against the true one's scene.json, as the zoo scores it
+    (:func:`reflab.hardware.sim.zoo.compare`): the visible parameters, those determined, within 3σ,
+    confidently wrong (beyond 3σ + 2 %) and recovered (determined and within 10 %)."""
+    import json
+
+    from reflab.hardware.sim.zoo import compare, score
+
+    report = json.loads((fitted / "fit.json").read_text())
+    truth = json.loads((true / "scene.json").read_text())
+    return score(compare(report, truth, [bool(s.get("textured")) for s in truth["surfaces"]]))
+
+
 def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float = 0.0, seed: int = 0,
-            texture_seed: int | None = None, photographs: str = "") -> list[dict]:
+            texture_seed: int | None = None, photographs: str = "", scores: dict | None = None) -> list[dict]:
     lab = build_lab(width, height) if scene == "lab" else build(scene, width, height, texture_seed=texture_seed)
     photo = render_reference(lab.scene, lab.camera, lab.lights, albedo=lab.albedo)
     if noise:  # Gaussian, sigma = noise x the image's peak, the same photograph for both models
@@ -79,6 +92,8 @@ def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float
             write_input(root, name, img, cam, li)
         if kind == "fitted":
             assert main(["fit", str(root)]) in (0, 3)
+            if scores is not None:
+                scores.update(parameters(root, tmp / "true"))
         assert main(["texture", str(root)]) == 0
         out[kind] = {}
         for name, cam, lig in views(root, width, height, lab, scene):
@@ -113,10 +128,15 @@ if __name__ == "__main__":
     for scene in {"all": ("lab",) + NAMES, "more": MORE}.get(args.scene, (args.scene,)):
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            rows = measure(w, h, Path(tmp), scene, args.noise,
-                           texture_seed=None if scene == "lab" else args.texture_seed, photographs=args.photographs)
+            recall = {}
+            rows = measure(w, h, Path(tmp), scene, args.noise, texture_seed=None if scene == "lab" else args.texture_seed,
+                           photographs=args.photographs, scores=recall)
         print(f"\n{scene} {w}x{h}, noise {args.noise:g}, further photographs [{args.photographs}] "
               f"(total {time.perf_counter() - start:.1f} s)")
+        print(f"parameters: {recall['visible']} visible, {recall['determined']} determined, "
+              f"{recall['within_3sigma']} within 3σ (worst {recall['worst']:.2f}σ), {len(recall['wrong'])} confidently "
+              f"wrong {recall['wrong'] or ''}, {recall['recovered']} ({100 * recall['recovered'] / max(recall['visible'], 1):.0f} %) "
+              "determined and within 10 %")
         print("| view | true materials + texture | fitted materials + texture | difference | pixels compared "
               "| over determined pixels: true | fitted | difference | pixels |")
         print("|---|---|---|---|---|---|---|---|---|")
