@@ -26,12 +26,10 @@ def true_and_fitted_renders(tmp_path, scene: str, views: dict, width: int = 160,
     with the true materials, ``fitted`` fitted — each textured, and each of ``views`` (name →
     (camera.json or None, lights.json or None)) rendered. Returns the lab and
     ``{kind: {view: (image, info)}}``."""
-    from reflab.core.images import write_image
     from reflab.hardware.sim.lab import named_views, write_lab
     from reflab.hardware.sim.reference import render_reference
     from reflab.hardware.sim.scenes import build
     from reflab.inverse.fit.workspace_fit import fit_workspace
-    from reflab.inverse.forward.photographs import write_input
     from reflab.inverse.stages import TextureOptions, render_workspace, texture
 
     lab = build(scene, width, height)
@@ -46,10 +44,7 @@ def true_and_fitted_renders(tmp_path, scene: str, views: dict, width: int = 160,
     images = {}
     for kind in ("true", "fitted"):
         root = tmp_path / kind
-        write_lab(root, lab, materials=kind == "true")
-        write_image(root / "input.exr", photo)
-        for name, img, cam, li in further:
-            write_input(root, name, img, cam, li)
+        write_lab(root, lab, materials=kind == "true", photograph=photo, further=further)
         if kind == "fitted":
             fit_workspace(root)
         texture(TextureOptions(root))

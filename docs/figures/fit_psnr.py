@@ -33,11 +33,9 @@ from texture_psnr_reference import RELIGHT, novel_camera, psnr  # noqa: E402
 from reflab.app.cli import main  # noqa: E402
 from reflab.calibration.camera import Camera  # noqa: E402
 from reflab.calibration.lights import Lights  # noqa: E402
-from reflab.core.images import write_image  # noqa: E402
 from reflab.hardware.sim.lab import build_lab, named_views, write_lab  # noqa: E402
 from reflab.hardware.sim.reference import render_reference  # noqa: E402
 from reflab.hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
-from reflab.inverse.forward.photographs import write_input  # noqa: E402
 from reflab.inverse.stages import render_workspace  # noqa: E402
 
 
@@ -86,10 +84,7 @@ def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float
     out = {}
     for kind in ("true", "fitted"):
         root = tmp / kind
-        write_lab(root, lab, materials=kind == "true")
-        write_image(root / "input.exr", photo)
-        for name, img, cam, li in further:
-            write_input(root, name, img, cam, li)
+        write_lab(root, lab, materials=kind == "true", photograph=photo, further=further)
         if kind == "fitted":
             assert main(["fit", str(root)]) in (0, 3)
             if scores is not None:

@@ -259,8 +259,9 @@ def build_lab(width: int = FULL_SIZE[0], height: int = FULL_SIZE[1], *, textured
     return SimLab(camera, lights, Scene(surfaces), textures if textured else {})
 
 
-def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Path]:
-    """Write the lab's camera.json, lights.json, scene.json and meshes/*.ply into ``workspace``.
+def write_lab(workspace, lab: SimLab, *, materials: bool = True, photograph=None, further=()) -> dict[str, Path]:
+    """Write the lab's camera.json, lights.json, scene.json and meshes/*.ply into ``workspace``,
+    and its photographs when given.
 
     Parameters
     ----------
@@ -271,6 +272,10 @@ def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Pa
         fitting — ``brdf``, ``ior``, and that a matte (``lambert``) surface such as the paper
         ground does not mirror (``r = 0``, so the trees leave out its reflections) — and the
         truth goes to ``truth.json`` (fit.json's "surfaces" layout) for comparison.
+    photograph : (H, W, 3) array, optional
+        The reference photograph, written as input.exr.
+    further : iterable of (name, image, camera, lights)
+        Further photographs, each written into inputs/ with its sidecar.
 
     Returns
     -------
@@ -291,6 +296,15 @@ def write_lab(workspace, lab: SimLab, *, materials: bool = True) -> dict[str, Pa
         written["truth"] = write_json(root / "truth.json", {"surfaces": [
             {"name": s.name, "textured": s.textured, "material": s.material.to_json()} for s in lab.scene]})
     written.update({s.name: root / s.mesh_path for s in scene})
+    if photograph is not None:
+        from reflab.core.images import write_image
+
+        written["input"] = write_image(root / "input.exr", photograph)
+    if further:
+        from reflab.inverse.forward.photographs import write_input
+
+        for name, image, camera, lights in further:
+            written[f"inputs/{name}"] = write_input(root, name, image, camera, lights)[0]
     return written
 
 
