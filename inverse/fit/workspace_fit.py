@@ -177,11 +177,12 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.photograph import remember_noise
 
         remember_noise(image, noise_usable)
-    first = sampling.pilot(frame, pixels) if sampled else usable
+    first, first_trees = sampling.pilot(frame, pixels) if sampled else usable, trees
     if reach is not None:  # the first fit's rows (the pilot's, or all) weighed as every pixel's sample
         first_trees = sampling.weighted(trees, sampling.weights(first & frame, reach))
-        trees = trees if sampled else first_trees
-    fac = Factorization(trees if reach is None else first_trees, models, intensities, mask=first)
+        if not sampled:  # no later draw: every fit reads these rows with these weights
+            trees = first_trees
+    fac = Factorization(first_trees, models, intensities, mask=first)
     t2 = time.perf_counter()
     if fac.n_columns == 0:
         raise WorkspaceError(scene_file, "surfaces", "at least one surface seen by the camera and lit by a lamp",
