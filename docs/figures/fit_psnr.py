@@ -36,6 +36,7 @@ from reflab.calibration.lights import Lights  # noqa: E402
 from reflab.hardware.sim.lab import build_lab, named_views, write_lab  # noqa: E402
 from reflab.hardware.sim.reference import render_reference  # noqa: E402
 from reflab.hardware.sim.scenes import MORE, NAMES, build  # noqa: E402
+from reflab.hardware.sim.zoo import score  # noqa: E402
 from reflab.inverse.stages import render_workspace  # noqa: E402
 
 
@@ -66,7 +67,44 @@ def parameters(fitted: Path, true: Path) -> dict:
 
     report = json.loads((fitted / "fit.json").read_text())
     truth = json.loads((true / "scene.json").read_text())
-    return score(compare(report, truth, [bool(s.get("textured")) for s in truth["surfaces"]]))
+    rows = compare(report, truth, [bool(s.get("textured")) for s in truth["surfaces"]])
+    return {**score(rows), "rows": rows}
+
+
+def shown(lab, rows: list, views: list, noise: float) -> list:
+    """How much each scored parameter shows in each photograph: the χ² (in units of the noise,
+    ``noise`` × each photograph's peak) by which moving its true value by the recall tolerance
+    (10 %, or 0.01 for r and t) changes that photograph, by the reference renderer, noise-free.
+
+    ``views``: ``(name, camera, lights)``, the reference first. Returns per row a list of χ², one
+    per view. A parameter "the reference view shows" is one whose χ² there is at least 9 (a 3σ
+    change); one that no photograph shows cannot be determined by any method from these shots.
+    """
+    from reflab.hardware.sim.zoo import ATTENUATION_FLOOR, RECALL
+
+    surfaces = {s.name: s for s in lab.scene.surfaces}
+    base = [render_reference(lab.scene, cam, li, albedo=lab.albedo) for _, cam, li in views]
+    out = []
+    for name, label, _, true, _, _ in rows:
+        param, band = (label.split("[")[0], int(label[-2])) if "[" in label else (label, None)
+        material = surfaces[name].material
+        old = material.params[param]
+        step = max(RECALL * abs(true), ATTENUATION_FLOOR if param in "rt" else 0.0)
+        moved = np.array(old, dtype=np.float64, copy=True)
+        if band is None:
+            moved = moved + step
+        else:
+            moved[band] += step
+        material.params[param] = moved
+        try:
+            chi = []
+            for (_, cam, li), b in zip(views, base):
+                d = (render_reference(lab.scene, cam, li, albedo=lab.albedo) - b) / (noise * b.max())
+                chi.append(float(np.sum(d[..., band] ** 2 if band is not None else d ** 2)))
+        finally:
+            material.params[param] = old
+        out.append(chi)
+    return out
 
 
 def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float = 0.0, seed: int = 0,
@@ -89,6 +127,8 @@ def measure(width: int, height: int, tmp: Path, scene: str = "lab", noise: float
             assert main(["fit", str(root)]) in (0, 3)
             if scores is not None:
                 scores.update(parameters(root, tmp / "true"))
+                shots = [("reference", lab.camera, lab.lights)] + [(n, c, li) for n, _, c, li in further]
+                scores["shown"] = shown(lab, scores["rows"], shots, noise or 0.01)
         assert main(["texture", str(root)]) == 0
         out[kind] = {}
         for name, cam, lig in views(root, width, height, lab, scene):
@@ -132,6 +172,14 @@ if __name__ == "__main__":
               f"{recall['within_3sigma']} within 3σ (worst {recall['worst']:.2f}σ), {len(recall['wrong'])} confidently "
               f"wrong {recall['wrong'] or ''}, {recall['recovered']} ({100 * recall['recovered'] / max(recall['visible'], 1):.0f} %) "
               "determined and within 10 %")
+        seen = [r for r, chi in zip(recall["rows"], recall["shown"]) if chi[0] >= 9]
+        kept = score(seen) if seen else {"recovered": 0}
+        print(f"shown by the reference view (10 % of the value moves it by χ² ≥ 9): {len(seen)}, of which "
+              f"{kept['recovered']} ({100 * kept['recovered'] / max(len(seen), 1):.0f} %) determined and within 10 %")
+        for r, chi in zip(recall["rows"], recall["shown"]):
+            ok = "recovered" if r in seen and score([r])["recovered"] else "-"
+            print(f"  {r[0]} {r[1]}: fit {r[2]:.4g} true {r[3]:.4g} σ {r[4] if r[4] is None else f'{r[4]:.3g}'} "
+                  f"{'determined' if r[5] else 'undetermined'}; χ² per photograph {[round(c) for c in chi]} {ok}")
         print("| view | true materials + texture | fitted materials + texture | difference | pixels compared "
               "| over determined pixels: true | fitted | difference | pixels |")
         print("|---|---|---|---|---|---|---|---|---|")
