@@ -436,13 +436,18 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                               maps=build_maps(scene, view_trees, options, crop=True) if tex is None else tex.maps,
                               perturb=noise_like(view_image, view_trees, textured, view_noise)
                               if last else None)
-        # The pixels whose light rests on texels the texture barely knows are left out of this
-        # round's fit; the texels' noise is measured over the nodes of the pixels it reads.
-        fed = ~left_out & (np.bincount(view_trees.pixel, minlength=n_pix) > 0)
-        round_mask = mask & ~loosely_textured(trees, materials, intensities, textured, tex, start.stats.get("noise"),
-                                              fed=fed)
-        relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex,
-                                only=round_mask[np.asarray(trees.pixel, dtype=np.int64)])
+        round_mask, only = mask, None
+        if view is not None:
+            # Read through a view (the further photographs' sample): a texel seen only where the
+            # sample is sparse is known from a pixel or two, or not at all. The pixels whose light
+            # rests on such texels are left out of this round's fit, and the texels' noise is
+            # measured over the nodes of the pixels it reads. (Every pixel read, the rounds fit a
+            # left-out highlight against the mean of its texels by design: its lobe's evidence.)
+            fed = ~left_out & (np.bincount(view_trees.pixel, minlength=n_pix) > 0)
+            round_mask = mask & ~loosely_textured(trees, materials, intensities, textured, tex,
+                                                  start.stats.get("noise"), fed=fed)
+            only = round_mask[np.asarray(trees.pixel, dtype=np.int64)]
+        relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex, only=only)
         relative_view = relative if view is None else deattenuated(relative_albedo(view_trees, textured, tex),
                                                                    view_trees, textured, tex)
         t1 = time.perf_counter()
