@@ -16,10 +16,11 @@ those against it. Each round:
 3. F-TBO from the current parameters (no global scan) with every textured node's diffuse term
    scaled by its albedo relative to its surface's mean (:func:`relative_albedo`,
    ``Factorization(albedo=...)``): ``kd`` stays the surface's mean albedo, and texels no kept
-   pixel sees count as the mean; pixels whose light rests on such texels, or on texels read
-   from fewer than :data:`MIN_SUPPORT` pixels, by more than :data:`SUPPORT_SIGMAS` noise σ are
-   left out of the round (:func:`loosely_textured`): their residual is the texture's error, which
-   the fit would otherwise turn into r, t or a lobe.
+   pixel sees count as the mean. Where the texture is read from a sample of several photographs,
+   pixels whose light rests on such texels, or on texels read from fewer than
+   :data:`MIN_SUPPORT` pixels, by more than :data:`SUPPORT_SIGMAS` noise σ are left out of the
+   round (:func:`loosely_textured`): their residual is the sample's ignorance of the texture,
+   which the fit would otherwise turn into r, t or a lobe.
 
 The last round holds textured lobes grey (:func:`grey_lobes`), and a lobe the texture's colours
 determine at that estimate (:func:`colour_held`, :mod:`reflab.inverse.fit.dichromatic`).
@@ -282,7 +283,8 @@ def loosely_textured(trees, materials, intensities, textured, tex, noise, fed=No
     # estimate would keep the texels that came out dark and bias what they are regressed on.
     kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)[trees.surface]
     diffuse = path_products(trees, materials) * linear_basis(trees, materials, intensities)[:, :, 0] * kd
-    light = np.stack([np.bincount(trees.pixel[poor], weights=diffuse[poor, c], minlength=npix) for c in range(3)], axis=1)
+    pixel = trees.pixel[poor]
+    light = np.stack([np.bincount(pixel, weights=diffuse[poor, c], minlength=npix) for c in range(3)], axis=1)
     return np.any(light > sigmas * np.asarray(noise, dtype=np.float64), axis=1)
 
 
@@ -437,8 +439,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                               perturb=noise_like(view_image, view_trees, textured, view_noise)
                               if last else None)
         round_mask, only = mask, None
-        if view is not None:
-            # Read through a view (the further photographs' sample): a texel seen only where the
+        if view is not None and (view_trees.width, view_trees.height) == (trees.width, trees.height):
+            # Read through a sample of the same pixels (several photographs): a texel seen only where the
             # sample is sparse is known from a pixel or two, or not at all. The pixels whose light
             # rests on such texels are left out of this round's fit, and the texels' noise is
             # measured over the nodes of the pixels it reads. (Every pixel read, the rounds fit a
