@@ -41,8 +41,10 @@ def run(args) -> int:
 
     def on_round(rec):
         rms = ", ".join(f"{v:.3g}" for v in rec["rms"])
+        loose = rec.get("loosely_textured")
+        loose = f", {loose} pixels on loosely known texels left out" if loose else ""
         LOG.info(f"reflab fit: texture round {rec['round']}: texture from all but {rec['pixels_left_out']} pixels "
-                 f"({rec['texture_s']:.1f} s), refit RMS per band [{rms}] ({rec['fit_s']:.1f} s)")
+                 f"({rec['texture_s']:.1f} s), refit RMS per band [{rms}] ({rec['fit_s']:.1f} s){loose}")
 
     with running("fit") as task:
         r = fit(options_from_args(FitOptions, args, workspace=args.workspace), task, on_round=on_round)

@@ -16,7 +16,11 @@ those against it. Each round:
 3. F-TBO from the current parameters (no global scan) with every textured node's diffuse term
    scaled by its albedo relative to its surface's mean (:func:`relative_albedo`,
    ``Factorization(albedo=...)``): ``kd`` stays the surface's mean albedo, and texels no kept
-   pixel sees count as the mean.
+   pixel sees count as the mean. Where the texture is read from a sample of several photographs,
+   pixels whose light rests on such texels, or on texels read from fewer than
+   :data:`MIN_SUPPORT` pixels, by more than :data:`SUPPORT_SIGMAS` noise σ are left out of the
+   round (:func:`loosely_textured`): their residual is the sample's ignorance of the texture,
+   which the fit would otherwise turn into r, t or a lobe.
 
 The last round holds textured lobes grey (:func:`grey_lobes`), and a lobe the texture's colours
 determine at that estimate (:func:`colour_held`, :mod:`reflab.inverse.fit.dichromatic`).
@@ -54,6 +58,15 @@ TEXEL_SCALE = 2.0
 #: coarse texel half over an occlusion edge (the ground behind the demo's sheet) would otherwise
 #: extrapolate the visible side's albedo into what the sheet transmits (sheet t 0.11 off).
 MIN_COVERAGE = 1.0
+#: A texel read from less than this many pixels' weight is too loosely known to judge a lobe,
+#: reflection or transmission against: its noise is that of a pixel or more. Not critical: the
+#: lab at 160x120, seven photographs read through a quarter of the sample budget, recovers 25, 24,
+#: 23 of 37 parameters at 1, 2, 4 (26 at SUPPORT_SIGMAS 1 or 3), none beyond 1.7σ; 15 without.
+MIN_SUPPORT = 2.0
+#: A round's fit leaves out a pixel whose light from such texels (or texels not known at all,
+#: taken at the mean) exceeds this many image-noise σ in some band: its residual would be the
+#: texture's error, not the parameters'.
+SUPPORT_SIGMAS = 2.0
 #: Lobe heights a textured surface's last round holds at their mean over the bands (see
 #: :func:`grey_lobes`).
 GREY = ("ks",)
@@ -172,7 +185,7 @@ def noise_like(image, trees, textured, sigma=None) -> np.ndarray | None:
     return np.random.default_rng(0).normal(0.0, 1.0, image.shape) * sigma
 
 
-def deattenuated(relative, trees, textured, tex) -> np.ndarray:
+def deattenuated(relative, trees, textured, tex, only=None) -> np.ndarray:
     """``relative`` where a textured surface is seen in a mirror or through glass, shrunk toward
     its mean by the texels' reliability: regression calibration for errors in variables.
 
@@ -185,11 +198,16 @@ def deattenuated(relative, trees, textured, tex) -> np.ndarray:
     solved from the photograph plus noise of its own σ (:func:`noise_like`,
     ``TextureSolution.perturbed``), and the change at the nodes is that noise's image. Without it
     (a noise-free photograph) ``relative`` is returned as it is. Directly seen nodes are not
-    touched: they were made from the very pixels they explain.
+    touched: they were made from the very pixels they explain. ``only`` (N,) bool, optional: the
+    nodes of the pixels the fit reads (:func:`loosely_textured` leaves out those on the noisiest
+    texels), λ measured over them alone: over all, it over-corrects theirs (the lab at 160x120,
+    seven photographs read through a quarter of the sample budget: worst 3.2σ, 1.5σ over them).
     """
     if not tex.perturbed:
         return relative
     seen = seen_elsewhere(trees, textured) & np.all(np.isfinite(relative), axis=1)
+    if only is not None:
+        seen &= np.asarray(only, dtype=bool)
     nodes = np.flatnonzero(seen)
     if len(nodes) < 2:
         return relative
@@ -221,6 +239,53 @@ def relative_albedo(trees, textured, result, only=None) -> np.ndarray:
         rel = np.divide(a, mean, out=np.ones_like(a), where=mean > 1e-6)
         out[sel] = np.where(np.isfinite(rel), rel, 1.0)
     return out
+
+
+def texel_support(trees, textured, tex) -> np.ndarray:
+    """(N, 3) pixels' weight that recovered the texels under each textured node (bilinear over
+    its four texels; 0 where they are unknown); inf on surfaces that are not textured."""
+    out = np.full((len(trees.pixel), 3), np.inf)
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
+        sel = np.flatnonzero(trees.surface == s)
+        if not len(sel):
+            continue
+        out[sel] = 0.0
+        if s not in tex.kd or not tex.mask[s].any():
+            continue
+        idx, w = tex.maps[s].bilinear(trees.triangle[sel], trees.barycentric[sel])
+        weight = np.where(tex.mask[s][..., None], tex.weight[s], 0.0).reshape(-1, 3)
+        out[sel] = np.einsum("nj,njc->nc", w, weight[idx])
+    return out
+
+
+def loosely_textured(trees, materials, intensities, textured, tex, noise, fed=None,
+                     min_support: float = MIN_SUPPORT, sigmas: float = SUPPORT_SIGMAS) -> np.ndarray:
+    """(H*W,) bool: pixels whose predicted light rests on texels the round's texture barely knows.
+
+    A node on a texel read from fewer than ``min_support`` pixels (or from none: the surface's
+    mean stands in) carries that texel's error into its pixel at full strength; where that
+    diffuse light exceeds ``sigmas`` × the image noise, the pixel's residual is the texture's,
+    and the fit would turn it into a wrong r, t or lobe (the lab's mirror and sheet at 320x240,
+    seven photographs: texels seen only in the further photographs' sample).
+    """
+    npix = trees.width * trees.height
+    if noise is None or tex is None:
+        return np.zeros(npix, dtype=bool)
+    support = texel_support(trees, textured, tex).min(axis=1)
+    poor = support < min_support
+    if fed is not None:
+        # A directly seen node of a pixel that fed the texture: its texel, when known, was
+        # recovered from that very pixel among others and fits it whatever their number.
+        poor &= ~((np.asarray(trees.level) == 1) & np.asarray(fed, dtype=bool)[trees.pixel] & (support > 0.0))
+    if not poor.any():
+        return np.zeros(npix, dtype=bool)
+    # At the surface's mean albedo, not the texels' own estimate: a choice made on the noisy
+    # estimate would keep the texels that came out dark and bias what they are regressed on.
+    kd = np.stack([np.broadcast_to(m["kd"], (3,)) for m in materials]).astype(np.float64)[trees.surface]
+    diffuse = path_products(trees, materials) * linear_basis(trees, materials, intensities)[:, :, 0] * kd
+    pixel = trees.pixel[poor]
+    light = np.stack([np.bincount(pixel, weights=diffuse[poor, c], minlength=npix) for c in range(3)], axis=1)
+    return np.any(light > sigmas * np.asarray(noise, dtype=np.float64), axis=1)
 
 
 def _leave_out(mask, result, width) -> None:
@@ -298,7 +363,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         best; ``stats["best_round"]`` says which was kept (0 = the start); ``trace`` continues the start's, ``time_s``, ``evaluations`` and
         ``iterations`` add up, ``stats["best_round"]`` says which (0 = the start).
     list of dict
-        Per round: ``round``, ``pixels_left_out`` (from the texture), ``rms`` per band,
+        Per round: ``round``, ``pixels_left_out`` (from the texture), ``loosely_textured`` (of
+        the fit's pixels, left out of the round: :func:`loosely_textured`), ``rms`` per band,
         ``texture_s``, ``fit_s``.
     """
     if not 0.0 < min_share <= 1.0:
@@ -372,11 +438,22 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                               maps=build_maps(scene, view_trees, options, crop=True) if tex is None else tex.maps,
                               perturb=noise_like(view_image, view_trees, textured, view_noise)
                               if last else None)
-        relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex)
+        round_mask, only = mask, None
+        if view is not None and (view_trees.width, view_trees.height) == (trees.width, trees.height):
+            # Read through a sample of the same pixels (several photographs): a texel seen only where the
+            # sample is sparse is known from a pixel or two, or not at all. The pixels whose light
+            # rests on such texels are left out of this round's fit, and the texels' noise is
+            # measured over the nodes of the pixels it reads. (Every pixel read, the rounds fit a
+            # left-out highlight against the mean of its texels by design: its lobe's evidence.)
+            fed = ~left_out & (np.bincount(view_trees.pixel, minlength=n_pix) > 0)
+            round_mask = mask & ~loosely_textured(trees, materials, intensities, textured, tex,
+                                                  start.stats.get("noise"), fed=fed)
+            only = round_mask[np.asarray(trees.pixel, dtype=np.int64)]
+        relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex, only=only)
         relative_view = relative if view is None else deattenuated(relative_albedo(view_trees, textured, tex),
                                                                    view_trees, textured, tex)
         t1 = time.perf_counter()
-        fac = Factorization(trees, models, intensities, mask=mask,
+        fac = Factorization(trees, models, intensities, mask=round_mask,
                             albedo=relative if palette is None else palette.merged(relative))
         # σ only for the last round (the one kept, unless its texture went wrong: see below). After
         # a kept round, what it held stays held: its holding rounds would find it again (same
@@ -394,7 +471,8 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
         elapsed += t2 - t0
         evaluations += result.evaluations
         iterations += result.iterations
-        record = {"round": k + 1, "pixels_left_out": int(left_out.sum()), "rms": [float(v) for v in result.rms],
+        record = {"round": k + 1, "pixels_left_out": int(left_out.sum()),
+                  "loosely_textured": int((mask & ~round_mask).sum()), "rms": [float(v) for v in result.rms],
                   "texture_s": round(t1 - t0, 3), "fit_s": round(t2 - t1, 3)}
         if colour_s is not None:  # of texture_s: the lobes from the texture's colours
             record["colour_s"] = round(colour_s, 3)
