@@ -29,6 +29,11 @@ the free parameters):
   price (:mod:`reflab.inverse.fit.palette`), chosen only when its inks hold: misfit at the
   noise, white residuals, sharp edges.
 
+The start's lobe is the one the free texture left: where it took the highlight (ks 0), a
+one-colour surface's albedos carry that highlight and look textured. A surface called texture is
+therefore judged again under the lobe and reflection one colour gives it (:func:`uniform_lobes`),
+and is uniform if it is so there; its refit starts from that lobe.
+
 A surface whose uniform model has the lower BIC is fitted as homogeneous (its kd a free
 parameter, its lobe and reflection fitted with the rest, every σ from every pixel); a palette
 likewise, its kd a gain on its inks (:func:`select`); the user's flag still rules the texture
