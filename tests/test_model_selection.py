@@ -132,6 +132,41 @@ def test_a_faint_print_called_uniform_stays_honest():
     assert not bad, bad
 
 
+@pytest.mark.parametrize("printed", [False, True])
+def test_a_highlight_the_texture_took_is_given_back_to_judge_one_colour(printed):
+    """The shiny box declared textured, its lobe as a free texture leaves it (ks 0: the texture
+    took its highlight), every other value true; 1 % noise. Judged under that lobe the box's
+    albedos carry the highlight and look textured (zoo seed 5's one-ink box stayed textured so).
+    Its lobe fitted as one colour (uniform_lobes) is the one that made the image (ks 0.3, ns 40,
+    its colour), and judged under it the one-colour box is uniform; the printed box (two inks)
+    stays textured under it."""
+    import dataclasses
+
+    from reflab.inverse.fit.albedo_model import uniform_lobes
+    from reflab.inverse.forward.trees import build_trees
+
+    ts = build("shiny_box", W, H) if printed else _uniform("shiny_box")
+    image, sigma = _photograph(ts)
+    truth = [s.material for s in ts.scene]
+    flags = [s.textured for s in ts.scene]
+    b = ts.scene.names.index("box")
+    start = list(truth)
+    start[b] = dataclasses.replace(truth[b], params=dict(truth[b].params) | {"ks": np.zeros(3), "ns": 90.5})
+    trees = build_trees(Scene(list(ts.scene)), ts.camera, ts.lights, depth=3)
+    noise = np.full(3, sigma)
+    before = albedo_evidence(trees, start, ts.lights.intensities, image, flags, noise)[b]
+    assert before.model == "texture" and before.delta_bic > 0, before
+    lobe = uniform_lobes(trees, start, ts.lights.intensities, image, flags, noise)[b]
+    after = albedo_evidence(trees, [lobe if i == b else m for i, m in enumerate(start)], ts.lights.intensities,
+                            image, flags, noise, palettes=False)[b]  # as select() judges it again
+    if printed:
+        assert after.model == "texture" and after.delta_bic > 0, after
+        return
+    assert abs(lobe["ks"][0] - 0.3) < 0.03 * 0.3 and abs(lobe["ns"] - 40.0) < 0.03 * 40.0, lobe.params
+    assert np.allclose(lobe["kd"], truth[b]["kd"], atol=0.01), lobe.params
+    assert after.model == "uniform" and after.delta_bic < 0, after
+
+
 def test_the_uniform_model_is_a_chi_square_against_the_noise():
     """On a one-colour surface after the homogeneous fit, the noise it uses is the photograph's true
     σ (to 10 %), and χ² of the uniform model over its pixel values is what Gaussian noise
@@ -170,7 +205,7 @@ def test_fit_json_says_which_albedo_model_each_textured_surface_got(tmp_path):
     box = surfaces["box"]
     assert box["albedo_model"] == "uniform"
     assert set(box["albedo_evidence"]) == {"pixels", "chi2_uniform", "chi2_texture", "block_px", "blocks",
-                                           "delta_bic", "colour", "noise", "chi2_palette", "delta_bic_palette",
+                                           "delta_bic", "colour", "noise", "lobe", "chi2_palette", "delta_bic_palette",
                                            "inks", "inks_sigma", "ink_pixels", "mixed_pixels", "ink_misfit"}
     assert box["albedo_evidence"]["delta_bic"] < 0 and "albedo_models" not in report
     assert not {"ks", "ns"} & set(box["undetermined"])

@@ -29,6 +29,11 @@ the free parameters):
   price (:mod:`reflab.inverse.fit.palette`), chosen only when its inks hold: misfit at the
   noise, white residuals, sharp edges.
 
+The start's lobe is the one the free texture left: where it took the highlight (ks 0), a
+one-colour surface's albedos carry that highlight and look textured. A surface called texture is
+therefore judged again under the lobe and reflection one colour gives it (:func:`uniform_lobes`),
+and is uniform if it is so there; its refit starts from that lobe.
+
 A surface whose uniform model has the lower BIC is fitted as homogeneous (its kd a free
 parameter, its lobe and reflection fitted with the rest, every σ from every pixel); a palette
 likewise, its kd a gain on its inks (:func:`select`); the user's flag still rules the texture
@@ -87,12 +92,16 @@ class AlbedoEvidence:
     palette: object = None
     #: BIC(palette) − the lower of BIC(uniform) and BIC(texture): negative selects palette.
     delta_bic_palette: float = float("nan")
+    #: The surface's lobe the albedos were judged under: ``"fitted"`` (the homogeneous fit's, with
+    #: the declared flags) or ``"one colour"`` (its own lobe and reflection fitted to the pixels as
+    #: one colour, :func:`uniform_lobes`).
+    lobe: str = "fitted"
 
     def to_json(self) -> dict:
         out = {"model": self.model, "pixels": self.pixels, "chi2_uniform": round(self.chi2_uniform, 3),
                "chi2_texture": round(self.chi2_texture, 3), "block_px": self.block, "blocks": self.blocks,
                "delta_bic": round(self.delta_bic, 3), "colour": [round(float(v), 6) for v in self.colour],
-               "noise": [float(v) for v in self.noise]}
+               "noise": [float(v) for v in self.noise], "lobe": self.lobe}
         if self.palette is not None:
             m = self.palette
             out.update({"chi2_palette": round(float(m.cost), 3), "delta_bic_palette": round(self.delta_bic_palette, 3),
@@ -259,6 +268,88 @@ def albedo_evidence(trees, materials, intensities, image, textured, noise=None, 
     return out
 
 
+def uniform_lobes(trees, materials, intensities, image, textured, noise, *, mask=None, held=None) -> dict:
+    """Each declared textured surface's grey lobe and own reflection fitted to its pixels with its
+    albedo one colour: what the uniform model's lobe would be.
+
+    The homogeneous fit with a surface declared textured lets its free texture take its highlight
+    (its ks then 0, or the prior's guess): judged under that lobe, a one-colour surface's albedos
+    carry the highlight it missed and look textured (zoo seed 5's one-ink box, noise-free: χ² of
+    one colour 5e7 per value, 3.0 under its true lobe). This is the dichromatic objective of
+    :mod:`reflab.inverse.fit.dichromatic` with a colour set of one point: per shape θ the colour,
+    the own r and ks solved linearly, θ by a scan in log2 then Brent.
+
+    Parameters
+    ----------
+    trees, materials, intensities, image, textured, mask
+        As :func:`albedo_evidence` takes them.
+    noise : (3,) array_like
+        The photograph's noise σ per band (whitens the bands).
+    held : list of set of str, optional
+        Names the user gave: a surface whose ks or shape they gave is left out; one whose r they
+        gave keeps it.
+
+    Returns
+    -------
+    dict
+        Surface index → its Material with ``kd``, ``ks``, the shape and (unless given) ``r`` so
+        fitted, for each textured Phong or Ward surface with enough directly seen lit pixels.
+    """
+    from reflab.inverse.fit.dichromatic import MIN_LIT, MIN_PIXELS, _estimate, _Objective, _Pixels
+    from reflab.inverse.fit.problem import NOISE_FLOOR
+    from reflab.inverse.fit.ranges import FIT_RANGE
+    from reflab.inverse.forward.models import get_model
+    from reflab.reconstruction.scene import SCALAR_RANGE
+
+    image = np.asarray(image, dtype=np.float64)
+    scale = np.maximum(np.asarray(noise, dtype=np.float64).reshape(3), NOISE_FLOOR * max(float(image.max()), 1e-300))
+    # Every pixel that sees one surface directly, also where it mirrors a textured one (the
+    # colour lobes leave those out): the evidence judges them, and their reflection is this r's
+    # (zoo seed 5's box mirrors its textured ground at r 0.05, on its dim faces 40 % of the light).
+    level1 = np.asarray(trees.level) == 1
+    single = np.bincount(trees.pixel[level1], minlength=trees.width * trees.height) == 1
+    if mask is not None:
+        single &= np.asarray(mask, dtype=bool).reshape(-1)
+    out = {}
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
+        model = get_model(materials[s].brdf)
+        if "ks" not in model.linear or model.n_nonlinear != 1:
+            continue
+        shape = model.nonlinear[0]
+        given = set() if held is None else set(held[s])
+        if {"ks", shape} & given:
+            continue
+        nodes = np.flatnonzero(level1 & (np.asarray(trees.surface) == s))
+        nodes = nodes[single[trees.pixel[nodes]]]
+        px = trees.pixel[nodes]
+        if len(nodes) < MIN_PIXELS:
+            continue
+        parts = _Pixels(trees, materials, intensities, image, s, nodes, px, model.linear.index("ks"), "r" not in given)
+        seen = np.all(parts.e > 0, axis=1)
+        lit = seen & np.all(parts.e > MIN_LIT * np.median(parts.e, axis=0), axis=1)
+        if lit.sum() < MIN_PIXELS:
+            continue
+        lo, hi = FIT_RANGE.get(shape, SCALAR_RANGE.get(shape))
+        lo, hi = max(lo, 1e-3), (min(hi, 2.0**12) if shape == "ns" else hi)
+        # The lobe from the lit pixels, as the colour lobes take it; then the colour and r at that
+        # lobe from the dim ones too, which show the reflection best: fitted with the lobe there,
+        # the reflected texture (at its mean in the model) moved it (seed 5's box: ks 0.39 for 0.98).
+        obj = _Objective(parts, np.zeros((3, 0)), scale, lit)
+        theta, _ = _estimate(obj, lo, hi)
+        ks = obj.solve(theta)[2]
+        obj = _Objective(parts, np.zeros((3, 0)), scale, seen)
+        g = obj.P(parts.lobe(theta, obj.rows) * obj.sw).ravel()
+        nuisances = obj.pinv @ (obj.U.T @ (obj.y - ks * g))
+        params = dict(materials[s].params)
+        params["kd"] = np.clip(nuisances[:3], 0.0, 1.0)
+        params["ks"] = np.full(np.shape(params["ks"]), ks) if np.ndim(params["ks"]) else float(ks)
+        params[shape] = float(theta)
+        if parts.h is not None and "r" in params:
+            params["r"] = np.clip(nuisances[3:6], 0.0, 1.0)
+        out[int(s)] = dataclasses.replace(materials[s], params=params)
+    return out
+
+
 def _off_bounds(materials, initial, bounds) -> list:
     """``materials`` with each value listed in ``bounds`` (per surface ``{"ks[0]": "lower"}``,
     :func:`reflab.inverse.fit.ranges.at_bound`) set back to its value in ``initial``."""
@@ -376,11 +467,13 @@ def _continued(start, again):
 
 
 def _refit(trees, scene, models, intensities, image, start, found, models_of, *, mask, method, maxiter, max_seconds,
-           task, held, min_share):
+           task, held, min_share, starts=None):
     """:func:`select`'s refit with each surface's albedo model ``models_of`` (surface → model):
     (scene, fit, palette or None); None when none is uniform or a palette; the list of palette
     surfaces whose inks, estimated again after the first fit, are no longer at the noise (or lost
-    an ink): the caller gives them their texture and tries again."""
+    an ink): the caller gives them their texture and tries again. ``starts``: surface → the
+    Material its uniform model starts from (:func:`uniform_lobes`), where the evidence was judged
+    under it."""
     from reflab.inverse.forward.factorization import Factorization
     from reflab.inverse.fit.rounds import fit
     from reflab.reconstruction.scene import Scene
@@ -400,6 +493,8 @@ def _refit(trees, scene, models, intensities, image, start, found, models_of, *,
     # bound from the scene's starting values, where a fit from scratch would hold them if the
     # refit finds them unresolved.
     materials = _off_bounds(start.materials, [s.material for s in scene], start.stats.get("at_bound"))
+    # A surface judged under its one-colour lobe starts there: the start's lobe was the texture's.
+    materials = [(starts or {}).get(i, m) if models_of.get(i) == "uniform" else m for i, m in enumerate(materials)]
     if inks:
         # The start fitted a palette surface's own r and t against one colour, so they carry its
         # inks' variation (texture_aware.without_own_paths): the palette's fit starts them at 0.
@@ -531,13 +626,29 @@ def select(trees, scene, models, intensities, image, start, *, mask, method, max
     declared = np.array([s.textured for s in scene], dtype=bool)
     if not declared.any():
         return scene, start, {}, None
-    found = albedo_evidence(trees, start.materials, intensities, image, declared, start.stats.get("noise"), mask=mask,
+    noise = start.stats.get("noise")
+    found = albedo_evidence(trees, start.materials, intensities, image, declared, noise, mask=mask,
                             min_share=min_share)
+    starts = {}
+    if noise is not None and any(e.model == "texture" for e in found.values()):
+        # Judged under the lobe the free texture left (it took the highlight), a one-colour surface
+        # looks textured: judged again under the lobe one colour gives it, uniform if it then is so.
+        lobes = uniform_lobes(trees, start.materials, intensities, image, declared, noise, mask=mask, held=held)
+        lobes = {s: m for s, m in lobes.items() if s in found and found[s].model == "texture"}
+        if lobes:
+            materials = [lobes.get(i, m) for i, m in enumerate(start.materials)]
+            again = albedo_evidence(trees, materials, intensities, image, declared, noise, mask=mask,
+                                    min_share=min_share, palettes=False)
+            for s in lobes:
+                if s in again and again[s].model == "uniform":
+                    found[s] = dataclasses.replace(again[s], lobe="one colour")
+                    starts[s] = lobes[s]
     evidence = {scene.names[s]: e.to_json() for s, e in found.items()}
     models_of = {s: e.model for s, e in found.items()}
     while True:
         done = _refit(trees, scene, models, intensities, image, start, found, models_of, mask=mask, method=method,
-                      maxiter=maxiter, max_seconds=max_seconds, task=task, held=held, min_share=min_share)
+                      maxiter=maxiter, max_seconds=max_seconds, task=task, held=held, min_share=min_share,
+                      starts=starts)
         if not isinstance(done, list):
             break
         for s in done:  # inks that do not hold under the fitted lobe: a free texture after all
