@@ -372,13 +372,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
                               maps=build_maps(scene, view_trees, options, crop=True) if tex is None else tex.maps,
                               perturb=noise_like(view_image, view_trees, textured, view_noise)
                               if last else None)
-        # The last round's albedo is read only by its fit's nodes (and the texels seen in a mirror
-        # or through glass, whose spread deattenuated measures over all of them): no round follows
-        # to choose its pixels from it (640x480 lab: 85 000 of 307 200 pixels; the same numbers).
-        need = (mask[np.asarray(trees.pixel, dtype=np.int64)] | seen_elsewhere(trees, textured)) if last else None
-        relative = deattenuated(relative_albedo(trees, textured, tex, only=need), trees, textured, tex)
-        relative_view = relative if view is None or last else deattenuated(relative_albedo(view_trees, textured, tex),
-                                                                           view_trees, textured, tex)
+        relative = deattenuated(relative_albedo(trees, textured, tex), trees, textured, tex)
+        relative_view = relative if view is None else deattenuated(relative_albedo(view_trees, textured, tex),
+                                                                   view_trees, textured, tex)
         t1 = time.perf_counter()
         fac = Factorization(trees, models, intensities, mask=mask,
                             albedo=relative if palette is None else palette.merged(relative))
