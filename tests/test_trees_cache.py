@@ -105,3 +105,54 @@ def test_trees_cache_keeps_the_file_in_use(tmp_path, monkeypatch):
         time.sleep(0.02)
         assert trees_for_workspace(ws, scene, camera, lights).stats["cache"] == "reused"
     assert len(list(ws.cache.glob("trees-*.npz"))) == 2
+
+
+def test_trees_cache_written_in_background_is_read_whole(tmp_path, monkeypatch):
+    """A cache file written on a thread (the fit's) is the trees built, and a read waits for it."""
+    import threading
+
+    from reflab.inverse.forward.trees import Trees, wait_for_saves
+
+    ws = Workspace(tmp_path / "ws")
+    write_lab(ws.root, build_lab(48, 36), materials=False)
+    release, save = threading.Event(), Trees.save
+
+    def held_save(self, path):  # the write starts only when the test says so
+        release.wait(30)  # a bound only: a synchronous write would otherwise hang the test
+        return save(self, path)
+
+    monkeypatch.setattr(Trees, "save", held_save)
+    log = []
+    built = trees_for_workspace(ws, *_load(ws), depth=3, log=log.append, background=True)
+    # Returned before its file was written: nothing in the cache, no line logged yet.
+    assert built.stats["cache"] == "built" and not list(ws.cache.glob("*trees-*")) and log == []
+    release.set()
+    # Read again at once: it waits for the write and reads the file whole.
+    again = trees_for_workspace(ws, *_load(ws), depth=3, log=log.append)
+    assert again.stats["cache"] == "reused"
+    wait_for_saves()
+    # The build's line comes when its file is written, before the read that waited for it.
+    assert len(log) == 2 and log[0].startswith("trees: built in") and "cached as" in log[0]
+    assert log[1].startswith("trees: reused cache")
+    files = list(ws.cache.glob("trees-*.npz"))
+    assert len(files) == 1 and not list(ws.cache.glob(".trees-*"))  # no temporary file left
+    loaded = Trees.load(files[0])
+    for name in _ARRAYS:
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(built, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(again, name), getattr(built, name), err_msg=name)
+    assert loaded.paths == built.paths and loaded.key == built.key
+
+
+def test_fit_workspace_returns_with_its_trees_cached(tmp_path):
+    """fit_workspace writes its trees cache on a thread and waits for it before returning."""
+    from reflab.hardware.sim.lab import user_workspace
+    from reflab.inverse.fit.workspace_fit import fit_workspace
+    from reflab.inverse.forward import trees as trees_module
+
+    ws = Workspace(tmp_path / "ws")
+    user_workspace(ws.root, 40, 30, textured=False)
+    fit_workspace(ws.root, texture_rounds=0)
+    assert not trees_module._SAVING  # nothing still being written
+    files = list(ws.cache.glob("trees-*.npz"))
+    assert len(files) == 1
+    assert trees_for_workspace(ws, *_load(ws), depth=3).stats["cache"] == "reused"

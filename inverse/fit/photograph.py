@@ -121,7 +121,7 @@ def read_photograph(photo, saturation: float | None = None):
 
 
 def stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
-                      task=None, log=None, further: int = 0, above: int = 0):
+                      task=None, log=None, further: int = 0, above: int = 0, background: bool = False):
     """The workspace's photographs (the reference and ``inputs/``, or the reference alone with
     ``single``) checked, their trees built or read from the cache, stacked into one system
     (:mod:`reflab.inverse.forward.photographs`).
@@ -141,6 +141,10 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
     saturated : (H·W,) bool
         Saturated pixels (each photograph's own clipping level), padding included.
     photos : list of Photograph
+
+    ``background``: the trees cache files are written on a thread
+    (:func:`reflab.inverse.forward.trees.trees_for_workspace`); the caller waits for them
+    (:func:`reflab.inverse.forward.trees.wait_for_saves`) before it returns.
     """
     from reflab.inverse.forward.photographs import load_photographs, stack_trees
     from reflab.inverse.forward.trees import trees_for_workspace
@@ -162,7 +166,7 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
     if not any(s is not None for s in shares):
         for photo in photos:
             trees.append(trees_for_workspace(workspace, scene, photo.camera, photo.lights, depth=depth, log=log,
-                                             task=task))
+                                             task=task, background=background))
         stack = stack_trees(trees, [p.lights for p in photos], [p.name for p in photos])
         image = stack.image(images)
         if len(photos) == 1:
@@ -170,7 +174,7 @@ def stack_photographs(workspace, scene, depth: int, *, saturation: float | None 
         seen = np.zeros(stack.width * stack.height, dtype=bool)
         seen[stack.trees.pixel] = True
         return stack, image, _unusable(stack, masks, seen), photos
-    return _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log)
+    return _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log, background)
 
 
 def _unusable(stack, masks, seen) -> np.ndarray:
@@ -187,7 +191,7 @@ def _unusable(stack, masks, seen) -> np.ndarray:
     return saturated | (further & ~seen)
 
 
-def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log):
+def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, log, background=False):
     """:func:`stack_photographs` with further photographs' trees built for ``shares`` (pixels, q)
     of their pixels, and for the colour lobes' uniform sample of each textured surface
     (:func:`reflab.inverse.fit.sampling.even_of`, drawn on every pixel's first seen surface as
@@ -197,7 +201,7 @@ def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, 
     from reflab.inverse.forward.trees import first_surfaces, trees_for_workspace, trees_of_pixels
 
     whole = [None if share is not None else trees_for_workspace(workspace, scene, photo.camera, photo.lights,
-                                                                depth=depth, log=log, task=task)
+                                                                depth=depth, log=log, task=task, background=background)
              for photo, share in zip(photos, shares)]
     width = max(int(p.camera.width) for p in photos)
     row0 = np.cumsum([0] + [int(p.camera.height) for p in photos])

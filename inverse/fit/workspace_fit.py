@@ -64,6 +64,19 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         What was written to fit.json.
     result : FitSolution
     """
+    from reflab.inverse.forward.trees import wait_for_saves
+
+    try:
+        return _fit_workspace(workspace, method, depth, saturation=saturation, maxiter=maxiter,
+                              max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress, task=task,
+                              single=single, pixels=pixels, sample_above=sample_above)
+    finally:
+        wait_for_saves()  # the trees cache, written while the fit ran, is there when the stage returns
+
+
+def _fit_workspace(workspace, method, depth, *, saturation, maxiter, max_seconds, texture_rounds, progress, task,
+                   single, pixels, sample_above) -> tuple[dict, FitSolution]:
+    """:func:`fit_workspace`'s work, its trees cache still being written when it returns."""
     from reflab.core.workspace import Workspace, write_json
     from reflab.inverse.fit.photograph import stack_photographs
     from reflab.reconstruction.scene import Scene
@@ -92,9 +105,10 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         stack, image, saturated = big.stack, big.image, big.saturated
     else:
         # A fit that samples several photographs builds the further ones' trees for a share of their pixels.
+        # The trees cache is written while the fit runs (waited for below, before returning).
         stack, image, saturated, photos = stack_photographs(ws, scene, depth, saturation=saturation, single=single,
                                                             task=task, further=int(sampling.FURTHER * int(pixels)),
-                                                            above=max(int(sample_above), int(pixels)))
+                                                            above=max(int(sample_above), int(pixels)), background=True)
         t1 = time.perf_counter()
         done = fit_scene(stack.trees, scene, stack.intensities, image, ~saturated.reshape(-1), method,
                          maxiter=maxiter, max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress,
