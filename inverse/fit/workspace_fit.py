@@ -152,7 +152,10 @@ def _fit_workspace(workspace, method, depth, *, saturation, maxiter, max_seconds
     annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:
         for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
-            item["determined_by"] = shares
+            # an undetermined value was determined by no photograph, whatever share of what little
+            # information it has one of them holds (floor_mirror's mirror ks had listed Tm35)
+            open_ = set(item.get("undetermined") or ())
+            item["determined_by"] = {k: v for k, v in shares.items() if k not in open_ and k.split("[")[0] not in open_}
     ensure(task).check()  # a cancel during the last iteration: nothing written
     write_json(ws.fit, report)
     return report, result
