@@ -293,3 +293,33 @@ def test_products_are_scipys(monkeypatch):
     sq2, P2 = solve_mod._products_scipy(E, [w1], [v1])
     np.testing.assert_allclose(P2[:, 0], E.T @ w1, rtol=1e-13)
     np.testing.assert_allclose(sq2, np.asarray(E.multiply(E).sum(axis=0)).ravel(), rtol=1e-13)
+
+
+def test_smoothness_matrix_is_scipys():
+    # solve._symmetric reads the pairs' CSR off a table of each column's four neighbours, which
+    # holds once the columns are renumbered by component (solve's order); the reference is
+    # scipy's coo -> csr of the same pairs in both directions.
+    import scipy.sparse as sp
+
+    import reflab.inverse.texture.solve as solve_mod
+
+    lab, trees, materials, image = _setup(96, 72)
+    options = SolverOptions()
+    maps = build_maps(lab.scene, trees, options)
+    system = build_system(trees, materials, lab.lights.intensities, image, maps, options)
+    pi, pj, vertical = solve_mod._smoothness_pairs(system, maps, kind=True)
+    label, sizes = solve_mod._band_components(system, maps, pi, pj)
+    assert len(sizes) >= 3 and len(pi) > 1000 and vertical.any() and not vertical.all()
+    rng = np.random.default_rng(7)
+    label = rng.permutation(len(sizes))[label]  # components in another order: any order must do
+    rank = np.empty(len(label), dtype=np.int64)
+    rank[np.argsort(label, kind="stable")] = np.arange(len(label))
+    assert np.any(rank != np.arange(len(rank)))
+    pi, pj = rank[pi], rank[pj]
+    off = -rng.random(len(pi))
+    n = len(label)
+    got = solve_mod._symmetric(pi, pj, vertical, off, n)
+    want = sp.coo_matrix((np.concatenate([off, off]), (np.concatenate([pi, pj]), np.concatenate([pj, pi]))),
+                         shape=(n, n)).tocsr()
+    for name in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
