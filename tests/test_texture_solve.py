@@ -223,3 +223,103 @@ def test_the_system_and_texture_do_not_depend_on_the_chunk(monkeypatch, clip):
     for s in r1.kd:
         assert np.array_equal(r1.mask[s], r2.mask[s]) and np.array_equal(r1.flags[s], r2.flags[s])
         np.testing.assert_allclose(r2.kd[s], r1.kd[s], rtol=0, atol=1e-4)  # column sums add in another order
+
+
+def _same_partition(a, b):
+    """Whether two labellings split the items into the same groups."""
+    pairs = np.unique(np.stack([a, b], axis=1), axis=0)
+    return len(pairs) == len(np.unique(a)) == len(np.unique(b))
+
+
+@pytest.mark.parametrize("drop", [0.0, 0.3])
+def test_components_are_those_of_the_pixel_texel_graph(monkeypatch, drop):
+    # The solver's components come from a texel graph that leaves out what the smoothness pairs
+    # join already (solve._components); the reference is scipy on the bipartite pixel-texel graph
+    # plus the pairs, built here. ``drop``: a random 30 % of the columns removed, so that many rows
+    # keep only diagonal texels whose shared neighbours are gone, and the pairs split the texels
+    # into many components.
+    import dataclasses
+
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    import reflab.inverse.texture.solve as solve_mod
+
+    lab, trees, materials, image = _setup(96, 72)
+    options = SolverOptions()
+    maps = build_maps(lab.scene, trees, options)
+    monkeypatch.setattr(solve_mod, "CHUNK", 7)  # edge chunks that split rows
+    system = build_system(trees, materials, lab.lights.intensities, image, maps, options)
+    keep = np.flatnonzero(np.random.default_rng(3).random(system.E.shape[1]) >= drop)
+    E = system.E[:, keep]
+    E = E[np.diff(E.indptr) > 0]
+    system = dataclasses.replace(system, E=E, col_global=system.col_global[keep], shared=False)
+    pi, pj = solve_mod._smoothness_pairs(system, maps)
+    R, C = E.shape
+    for with_pairs in (True, False):
+        a, b = (pi, pj) if with_pairs else (pi[:0], pj[:0])
+        graph = sp.bmat([[None, E], [E.T, sp.csr_matrix((np.ones(len(a)), (a, b)), shape=(C, C))]])
+        n, reference = connected_components(graph, directed=False)
+        grid = solve_mod._grid(system.col_global, system, maps) if with_pairs else None
+        label, sizes = solve_mod._components(E, a, b, grid)
+        assert _same_partition(label, reference[R:])
+        assert len(sizes) == len(np.unique(reference[R:])) and sizes.sum() == C
+        if drop and with_pairs:
+            assert len(sizes) > 10  # not a trivial partition
+
+
+def test_products_are_scipys(monkeypatch):
+    # solve._products: column norms and several products with E in one blocked pass, against
+    # scipy's one-vector products on the same matrix (blocks of one row: CHUNK 7).
+    import reflab.inverse.texture.solve as solve_mod
+
+    lab, trees, materials, image = _setup(96, 72)
+    options = SolverOptions()
+    maps = build_maps(lab.scene, trees, options)
+    system = build_system(trees, materials, lab.lights.intensities, image, maps, options)
+    E = system.E
+    rng = np.random.default_rng(5)
+    w1, w2, v1, v2 = rng.random(E.shape[0]), rng.random(E.shape[0]), rng.random(E.shape[1]), rng.random(E.shape[1])
+    monkeypatch.setattr(solve_mod, "CHUNK", 7)
+    for matrix in (E, E.astype(np.float32)):
+        sq, P = solve_mod._products(matrix, [w1, w2], [v1, v2])
+        M = matrix.astype(np.float64)
+        assert P.shape == (E.shape[1], 4)
+        np.testing.assert_array_equal(P[:, 0], M.T @ w1)
+        np.testing.assert_array_equal(P[:, 1], M.T @ w2)
+        np.testing.assert_array_equal(P[:, 2], M.T @ (M @ v1))
+        np.testing.assert_array_equal(P[:, 3], M.T @ (M @ v2))
+        np.testing.assert_allclose(sq, np.asarray(M.multiply(M).sum(axis=0)).ravel(), rtol=1e-13, atol=0)
+    sq2, P2 = solve_mod._products_scipy(E, [w1], [v1])
+    np.testing.assert_allclose(P2[:, 0], E.T @ w1, rtol=1e-13)
+    np.testing.assert_allclose(sq2, np.asarray(E.multiply(E).sum(axis=0)).ravel(), rtol=1e-13)
+
+
+def test_smoothness_matrix_is_scipys():
+    # solve._symmetric reads the pairs' CSR off a table of each column's four neighbours, which
+    # holds once the columns are renumbered by component (solve's order); the reference is
+    # scipy's coo -> csr of the same pairs in both directions.
+    import scipy.sparse as sp
+
+    import reflab.inverse.texture.solve as solve_mod
+
+    lab, trees, materials, image = _setup(96, 72)
+    options = SolverOptions()
+    maps = build_maps(lab.scene, trees, options)
+    system = build_system(trees, materials, lab.lights.intensities, image, maps, options)
+    pi, pj, vertical = solve_mod._smoothness_pairs(system, maps, kind=True)
+    label, sizes = solve_mod._band_components(system, maps, pi, pj)
+    assert len(sizes) >= 3 and len(pi) > 1000 and vertical.any() and not vertical.all()
+    rng = np.random.default_rng(7)
+    label = rng.permutation(len(sizes))[label]  # components in another order: any order must do
+    rank = np.empty(len(label), dtype=np.int64)
+    rank[np.argsort(label, kind="stable")] = np.arange(len(label))
+    assert np.any(rank != np.arange(len(rank)))
+    pi, pj = rank[pi], rank[pj]
+    off = -rng.random(len(pi))
+    n = len(label)
+    got = solve_mod._symmetric(pi, pj, vertical, off, n)
+    want = sp.coo_matrix((np.concatenate([off, off]), (np.concatenate([pi, pj]), np.concatenate([pj, pi]))),
+                         shape=(n, n)).tocsr()
+    for name in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name

@@ -463,7 +463,7 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
     data, indices = np.empty(nnz), np.empty(nnz, dtype=np.int32)
     indptr = np.zeros(n_rows + 1, dtype=np.int32 if nnz < 2**31 else np.int64)
     row_ids, col_global = np.empty(n_rows, dtype=np.int64), np.empty(n_cols, dtype=np.int64)
-    coverage, weight = np.empty(3 * total), np.empty(3 * total)
+    coverage, weight = np.zeros(3 * total), np.zeros(3 * total)
     row = 0
     for b, e in enumerate(bands):
         r, k, col = len(e.row_pixels), len(e.col_texels), band_col[b]
@@ -485,14 +485,15 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
                 np.multiply(coef[b][node], wv, out=data[o:o + m])
                 np.add(cols, band_col[b], out=indices[o:o + m], casting="unsafe")
             at += m
+    # Per texel, each band's coverage (Σ weights) and observation weight (Σ weight × seen), summed
+    # into place (entries with zero weight add nothing, so the sums over every corner are those
+    # over the entries); a band sharing the previous one's structure copies its coverage.
     for b, e in enumerate(bands):
-        # Entries with zero weight add nothing: the sums over every corner are those over the entries.
-        # A shared band's coverage is band 0's (same entries, same weights): a copy, not a count
-        # over every texel again (a floor 20 times larger than its view: 1.4 M texels).
-        coverage[b * total:(b + 1) * total] = (coverage[:total] if shared and b else
-                                               np.bincount(idx.ravel(), weights=e.wk.ravel(), minlength=total))
-        weight[b * total:(b + 1) * total] = np.bincount(idx.ravel(), weights=(e.wk * seen[b][:, None]).ravel(),
-                                                        minlength=total)
+        if b and bands[b] is bands[b - 1]:
+            coverage[b * total:(b + 1) * total] = coverage[(b - 1) * total:b * total]
+        else:
+            _corner_sums(idx, e.wk, None, coverage[b * total:(b + 1) * total])
+        _corner_sums(idx, e.wk, seen[b], weight[b * total:(b + 1) * total])
     n_bad = sum(e.n_bad for e in bands)
     del bands
     saturated_touch = np.zeros(3 * total, dtype=bool)
@@ -511,6 +512,27 @@ def assemble_system(nodes: TexturedNodes, Q, image, materials, maps, options: So
     prior = kd_table[surf_of[col_global % max(total, 1)], col_global // max(total, 1)]
     return _System(E, rhs, row_pixel, row_band, col_global, prior, coverage, weight,
                    saturated_touch, offsets, total, int(np.count_nonzero(saturated)), n_bad, shared)
+
+
+def _corner_sums(idx, wk, factor, out: np.ndarray) -> np.ndarray:
+    """Add to ``out`` (one value per texel) the corner weights ``wk`` (n, 4) at ``idx`` (n, 4),
+    each times its node's ``factor`` ((n,), None for 1); returns ``out``.
+
+    The sums are ``np.bincount(idx.ravel(), weights=(wk * factor[:, None]).ravel())``'s bit for
+    bit (scipy's kernel adds the same products in the same order) without the weight temporary
+    (32 bytes a node: 0.47 GB at 12 MP) nor bincount's output copy; three such bincounts per band
+    took 1.1 s of the 3 MP assembly.
+    """
+    from scipy.sparse import _sparsetools
+
+    n, step = len(idx), max(1, CHUNK // 4)
+    ind = np.ascontiguousarray(idx).ravel()
+    for a in range(0, n, step):
+        b = min(a + step, n)
+        x = np.ones(b - a) if factor is None else np.ascontiguousarray(factor[a:b], dtype=np.float64)
+        ptr = np.arange(0, 4 * (b - a) + 1, 4, dtype=ind.dtype)
+        _sparsetools.csc_matvec(len(out), b - a, ptr, ind[4 * a:4 * b], np.ascontiguousarray(wk[a:b]).ravel(), x, out)
+    return out
 
 
 class _BandStructure(NamedTuple):
@@ -535,7 +557,7 @@ def _band_structure(ok, idx, w, pix, total: int, min_coverage: float) -> _BandSt
     entries are written from ``wk`` chunk by chunk (:func:`assemble_system`).
     """
     wk = np.where(ok[:, None] & (w > 0), w, 0.0)
-    supported = np.bincount(idx.ravel(), weights=wk.ravel(), minlength=total) >= min_coverage
+    supported = _corner_sums(idx, wk, None, np.zeros(total)) >= min_coverage
     wk *= supported[idx]
     kept = wk.sum(axis=1)
     bad_pixel = np.zeros(int(pix.max()) + 1 if len(pix) else 0, dtype=bool)
@@ -557,20 +579,25 @@ def _band_structure(ok, idx, w, pix, total: int, min_coverage: float) -> _BandSt
     return _BandStructure(wk, np.flatnonzero(used), col_rank, keys[starts], row_nnz, int(np.count_nonzero(bad_pixel)))
 
 
-def _smoothness_pairs(system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
-    """Column pairs (i, j) of horizontally or vertically adjacent texels, both in the system.
+def _smoothness_pairs(system: _System, maps, kind: bool = False) -> tuple[np.ndarray, ...]:
+    """Column pairs (i, j), i < j, of horizontally or vertically adjacent texels, both in the
+    system; with ``kind``, also (n,) bool: the pair is vertical.
 
     Bands that share their structure: band 0's pairs, repeated for bands 1 and 2 (each column's
     pairs in the same order as when found over every band, so sums over them are the same)."""
     if system.shared and len(system.col_global) % 3 == 0:
         c1 = len(system.col_global) // 3
-        pi, pj = _adjacent(system.col_global[:c1], system, maps)
-        return np.concatenate([pi + b * c1 for b in range(3)]), np.concatenate([pj + b * c1 for b in range(3)])
-    return _adjacent(system.col_global, system, maps)
+        pi, pj, vertical = _adjacent(system.col_global[:c1], system, maps)
+        out = (np.concatenate([pi + b * c1 for b in range(3)]), np.concatenate([pj + b * c1 for b in range(3)]),
+               np.tile(vertical, 3))
+    else:
+        out = _adjacent(system.col_global, system, maps)
+    return out if kind else out[:2]
 
 
-def _adjacent(col_global, system: _System, maps) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (i, j) among the columns ``col_global`` (band * n_texels + texel) of adjacent texels."""
+def _adjacent(col_global, system: _System, maps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs (i, j) among the columns ``col_global`` (band * n_texels + texel) of adjacent texels,
+    and whether each is vertical."""
     total = system.n_texels
     texel = col_global % total
     starts = np.array(sorted(system.offsets.values()))
@@ -588,7 +615,9 @@ def _adjacent(col_global, system: _System, maps) -> tuple[np.ndarray, np.ndarray
         j = position[col_global[cand] + (step if np.isscalar(step) else step[cand])]
         pairs_i.append(cand[j >= 0])
         pairs_j.append(j[j >= 0])
-    return np.concatenate(pairs_i), np.concatenate(pairs_j)
+    vertical = np.zeros(len(pairs_i[0]) + len(pairs_i[1]), dtype=bool)
+    vertical[len(pairs_i[0]):] = True
+    return np.concatenate(pairs_i), np.concatenate(pairs_j), vertical
 
 
 # ---------------------------------------------------------------------- the solver
@@ -669,27 +698,97 @@ def _cg(apply, b, x, free, sizes, stop, max_iter, check=None, trace=None) -> tup
     return x, it
 
 
-def _components(E, pi, pj) -> tuple[np.ndarray, np.ndarray]:
+#: A column's place in :class:`_Grid`'s code: (key · 2²¹ + row) · 2²¹ + column.
+_SHIFT = 1 << 21
+
+
+class _Grid(NamedTuple):
+    """Where each column of E lies in its atlas (:func:`_grid`), to tell which columns the
+    smoothness pairs already join."""
+
+    code: np.ndarray  # (C,) int64 (key · 2²¹ + y) · 2²¹ + x, key = band · surfaces + the atlas' slot
+    glob: np.ndarray  # (C,) band * n_texels + texel (``col_global``)
+    width: np.ndarray  # (C,) the atlas' width
+    present: np.ndarray  # (bands · n_texels,) bool: which (band, texel) is a column
+
+
+def _grid(col_global, system: _System, maps) -> _Grid | None:
+    """:class:`_Grid` of the columns ``col_global`` (band * n_texels + texel, increasing); None
+    for an atlas too large for its code."""
+    total = system.n_texels
+    texel, band = col_global % total, col_global // total
+    starts = np.array(sorted(system.offsets.values()))
+    by_start = {system.offsets[s]: m for s, m in maps.items()}
+    if any(m.width >= _SHIFT or m.height >= _SHIFT for m in maps.values()):
+        return None
+    which = np.searchsorted(starts, texel, side="right") - 1
+    width = np.array([by_start[o].width for o in starts])[which]
+    local = texel - starts[which]
+    # every (band, texel) of the bands present: a diagonal's shared neighbours are texels of its band
+    present = np.zeros((int(col_global[-1]) // total + 1) * total if len(col_global) else 0, dtype=bool)
+    present[col_global] = True
+    code = ((band * len(starts) + which) * _SHIFT + local // width) * _SHIFT + local % width
+    return _Grid(code, col_global, width, present)
+
+
+def _joined(u, v, grid: _Grid) -> np.ndarray:
+    """(n,) bool: column pairs (u, v) that the smoothness pairs join already: 4-neighbours in one
+    atlas and band, or diagonal neighbours one of whose two shared neighbours is a column.
+
+    Codes of one atlas and band differ by ``dy · 2²¹ + dx``; of two, by at least 2²¹ · (2²¹ − 1).
+    """
+    d = grid.code[v] - grid.code[u]
+    ad = np.abs(d)
+    joined = (ad == 1) | (ad == _SHIFT)
+    diag = np.flatnonzero((ad == _SHIFT - 1) | (ad == _SHIFT + 1))
+    dd, ud = d[diag], u[diag]
+    dy = np.where(dd > 0, 1, -1)
+    dx = dd - dy * _SHIFT
+    g = grid.glob[ud]
+    joined[diag] = grid.present[g + dx] | grid.present[g + dy * grid.width[ud]]
+    return joined
+
+
+def _components(E, pi, pj, grid: _Grid | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Connected components of the unknowns: texels sharing a row of E or a smoothness pair.
 
-    Returns (label per unknown, numbered 0…, unknowns per component). The graph is bipartite
-    (rows, then columns), built straight from E's CSR arrays.
+    Returns (label per unknown, numbered 0… in the order of each component's first column,
+    unknowns per component). The graph is over the columns: the pairs ``(pi, pj)`` and each row's
+    entries chained (an entry to the row's next). With ``grid`` (every pair of adjacent columns
+    being among the pairs), the chained entries the pairs join already are left out: a pixel's
+    bilinear texels are neighbours, so what is left is a few hundred thousand edges between
+    surfaces or paths, and the graph is a third of E's size. (Until 2026-11-27 the graph was the
+    bipartite pixel–texel one built from E's arrays: scipy's float64 copy and transpose of it took
+    1.6–2.2 s of the 3 MP texture's CPU time, against 0.x s now.)
     """
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
-    R, C = E.shape
-    pairs = csr_matrix((np.ones(len(pi), np.int8), (pi, pj)), shape=(C, C))
-    indptr = np.concatenate([E.indptr, E.indptr[-1] + pairs.indptr[1:]])
-    indices = np.concatenate([E.indices + R, pairs.indices + R])
-    graph = csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(R + C, R + C))
+    C, nnz, ptr, ind = E.shape[1], E.nnz, E.indptr, E.indices
+    first = np.zeros(nnz + 1, dtype=bool)
+    first[ptr] = True  # an entry that begins its row (and the end)
+    us, vs = [pi], [pj]
+    for a in range(1, nnz, CHUNK):
+        k = np.arange(a, min(a + CHUNK, nnz))
+        k = k[~first[k]]
+        u, v = ind[k - 1], ind[k]
+        if grid is not None:
+            keep = ~_joined(u, v, grid)
+            u, v = u[keep], v[keep]
+        us.append(u)
+        vs.append(v)
+    del first
+    i, j = np.concatenate(us), np.concatenate(vs)
+    del us, vs
+    graph = csr_matrix((np.ones(len(i), np.int8), (i, j)), shape=(C, C))
+    del i, j
     _, label = connected_components(graph, directed=False)
-    _, label = _compress(label[R:], R + C)  # every component has a column
     return label, np.bincount(label)
 
 
-def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_components`, computed on one band when the three bands have the same structure.
+def _band_components(system: _System, maps, pi, pj) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_components`, computed on one band when the three bands have the same structure
+    (``pi``, ``pj`` every adjacent pair of columns, or none).
 
     Rows and columns are band-major; when nothing saturates and every node is lit in every
     band, bands 1 and 2 repeat band 0's pixels, texels and sparsity, and so its components.
@@ -697,7 +796,7 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
     E = system.E
     (R, C), nnz = E.shape, E.nnz
     if R % 3 or C % 3 or nnz % 3:
-        return _components(E, pi, pj)
+        return _components(E, pi, pj, _grid(system.col_global, system, maps) if len(pi) else None)
     R1, C1, n1 = R // 3, C // 3, nnz // 3
     texel = system.col_global % max(system.n_texels, 1)
     alike = system.shared or (np.array_equal(system.row_band, np.repeat(np.arange(3), R1))
@@ -707,12 +806,12 @@ def _band_components(system: _System, pi, pj) -> tuple[np.ndarray, np.ndarray]:
              and np.all(np.diff(E.indptr).reshape(3, R1) == np.diff(E.indptr[: R1 + 1]))
              and np.all(E.indices.reshape(3, n1) - (np.arange(3) * C1)[:, None] == E.indices[:n1]))
     if not alike:
-        return _components(E, pi, pj)
+        return _components(E, pi, pj, _grid(system.col_global, system, maps) if len(pi) else None)
     from scipy.sparse import csr_matrix
 
     first = pi < C1  # smoothness pairs never cross bands
     label, sizes = _components(csr_matrix((E.data[:n1], E.indices[:n1], E.indptr[: R1 + 1]), shape=(R1, C1)),
-                               pi[first], pj[first])
+                               pi[first], pj[first], _grid(system.col_global[:C1], system, maps) if len(pi) else None)
     return np.concatenate([label, label + len(sizes), label + 2 * len(sizes)]), np.tile(sizes, 3)
 
 
@@ -731,12 +830,57 @@ def _renumber_columns(system: _System, order: np.ndarray) -> np.ndarray:
     return rank
 
 
-def _column_sums(E, values) -> np.ndarray:
-    """Per column of E, the sum of ``values(data)`` over its entries, a chunk of entries at a time."""
-    out = np.zeros(E.shape[1])
+def _products(E, cols=(), through=()) -> tuple[np.ndarray, np.ndarray]:
+    """Column sums of E's squared values and several products with E, all in float64 in one pass
+    over E's entries, a block of rows at a time.
+
+    Returns ``(sq, P)``: ``sq`` (C,) the squared column norms, ``P`` (C, m + k) whose columns are
+    ``Eᵀ w`` for each (R,) vector ``w`` in ``cols``, then ``Eᵀ(E v)`` for each (C,) vector ``v`` in
+    ``through``. A block's ``E v`` is taken and used at once (``Eᵀ(E v)`` sums the blocks'
+    ``E_blockᵀ(E_block v)``), so no (R,) product is kept, and E's indices and values are read once
+    for every vector instead of twice per vector (the solve's set-up took eight passes over E:
+    a 12 MP system's 147 M entries, 1.8 GB each time). The sums run over E's rows in order, as
+    ``E.T @ w`` sums them.
+    """
+    from scipy.sparse import _sparsetools
+
+    (R, C), ptr, ind = E.shape, E.indptr, E.indices
+    m, k = len(cols), len(through)
+    if ptr.dtype != ind.dtype:  # scipy's kernels take one index type
+        return _products_scipy(E, cols, through)
+    step = max(1, CHUNK // max(1, E.nnz // max(R, 1)))  # rows of about CHUNK entries
+    V = np.ascontiguousarray(np.stack(through, axis=1), dtype=np.float64) if k else None
+    out, sq = np.zeros((C, m + k)), np.zeros(C)
+    W = np.empty((min(step, R), m + k))
+    Y = np.empty((min(step, R), k))
+    for a in range(0, R, step):
+        b = min(a + step, R)
+        n, lo, hi = b - a, int(ptr[a]), int(ptr[b])
+        p, j = ptr[a:b + 1] - ptr[a], ind[lo:hi]
+        data = E.data[lo:hi].astype(np.float64, copy=False)
+        w = W[:n]
+        for i, v in enumerate(cols):
+            w[:, i] = v[a:b]
+        if k:
+            y = Y[:n]
+            y.fill(0.0)
+            _sparsetools.csr_matvecs(n, C, k, p, j, data, V.ravel(), y.ravel())
+            w[:, m:] = y
+        _sparsetools.csc_matvecs(C, n, m + k, p, j, data, w.ravel(), out.ravel())
+        _sparsetools.csc_matvec(C, n, p, j, np.square(data), np.ones(n), sq)
+    return sq, out
+
+
+def _products_scipy(E, cols, through) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_products` by scipy's operators, one vector at a time (E with mixed index types)."""
+    ET = E.T
+    out = [ET @ np.asarray(v, dtype=np.float64) for v in cols] + [ET @ (E @ np.asarray(v, dtype=np.float64))
+                                                                    for v in through]
+    sq = np.zeros(E.shape[1])
     for a in range(0, E.nnz, CHUNK):
-        out += np.bincount(E.indices[a:a + CHUNK], weights=values(E.data[a:a + CHUNK]), minlength=E.shape[1])
-    return out
+        sq += np.bincount(E.indices[a:a + CHUNK], weights=np.square(E.data[a:a + CHUNK], dtype=np.float64),
+                          minlength=E.shape[1])
+    return sq, np.stack(out, axis=1) if out else np.zeros((E.shape[1], 0))
 
 
 class _Normal:
@@ -777,6 +921,35 @@ class _Normal:
         return out
 
 
+def _symmetric(pi, pj, vertical, off, n: int):
+    """The (n, n) CSR matrix with ``off`` at (pi, pj) and at (pj, pi), as scipy's
+    ``coo_matrix(...).tocsr()`` makes it (indices sorted in each row), from a table of each
+    column's four neighbours.
+
+    ``(pi, pj)`` are :func:`_smoothness_pairs` (``vertical`` their kind) after the columns were
+    renumbered by component: the renumbering keeps the order within a component, and a pair never
+    leaves one, so a column's neighbours still come in the order up, left, right, down. Filling
+    that (n, 4) table and reading it row by row is the CSR without a sort (coo → csr took 0.9 s of
+    the 3 MP set-up: its index checks and conversions, then a counting sort over 4·pairs indices).
+    """
+    from scipy.sparse import csr_matrix
+
+    idx = np.int32 if max(n, 2 * len(pi)) < 2**31 else np.int64
+    table, values = np.full((n, 4), -1, dtype=idx), np.zeros((n, 4), dtype=off.dtype)
+    h = ~vertical
+    # slots: 0 up, 1 left, 2 right, 3 down (each column's neighbours in increasing column order)
+    for slot_i, slot_j, sel in ((2, 1, h), (3, 0, vertical)):
+        i, j = pi[sel], pj[sel]
+        table[i, slot_i], table[j, slot_j] = j, i
+        values[i, slot_i] = values[j, slot_j] = off[sel]
+    has = table >= 0
+    ptr = np.zeros(n + 1, dtype=idx)
+    np.cumsum(np.count_nonzero(has, axis=1), out=ptr[1:])
+    out = csr_matrix((values[has], table[has], ptr), shape=(n, n))
+    out.has_sorted_indices = True
+    return out
+
+
 def _to_float32(E) -> None:
     """E's values as float32, in place of the float64 ones (the iteration's matrix: one copy of E)."""
     data = np.empty(E.nnz, dtype=np.float32)
@@ -785,7 +958,8 @@ def _to_float32(E) -> None:
     E.data = data
 
 
-def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -> tuple[np.ndarray, dict]:
+def solve(system: _System, maps, options: SolverOptions, task=None, also=None,
+          on_guess=None) -> tuple[np.ndarray, dict]:
     """Solve the bounded, regularised system by connected components; returns (z per column, stats).
 
     Minimises ``|E z − rhs|² + Σ w_j (z_j − kd_j)² + Σ μ_ab (z_a − z_b)²`` within the bounds by
@@ -797,21 +971,23 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     (:class:`reflab.core.task.Task`, optional) is checked every CG iteration. ``also`` (per row,
     optional): a second right-hand side solved with the same setup, warm from the first's
     solution and to a 10x looser gradient (a perturbed photograph:
-    :func:`recover_texture`'s ``perturb``); its solution is ``stats["also"]``.
+    :func:`recover_texture`'s ``perturb``); its solution is ``stats["also"]``. ``on_guess`` ((R,)
+    bool, optional; E's entries positive): ``stats["guessed"]`` is then :func:`_guessed_columns`,
+    in the renumbered order, taken in the set-up's pass over E.
 
     The system is changed in place, so that a photograph's E exists once: its columns are
     renumbered component by component (``col_global`` and ``prior`` follow; ``z`` is in that
     order) and its values become float32.
     """
-    import scipy.sparse as sp
 
     E, ncol = system.E, system.E.shape[1]
     t0 = time.perf_counter()
     if ncol == 0:
         return np.zeros(0), {"components": 0, "largest_component": 0, "iterations": 0, "active_set_rounds": 0,
                              "solve_s": 0.0}
-    pi, pj = _smoothness_pairs(system, maps) if options.smoothness > 0 else (np.zeros(0, np.int64),) * 2
-    label, sizes = _band_components(system, pi, pj)
+    pi, pj, vertical = (_smoothness_pairs(system, maps, kind=True) if options.smoothness > 0 else
+                        (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, dtype=bool)))
+    label, sizes = _band_components(system, maps, pi, pj)
     # Unknowns renumbered component by component: per-component sums become contiguous segments.
     order = np.argsort(label, kind="stable")
     del label
@@ -820,7 +996,18 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     del rank
     prior = system.prior
 
-    colnorm2 = _column_sums(E, lambda d: np.square(d, dtype=np.float64))
+    # Every float64 product the set-up needs, in one pass over E before it turns float32: the
+    # column norms, the right-hand sides, the warm start's denominator Eᵀ(E 1) and the stopping
+    # level's Eᵀ(E kd); with ``on_guess``, the guessed texels' two sums (E's entries are positive).
+    cols = [system.rhs] + ([np.asarray(also, dtype=np.float64)] if also is not None else [])
+    if on_guess is not None:
+        cols += [np.asarray(on_guess, dtype=np.float64), np.ones(E.shape[0])]
+    colnorm2, P = _products(E, cols, [np.ones(ncol), prior])
+    del cols
+    Etrhs, ETE1, ETEkd = P[:, 0], P[:, -2], P[:, -1]
+    guessed = None
+    if on_guess is not None:
+        guessed = P[:, -4] > 0.5 * P[:, -3]
     # The prior's weight is relative to the data a texel would have if seen directly: a texel seen
     # only through an attenuation a gets (1/a)² times more, so faint reflections and sheets lean
     # on the homogeneous kd instead of making the system ill-conditioned.
@@ -839,29 +1026,20 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
     # L's diagonal as a vector, its off-diagonal (the smoothness pairs, both ways) as a matrix.
     diag = lap_diag * scale * scale
     off = -mu * scale[pi] * scale[pj]
-    pairs = sp.coo_matrix((np.concatenate([off, off]), (np.concatenate([pi, pj]), np.concatenate([pj, pi]))),
-                          shape=(ncol, ncol)).tocsr()
-    del off, mu, lap_diag, pi, pj
-    ET = E.T  # CSC view of the same arrays
-    f64 = E.dtype == np.float64
-    # What needs E in float64 is done before it turns float32: the right-hand sides, the warm
-    # start's ratio and the stopping level (gradient at the homogeneous kd).
-    Etrhs = scale * (ET @ system.rhs) if f64 else scale * (ET @ system.rhs.astype(np.float32))
+    pairs = _symmetric(pi, pj, vertical, off, ncol)
+    del off, mu, lap_diag, pi, pj, vertical
+    Etrhs = scale * Etrhs
     b = Etrhs + scale * prior_w * prior
-    b_also = None
-    if also is not None:
-        also = np.asarray(also, dtype=np.float64)
-        b_also = scale * (ET @ (also if f64 else also.astype(np.float32))) + scale * prior_w * prior
+    b_also = scale * P[:, 1] + scale * prior_w * prior if also is not None else None
     del prior_w
     # Warm start: each texel's data-weighted ratio of observed to predicted radiance.
-    row_sum = E @ np.ones(ncol, dtype=E.dtype)
-    den = scale * (ET @ row_sum)
-    del row_sum
+    den = scale * ETE1
     ratio = np.divide(Etrhs, den, out=prior.copy(), where=den > 0)
     del den, Etrhs
     lo, hi = options.bounds
     # Stop when the gradient is ``tol`` times its value at the homogeneous kd, per component.
-    r0 = b - (scale * (ET @ (E @ prior.astype(E.dtype))) + diag * (prior / scale) + pairs @ (prior / scale))
+    r0 = b - (scale * ETEkd + diag * (prior / scale) + pairs @ (prior / scale))
+    del P, ETE1, ETEkd
     stop = np.add.reduceat(r0 * r0, np.concatenate([[0], np.cumsum(sizes)[:-1]])) * options.tol**2
     g0 = max(float(r0 @ r0), 1e-300)
     del r0
@@ -900,6 +1078,8 @@ def solve(system: _System, maps, options: SolverOptions, task=None, also=None) -
              "trace_quantity": "relative residual"}
     if b_also is not None:
         stats["also"] = bounded(b_also, solved / scale, stop * 100.0, [])[0]
+    if guessed is not None:
+        stats["guessed"] = guessed
     return solved, stats
 
 
@@ -989,13 +1169,17 @@ def solve_texture(system: _System, maps, materials, options: SolverOptions, *, g
         also = system.rhs + np.asarray(perturb, dtype=np.float64).reshape(-1, 3)[system.row_pixel, system.row_band]
     total = system.n_texels
     # Guessed texels need E's float64 values and columns as assembled: before the solve changes them.
-    guessed3 = np.zeros(3 * total, dtype=bool)
+    guessed3, on_guess = np.zeros(3 * total, dtype=bool), None
     if guess is not None and system.E.shape[1]:
         on_guess = np.asarray(guess, dtype=bool).reshape(-1)[system.row_pixel]
-        guessed3[system.col_global] = _guessed_columns(system.E, on_guess)
-    guessed3 = guessed3.reshape(3, total)
-    z, stats = solve(system, maps, options, task, also=also)
+        if system.E.dtype != np.float64 or system.E.data.min() < 0:  # else the solve's set-up sums them
+            guessed3[system.col_global] = _guessed_columns(system.E, on_guess)
+            on_guess = None
+    z, stats = solve(system, maps, options, task, also=also, on_guess=on_guess)
     z_perturbed = stats.pop("also", None)
+    if on_guess is not None:
+        guessed3[system.col_global] = stats.pop("guessed")  # col_global in the solve's order
+    guessed3 = guessed3.reshape(3, total)
 
     resid = system.E @ z.astype(system.E.dtype) - system.rhs if len(z) else np.zeros(0)
     count = np.bincount(system.row_band, minlength=3)
