@@ -173,11 +173,9 @@ def texture_confounded(pb: Problem, p: Params, materials, textured) -> np.ndarra
 
 
 def _free_texture_nodes(tr, textured) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) bool twice: nodes of textured surfaces; those whose texel no other view pins (free).
+    """(N,) bool twice: nodes of textured surfaces; those whose texel no direct view pins (free).
 
-    A texel's first direct view is free; a direct view of the same point in a later photograph
-    (:func:`texel_groups`) is pinned by it, as a view in a mirror or through glass is by a direct
-    one. Geometry only: kept on the trees for the same ``textured`` flags (a fit asks twice).
+    Geometry only: kept on the trees for the same ``textured`` flags (a fit asks twice).
     """
     flags = tuple(bool(t) for t in textured)
 
@@ -185,9 +183,6 @@ def _free_texture_nodes(tr, textured) -> tuple[np.ndarray, np.ndarray]:
         surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
         tex = np.asarray(flags, dtype=bool)[surf]
         free_tex = tex & (level == 1)
-        if _photograph_of(tr).max(initial=0) > 0:
-            group = texel_groups(tr, flags)
-            free_tex &= (group < 0) | (group == np.arange(len(group)))  # a later photograph's view: pinned
         for s in np.flatnonzero(flags):
             direct, seen_else = (surf == s) & (level == 1), (surf == s) & (level > 1)
             if not seen_else.any():
@@ -331,22 +326,28 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
     light = radiance[tex]
     matters = np.zeros(len(tr.surface), dtype=bool)
     matters[tex] = (light >= ABSORB_SHARE * np.maximum(total[row[tex]], 1e-300)).any(axis=1)
-    n_textured = np.bincount(row[matters], minlength=fac.n_rows)
+    # Another surface's texture a direct view pins (the ground reflected in the box) is known
+    # there, as texture_absorbed takes it: only free texture and the grouped texels count.
+    counted = matters & (_free_texture_nodes(tr, textured)[1] | (group >= 0))
+    n_textured = np.bincount(row[counted], minlength=fac.n_rows)
     ok = matters[nodes] & (n_textured[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
-    ids, g = np.unique(group[nodes], return_inverse=True)
-    count = np.bincount(g, minlength=len(ids))
-    spoilt = np.bincount(g, weights=~ok, minlength=len(ids)) > 0
-    keep = (count >= 2) & ~spoilt
     import os, sys
     if os.environ.get("REFLAB_TEXEL_DEBUG"):
+        ids, g = np.unique(group[nodes], return_inverse=True)
+        count = np.bincount(g, minlength=len(ids))
         old_n = np.bincount(row[tex], minlength=fac.n_rows)
         old_ok = (old_n[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
         old_sp = np.bincount(g, weights=~old_ok, minlength=len(ids)) > 0
+        ok_count = np.bincount(g, weights=ok, minlength=len(ids))
         for sf in np.unique(tr.surface[ids]):
             m = tr.surface[ids] == sf
-            print(f"[texel] surface {sf}: texels {m.sum()}, seen twice {(m & (count >= 2)).sum()}, kept {(m & keep).sum()}"
-                  f" (old rule {(m & (count >= 2) & ~old_sp).sum()})", file=sys.stderr)
-    nodes = nodes[keep[g]]
+            print(f"[texel] surface {sf}: texels {m.sum()}, seen twice {(m & (count >= 2)).sum()}, kept {(m & (ok_count >= 2)).sum()}"
+                  f" (old rule {(m & (count >= 2) & ~old_sp).sum()}); not ok {(~ok).sum()} of {len(ok)}: not matters "
+                  f"{(~matters[nodes]).sum()}, several {(n_textured[row[nodes]] > 1).sum()}", file=sys.stderr)
+    # A node that fails drops its pixel, not its texel: the others still share one albedo.
+    nodes = nodes[ok]
+    ids, g = np.unique(group[nodes], return_inverse=True)
+    nodes = nodes[np.bincount(g, minlength=len(ids))[g] >= 2]
     if len(nodes) == 0:
         return None
     _, g = np.unique(group[nodes], return_inverse=True)
