@@ -43,3 +43,42 @@ def test_a_full_colour_lobe_is_determined_by_highlights_that_move_over_its_textu
     assert np.all(np.abs(ks - true["ks"]) <= 3 * sd), (ks, sd)
     assert abs(can["material"]["ns"] - float(true["ns"])) <= 3 * can["sigma"]["ns"], (can["material"]["ns"], can["sigma"]["ns"])
     assert np.all(sd < 0.25 * true["ks"])  # determined, not merely within a wide σ
+
+
+def test_a_point_seen_in_two_photographs_is_one_texel():
+    """texel_groups on stacked trees: the reference and lamp 0 alone from the same camera see the
+    same points, so each direct node of the second photograph joins the first's node of the same
+    pixel; a photograph turned by 35° sees the cylinder's points elsewhere in the image, and a
+    node joins a texel only within half the first photograph's spacing of its start."""
+    from scipy.spatial import cKDTree
+
+    from reflab.hardware.sim.lab import named_views
+    from reflab.hardware.sim.scenes import build
+    from reflab.inverse.fit.determined import texel_groups
+    from reflab.inverse.forward.photographs import stack_trees
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build("print_can", W, H)
+    views = [(lab.camera, lab.lights)] + [(c, li) for _, c, li in named_views(lab.camera, lab.lights, "L0,T35")]
+    trees = [build_trees(lab.scene, c, li, depth=3) for c, li in views]
+    tr = stack_trees(trees, [li for _, li in views]).trees
+    can = [s.name for s in lab.scene].index("can")
+    textured = [s.name == "can" for s in lab.scene]
+    group = texel_groups(tr, textured)
+    photo = np.searchsorted(tr.stats["block_row0"], tr.pixel // tr.width, side="right") - 1
+    direct = (tr.surface == can) & (tr.level == 1)
+    assert np.all(group[~(tr.surface == can)] == -1)
+    first, same, turned = (np.flatnonzero(direct & (photo == k)) for k in range(3))
+    assert np.all(group[first] == first)  # the reference's nodes start the texels
+    # The same camera: the node of the same pixel (same point), the reference's.
+    at = {p: n for n, p in zip(first, tr.pixel[first])}
+    want = np.array([at.get(p - tr.width * tr.stats["block_row0"][1], -2) for p in tr.pixel[same]])
+    assert len(same) == len(first) and np.array_equal(group[same], want)
+    # Turned: a node joins the nearest start within half the spacing, else starts a texel.
+    pts = np.asarray(tr.point)
+    spacing = np.median(cKDTree(pts[first]).query(pts[first], k=2)[0][:, 1])
+    dist, near = cKDTree(pts[first]).query(pts[turned])
+    joined = dist < 0.5 * spacing
+    assert 0 < joined.sum() < len(turned)
+    np.testing.assert_array_equal(group[turned[joined]], first[near[joined]])
+    np.testing.assert_array_equal(group[turned[~joined]], turned[~joined])
