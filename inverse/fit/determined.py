@@ -300,10 +300,12 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
     A texel seen once is explained by its own albedo whatever the lobe; seen twice, at two angles,
     its two pixels must share one albedo, and the lobe's (or the reflection's) part shows in how
     they differ (:func:`reflab.inverse.fit.uncertainty.profiled`). Only pixels ``anywhere`` marks
-    (the others already inform the σ fully) and with one textured node that matters (at least
-    :data:`ABSORB_SHARE` of the pixel's light in some band: the box's faint reflection of a
-    textured ground does not); a texel with any other pixel counts not at all. A weighed sample's
-    rows (``pb.scale``) weigh the texel's direction alike.
+    (the others already inform the σ fully) where the texel's node carries at least
+    :data:`ABSORB_SHARE` of the pixel's light in some band and no other free or grouped textured
+    node does (a texture a direct view pins, the ground the box reflects, is known there as in
+    :func:`texture_absorbed`); a pixel that fails is left out, and its texel counts while two of
+    its pixels remain (a lamp alone leaves half the lab's box dark in the pixels that see it).
+    A weighed sample's rows (``pb.scale``) weigh the texel's direction alike.
     """
     if textured is None or not any(textured):
         return None
@@ -331,19 +333,6 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
     counted = matters & (_free_texture_nodes(tr, textured)[1] | (group >= 0))
     n_textured = np.bincount(row[counted], minlength=fac.n_rows)
     ok = matters[nodes] & (n_textured[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
-    import os, sys
-    if os.environ.get("REFLAB_TEXEL_DEBUG"):
-        ids, g = np.unique(group[nodes], return_inverse=True)
-        count = np.bincount(g, minlength=len(ids))
-        old_n = np.bincount(row[tex], minlength=fac.n_rows)
-        old_ok = (old_n[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
-        old_sp = np.bincount(g, weights=~old_ok, minlength=len(ids)) > 0
-        ok_count = np.bincount(g, weights=ok, minlength=len(ids))
-        for sf in np.unique(tr.surface[ids]):
-            m = tr.surface[ids] == sf
-            print(f"[texel] surface {sf}: texels {m.sum()}, seen twice {(m & (count >= 2)).sum()}, kept {(m & (ok_count >= 2)).sum()}"
-                  f" (old rule {(m & (count >= 2) & ~old_sp).sum()}); not ok {(~ok).sum()} of {len(ok)}: not matters "
-                  f"{(~matters[nodes]).sum()}, several {(n_textured[row[nodes]] > 1).sum()}", file=sys.stderr)
     # A node that fails drops its pixel, not its texel: the others still share one albedo.
     nodes = nodes[ok]
     ids, g = np.unique(group[nodes], return_inverse=True)
