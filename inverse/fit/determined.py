@@ -244,12 +244,24 @@ def texture_absorbed(fac: Factorization, p: Params, materials, textured) -> tupl
     return out, anywhere
 
 
-def texel_groups(tr, textured) -> np.ndarray:
-    """(N,) each textured node's texel, as the index of a directly seen node; −1 elsewhere.
+def _photograph_of(tr) -> np.ndarray:
+    """(N,) the photograph of each node of stacked trees (``stats["block_row0"]``); 0 for one."""
+    stats = getattr(tr, "stats", None)
+    row0 = stats.get("block_row0") if isinstance(stats, dict) else None
+    if row0 is None or len(row0) < 2:
+        return np.zeros(len(tr.pixel), dtype=np.int64)
+    return np.searchsorted(np.asarray(row0), np.asarray(tr.pixel, dtype=np.int64) // int(tr.width), side="right") - 1
 
-    A directly seen node is its own texel (one pixel's worth of albedo, free); a node of the same
-    surface seen in a mirror or through glass joins the direct node nearest it when within half
-    the direct nodes' median spacing (the same point of the surface), and stays out otherwise.
+
+def texel_groups(tr, textured) -> np.ndarray:
+    """(N,) each textured node's texel, as the index of the directly seen node that starts it; −1
+    elsewhere.
+
+    A texel is one point of the surface, whatever photograph sees it. The first photograph's
+    directly seen nodes each start one (one pixel's worth of albedo); a later photograph's direct
+    node joins the nearest texel start within half the first photograph's median spacing of them
+    (the same point), else starts a texel of its own. A node of the same surface seen in a mirror
+    or through glass joins the nearest start within that distance, and stays out otherwise.
     Geometry only: kept on the trees for the same ``textured`` flags.
     """
     from scipy.spatial import cKDTree
@@ -258,19 +270,33 @@ def texel_groups(tr, textured) -> np.ndarray:
 
     def groups():
         surf, level, pts = np.asarray(tr.surface), np.asarray(tr.level), np.asarray(tr.point, dtype=np.float64)
+        photo = _photograph_of(tr)
+        several = photo.max(initial=0) > 0
         out = np.full(len(surf), -1, dtype=np.int64)
         for s in np.flatnonzero(flags):
             direct = np.flatnonzero((surf == s) & (level == 1))
             other = np.flatnonzero((surf == s) & (level > 1))
-            if len(direct) < 2 or len(other) == 0:
+            if len(direct) < 2 or (len(other) == 0 and not several):
                 continue
-            index = cKDTree(pts[direct])
-            sample = direct[:: max(1, len(direct) // 4096)]  # the median spacing, from a few thousand
-            spacing = float(np.median(index.query(pts[sample], k=2)[0][:, 1]))
-            dist, near = index.query(pts[other])
-            same = dist < 0.5 * spacing
-            out[direct] = direct
-            out[other[same]] = direct[near[same]]
+            order = np.unique(photo[direct])
+            first = direct[photo[direct] == order[0]]
+            if len(first) < 2:
+                first = direct
+            sample = first[:: max(1, len(first) // 4096)]  # the median spacing, from a few thousand
+            spacing = float(np.median(cKDTree(pts[first]).query(pts[sample], k=2)[0][:, 1]))
+            starts = direct[photo[direct] == order[0]]
+            out[starts] = starts
+            for k in order[1:]:  # a loop over photographs, not nodes
+                mine = direct[photo[direct] == k]
+                dist, near = cKDTree(pts[starts]).query(pts[mine])
+                same = dist < 0.5 * spacing
+                out[mine[same]] = starts[near[same]]
+                out[mine[~same]] = mine[~same]
+                starts = np.concatenate([starts, mine[~same]])
+            if len(other):
+                dist, near = cKDTree(pts[starts]).query(pts[other])
+                same = dist < 0.5 * spacing
+                out[other[same]] = starts[near[same]]
         return out
 
     return derived(tr, "texel groups", (flags, tr.point), groups)
@@ -278,20 +304,24 @@ def texel_groups(tr, textured) -> np.ndarray:
 
 def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed=None):
     """``extra`` for :func:`reflab.inverse.fit.uncertainty.sigmas`: what pixels of textured surfaces seen
-    twice (directly and in a mirror or through glass) say with each texel's albedo free; None
-    when no texel is seen twice. ``lobed`` (default ``textured``): the surfaces whose texels are
-    grouped, those whose own lobe is judged (a lambert ground seen in a mirror has none: its
-    300 000 nodes at 640x480 are not grouped).
+    twice (in two photographs, or directly and in a mirror or through glass) say with each
+    texel's albedo free; None when no texel is seen twice. ``lobed`` (default ``textured``): the
+    surfaces whose texels are grouped, those whose own lobe is judged (a lambert ground seen in a
+    mirror has none: its 300 000 nodes at 640x480 are not grouped).
 
     A texel seen once is explained by its own albedo whatever the lobe; seen twice, at two angles,
     its two pixels must share one albedo, and the lobe's (or the reflection's) part shows in how
-    they differ (:func:`reflab.inverse.fit.uncertainty.profiled`). Only pixels ``anywhere`` marks (the others
-    already inform the σ fully) and with one textured node each; a texel with any other pixel
-    counts not at all.
+    they differ (:func:`reflab.inverse.fit.uncertainty.profiled`). Only pixels ``anywhere`` marks
+    (the others already inform the σ fully) where the texel's node carries at least
+    :data:`ABSORB_SHARE` of the pixel's light in some band and no other free or grouped textured
+    node does (a texture a direct view pins, the ground the box reflects, is known there as in
+    :func:`texture_absorbed`); a pixel that fails is left out, and its texel counts while two of
+    its pixels remain (a lamp alone leaves half the lab's box dark in the pixels that see it).
+    A weighed sample's rows (``pb.scale``) weigh the texel's direction alike.
     """
     if textured is None or not any(textured):
         return None
-    from reflab.inverse.forward.rendering import linear_basis, path_products
+    from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
 
     fac = pb.fac
     tr = fac.trees
@@ -299,23 +329,33 @@ def seen_twice(pb: Problem, p: Params, materials, textured, anywhere, res, lobed
     row_of = np.full(fac.width * fac.height, -1, dtype=np.int64)
     row_of[fac.rows] = np.arange(fac.n_rows)
     row = row_of[tr.pixel]
-    tex = np.asarray(textured, dtype=bool)[tr.surface] & (row >= 0)
     nodes = np.flatnonzero((group >= 0) & (row >= 0))
     if len(nodes) == 0:
         return None
-    n_textured = np.bincount(row[tex], minlength=fac.n_rows)
-    ok = (n_textured[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
+    mats = materials_of(fac, p, materials)
+    used = row >= 0
+    radiance = np.abs(node_radiance(tr, mats, fac._args[0]))  # (N, 3)
+    total = np.stack([np.bincount(row[used], weights=radiance[used, c], minlength=fac.n_rows) for c in range(BANDS)], axis=1)
+    tex = np.flatnonzero(np.asarray(textured, dtype=bool)[tr.surface] & used)
+    light = radiance[tex]
+    matters = np.zeros(len(tr.surface), dtype=bool)
+    matters[tex] = (light >= ABSORB_SHARE * np.maximum(total[row[tex]], 1e-300)).any(axis=1)
+    # Another surface's texture a direct view pins (the ground reflected in the box) is known
+    # there, as texture_absorbed takes it: only free texture and the grouped texels count.
+    counted = matters & (_free_texture_nodes(tr, textured)[1] | (group >= 0))
+    n_textured = np.bincount(row[counted], minlength=fac.n_rows)
+    ok = matters[nodes] & (n_textured[row[nodes]] == 1) & np.asarray(anywhere, dtype=bool)[row[nodes]]
+    # A node that fails drops its pixel, not its texel: the others still share one albedo.
+    nodes = nodes[ok]
     ids, g = np.unique(group[nodes], return_inverse=True)
-    count = np.bincount(g, minlength=len(ids))
-    spoilt = np.bincount(g, weights=~ok, minlength=len(ids)) > 0
-    keep = (count >= 2) & ~spoilt
-    nodes = nodes[keep[g]]
+    nodes = nodes[np.bincount(g, minlength=len(ids))[g] >= 2]
     if len(nodes) == 0:
         return None
     _, g = np.unique(group[nodes], return_inverse=True)
     rows = row[nodes]
-    mats = materials_of(fac, p, materials)
     e = (linear_basis(tr, mats, fac._args[0])[nodes, :, 0] * path_products(tr, mats)[nodes]).T  # (3, m)
+    if getattr(pb, "scale", None) is not None:
+        e = e * pb.scale[rows]  # the rows of J are weighed by √w: the texel's direction too
 
     def extra(free, weights, tiles):
         tile, n_tiles = tiles

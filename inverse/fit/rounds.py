@@ -271,6 +271,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # The texture (its mean kd included) counts as known from the pixels that see it directly.
         sf_t = Free(sf.x & ~tex_kd[:, None], sf.s, sf.theta)  # a texture's mean kd keeps its every-pixel σ
         sig_t = sigmas(pb, p, sf_t, res, keep=~absorbed)
+        every = sig.copy()  # every pixel's, for a lobe no texture-free pixel shows (below)
         sig = Params(np.where(tex_kd[:, None], sig.x, np.fmax(sig.x, sig_t.x)), np.fmax(sig.s, sig_t.s),
                      np.fmax(sig.theta, sig_t.theta))
         # A textured surface's own lobe (ks, θ): the view that pins its texture (the direct one)
@@ -286,8 +287,11 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
             lobed[[s for (s, _), o in zip(lay.theta_names, own_theta & sf.theta) if o]] = True
             sig_o = sigmas(pb, p, sf_t, res, keep=~anywhere,
                            extra=seen_twice(pb, p, materials, textured, anywhere, res, lobed))
-            sig.x[own] = np.fmax(sig.x[own], sig_o.x[own])
-            sig.theta[own_theta] = np.fmax(sig.theta[own_theta], sig_o.theta[own_theta])
+            # A lobe seen only where its texture shows (sig_t inf: each photograph's view of a
+            # texel free) is what its texels seen in several photographs say (issue #30).
+            sig.x[own] = np.fmax(np.where(np.isfinite(sig_t.x[own]), sig.x[own], every.x[own]), sig_o.x[own])
+            sig.theta[own_theta] = np.fmax(np.where(np.isfinite(sig_t.theta[own_theta]), sig.theta[own_theta],
+                                                    every.theta[own_theta]), sig_o.theta[own_theta])
     for s, lobe in (colour or {}).items():
         # A lobe the texture's colours determine: every pixel of the surface informs it, with each
         # pixel's albedo free along the texture's colour set (its own σ, robust).
