@@ -518,34 +518,40 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         if level == depth:
             stats["pruned"]["depth"] += int(np.count_nonzero(want_r) + np.count_nonzero(want_t))
             break
-        cos_i = _dot(-d, ns)
-        n1 = np.where(entering, 1.0, ior[surf])
-        n2 = np.where(entering, ior[surf], 1.0)
-        F = np.where(s_t, fresnel(cos_i, n1, n2), 1.0)
+        # Fresnel, reflection and refraction of the nodes that branch only (most nodes are a
+        # matte ground's, with neither branch): each node's values are the same floats either way.
+        tr = np.flatnonzero(s_t)
+        F = np.ones(m)
+        F[tr] = fresnel(_dot(-d[tr], ns[tr]), np.where(entering[tr], 1.0, ior[surf[tr]]),
+                        np.where(entering[tr], ior[surf[tr]], 1.0))
         w_r = node["fresnel"] * F
         w_t = node["fresnel"] * (1.0 - F)
-        refl = reflect(d, ns)
-        bad = _dot(refl, ngf) <= 0  # a shading normal must not send the ray into its own surface
-        refl[bad] = reflect(d[bad], ngf[bad])
-        trans, tir = refract(d, ns, n1 / n2)
-        bad = ~tir & (_dot(trans, ngf) >= 0)
+        ir = np.flatnonzero(want_r)
+        refl = reflect(d[ir], ns[ir])
+        bad = _dot(refl, ngf[ir]) <= 0  # a shading normal must not send the ray into its own surface
+        refl[bad] = reflect(d[ir][bad], ngf[ir][bad])
+        it = np.flatnonzero(want_t)
+        d_t, ngf_t = d[it], ngf[it]
+        eta = np.where(entering[it], 1.0, ior[surf[it]]) / np.where(entering[it], ior[surf[it]], 1.0)
+        trans, tir = refract(d_t, ns[it], eta)
+        bad = ~tir & (_dot(trans, ngf_t) >= 0)
         if np.any(bad):
-            trans[bad], tir_bad = refract(d[bad], ngf[bad], (n1 / n2)[bad])
+            trans[bad], tir_bad = refract(d_t[bad], ngf_t[bad], eta[bad])
             tir[bad] |= tir_bad
-        tir &= s_t
-        stats["total_internal_reflections"] += int(np.count_nonzero(tir & want_t))
-        take_r = want_r & (w_r >= prune_tol)
-        take_t = want_t & ~tir & (w_t >= prune_tol)
-        stats["pruned"]["weight"] += int(np.count_nonzero(want_r & ~take_r) + np.count_nonzero(want_t & ~tir & ~take_t))
+        stats["total_internal_reflections"] += int(np.count_nonzero(tir))
+        take_r = w_r[ir] >= prune_tol
+        take_t = ~tir & (w_t[it] >= prune_tol)
+        stats["pruned"]["weight"] += int(np.count_nonzero(~take_r) + np.count_nonzero(~tir & ~take_t))
         stats["rays"]["reflection"] += int(np.count_nonzero(take_r))
         stats["rays"]["refraction"] += int(np.count_nonzero(take_t))
 
-        ir, it = np.nonzero(take_r)[0], np.nonzero(take_t)[0]
+        refl, trans = refl[take_r], trans[take_t]
+        ir, it = ir[take_r], it[take_t]
         idx = np.concatenate([ir, it])
         kind = np.concatenate([np.full(len(ir), REFLECTION), np.full(len(it), TRANSMISSION)])
         origin = point[idx]
         offset = eps * np.concatenate([ngf[ir], -ngf[it]])
-        direction = np.concatenate([refl[ir], trans[it]])
+        direction = np.concatenate([refl, trans])
         ray_fresnel = np.concatenate([w_r[ir], w_t[it]])
         ray_pixel = node["pixel"][idx]
         ray_parent = n_before + idx
