@@ -367,6 +367,28 @@ class _Caster:
         occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
         return occ.numpy().astype(bool)
 
+    def lit(self, origin: np.ndarray, cand: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        """(M, K) bool: whether the segment from each ``origin`` (M, 3) to each light (K, 3)
+        where ``cand`` (M, K) is free (:meth:`occluded`'s rays, one light's at a time: no (M·K, 3)
+        gathers of the origins' offsets and the lights' positions); False where not ``cand``."""
+        vis = np.zeros(cand.shape, dtype=bool)
+        sel = [np.flatnonzero(cand[:, k]) for k in range(cand.shape[1])]
+        rays = np.empty((sum(len(i) for i in sel), 6), dtype=np.float32)
+        start = 0
+        for k, i in enumerate(sel):
+            o = origin[i]
+            rays[start:start + len(i), :3] = o
+            np.subtract(lights[k], o, out=rays[start:start + len(i), 3:], casting="same_kind")
+            start += len(i)
+        if len(rays) == 0:
+            return vis
+        occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        start = 0
+        for k, i in enumerate(sel):
+            vis[i, k] = occ[start:start + len(i)] == 0
+            start += len(i)
+        return vis
+
     def shading_normal(self, tri, uv, surface):
         """Interpolated vertex normals where the mesh has them, else the geometric normal."""
         n = self.face_normals[tri].copy()
@@ -499,14 +521,15 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         # Direct lighting: light on the viewer's side of the shading normal and segment unoccluded.
         to_light = light_pos[None] - point[:, None]
         dist2 = np.sum(to_light**2, axis=2)
-        ldir = normalize(to_light)
+        # normalize()'s floats from the squares just summed (np.linalg.norm sums the same squares)
+        norm = np.sqrt(dist2)[:, :, None]
+        ldir = np.divide(to_light, norm, out=np.zeros_like(to_light), where=norm > 0)
+        del to_light, norm
         close = dist2 <= eps**2
         stats["lights_too_close"] += int(np.count_nonzero(close))
         cand = (_dot(ldir, ns[:, None]) > 0) & ~close
-        vis = np.zeros((m, n_lights), dtype=bool)
-        ni, ki = np.nonzero(cand)
-        stats["rays"]["shadow"] += len(ni)
-        vis[ni, ki] = ~caster.occluded(point[ni] + eps * ngf[ni], light_pos[ki])
+        stats["rays"]["shadow"] += int(np.count_nonzero(cand))
+        vis = caster.lit(point + eps * ngf, cand, light_pos)
         node.update(light_dir=ldir, light_dist2=np.maximum(dist2, eps**2), visible=vis)
         levels.append(node)
 
