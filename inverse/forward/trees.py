@@ -357,16 +357,6 @@ class _Caster:
         point = origin + t[:, None] * direction
         return hit, surface, tri, uv, point
 
-    def occluded(self, origin: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Whether the segment origin → target (both (M, 3)) hits any surface."""
-        if len(origin) == 0:
-            return np.zeros(0, dtype=bool)
-        rays = np.empty((len(origin), 6), dtype=np.float32)
-        rays[:, :3] = origin
-        np.subtract(target, origin, out=rays[:, 3:], casting="same_kind")
-        occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
-        return occ.numpy().astype(bool)
-
     def lit(self, origin: np.ndarray, cand: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """(M, K) bool: whether the segment from each ``origin`` (M, 3) to each light (K, 3)
         where ``cand`` (M, K) is free (:meth:`occluded`'s rays, one light's at a time: no (M·K, 3)
