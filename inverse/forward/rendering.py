@@ -136,7 +136,7 @@ def _surface_weight(trees, idx) -> np.ndarray:
     """:func:`node_geometry`'s weights ``fresnel · visible / dist²`` (n, K) of one surface's nodes
     ``idx``, kept on the trees (a fit's texture rounds evaluate the same surfaces again at other θ).
     The weights alone: the basis reads nothing else of the geometry (the repeated normals and
-    views were two (n·K, 3) copies a surface, a tenth of a texture tile's reduction)."""
+    views were two (n·K, 3) copies a surface, kept on the trees with the weights)."""
     # idx: one of _groups' arrays, kept with the trees.
     return derived(trees, f"surface weight {id(idx)}", (trees.fresnel, trees.visible, trees.light_dist2, idx),
                    lambda: trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])

@@ -358,9 +358,10 @@ class _Caster:
         return hit, surface, tri, uv, point
 
     def lit(self, origin: np.ndarray, cand: np.ndarray, lights: np.ndarray) -> np.ndarray:
-        """(M, K) bool: whether the segment from each ``origin`` (M, 3) to each light (K, 3)
-        where ``cand`` (M, K) is free (:meth:`occluded`'s rays, one light's at a time: no (M·K, 3)
-        gathers of the origins' offsets and the lights' positions); False where not ``cand``."""
+        """(M, K) bool: whether the segment from each ``origin`` (M, 3) to each light (K, 3) hits
+        no surface, tested where ``cand`` (M, K) only (False elsewhere). The rays are filled one
+        light at a time (float32, the direction rounded from the float64 difference): no (M·K, 3)
+        gathers of origins and light positions."""
         vis = np.zeros(cand.shape, dtype=bool)
         sel = [np.flatnonzero(cand[:, k]) for k in range(cand.shape[1])]
         rays = np.empty((sum(len(i) for i in sel), 6), dtype=np.float32)
