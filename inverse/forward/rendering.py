@@ -43,8 +43,21 @@ def _groups(trees) -> list:
     return derived(trees, "surface groups", (trees.surface,), groups)
 
 
-def node_parameters(trees, materials) -> tuple[np.ndarray, np.ndarray]:
-    """Linear parameters ``x`` (N, 3, L) and nonlinear ``θ`` (N, P) of each node's surface.
+def surface_parameters(materials, surfaces) -> tuple[np.ndarray, np.ndarray]:
+    """Linear parameters ``x`` (S, 3, L) and nonlinear ``θ`` (S, P) of the surfaces ``surfaces``
+    (indices; the other rows 0), zero-padded as :func:`node_parameters` gives them per node."""
+    x = np.zeros((len(materials), 3, MAX_LINEAR))
+    theta = np.zeros((len(materials), MAX_NONLINEAR))
+    for s in surfaces:
+        model = get_model(materials[s].brdf)
+        x[s, :, : model.n_linear] = model.x_of(materials[s])
+        theta[s, : model.n_nonlinear] = model.theta_of(materials[s])
+    return x, theta
+
+
+def node_parameters(trees, materials, nodes=None) -> tuple[np.ndarray, np.ndarray]:
+    """Linear parameters ``x`` (N, 3, L) and nonlinear ``θ`` (N, P) of each node's surface (of the
+    nodes ``nodes`` only, if given).
 
     ``L`` and ``P`` are the largest counts over all models; unused slots are 0. ``kd`` is slot 0
     of every model.
@@ -52,13 +65,8 @@ def node_parameters(trees, materials) -> tuple[np.ndarray, np.ndarray]:
     _check(trees, materials)
     # One row per surface, gathered by node: the same numbers as filling each surface's nodes (a
     # fit asks a dozen times for 300 000 nodes' worth).
-    x = np.zeros((len(materials), 3, MAX_LINEAR))
-    theta = np.zeros((len(materials), MAX_NONLINEAR))
-    for s, _ in _groups(trees):
-        model = get_model(materials[s].brdf)
-        x[s, :, : model.n_linear] = model.x_of(materials[s])
-        theta[s, : model.n_nonlinear] = model.theta_of(materials[s])
-    surface = np.asarray(trees.surface, dtype=np.int64)
+    x, theta = surface_parameters(materials, [s for s, _ in _groups(trees)])
+    surface = np.asarray(trees.surface if nodes is None else trees.surface[nodes], dtype=np.int64)
     return x[surface], theta[surface]
 
 
@@ -124,16 +132,19 @@ def _weighted(weight, intensities, g) -> np.ndarray:
     return np.matmul(wc.transpose(0, 2, 1), g.reshape(n, k, -1))
 
 
-def _surface_geometry(trees, idx) -> tuple:
-    """:func:`node_geometry` of one surface's nodes ``idx``, kept on the trees (a fit's texture
-    rounds evaluate the same surfaces again at other θ)."""
+def _surface_weight(trees, idx) -> np.ndarray:
+    """:func:`node_geometry`'s weights ``fresnel · visible / dist²`` (n, K) of one surface's nodes
+    ``idx``, kept on the trees (a fit's texture rounds evaluate the same surfaces again at other θ).
+    The weights alone: the basis reads nothing else of the geometry (the repeated normals and
+    views were two (n·K, 3) copies a surface, kept on the trees with the weights)."""
     # idx: one of _groups' arrays, kept with the trees.
-    return derived(trees, f"surface geometry {id(idx)}", (trees.normal, idx), lambda: node_geometry(trees, idx))
+    return derived(trees, f"surface weight {id(idx)}", (trees.fresnel, trees.visible, trees.light_dist2, idx),
+                   lambda: trees.fresnel[idx, None] * trees.visible[idx] / trees.light_dist2[idx])
 
 
 def _surface_terms(trees, model, idx) -> tuple:
     """``model``'s θ-independent terms (:meth:`Model.geometry`) on one surface's (node, light)
-    pairs, kept on the trees like :func:`_surface_geometry`: each new θ of the surface then costs
+    pairs, kept on the trees like :func:`_surface_weight`: each new θ of the surface then costs
     its lobe alone (640x480 zoo scene: the half vectors' norms and logarithms were a sixth of a
     fit's texture rounds, recomputed at every θ). The same numbers as the model on (n, l, v)."""
     def terms():
@@ -157,7 +168,7 @@ def _surface_basis(trees, material, idx, intensities, basis, dbasis=None) -> Non
     """Fill ``basis`` (and ``dbasis``) at the nodes ``idx`` of one surface, whose material is ``material``."""
     k = trees.n_lights
     model = get_model(material.brdf)
-    weight = _surface_geometry(trees, idx)[3]
+    weight = _surface_weight(trees, idx)
     g, dg = model.g_and_dg_on(model.theta_of(material), _surface_terms(trees, model, idx), grad=dbasis is not None)
     L, P = model.n_linear, model.n_nonlinear
     if dbasis is not None:
@@ -207,14 +218,15 @@ def release_basis() -> None:
     _LAST_BASIS.value = None
 
 
-def path_products(trees, materials) -> np.ndarray:
-    """(N, 3) product of ``r_s`` (reflection) and ``t_s`` (transmission) along each node's path."""
+def path_products(trees, materials, *, per_path: bool = False) -> np.ndarray:
+    """(N, 3) product of ``r_s`` (reflection) and ``t_s`` (transmission) along each node's path;
+    with ``per_path``, (len(trees.paths), 3) per distinct path (index it with ``trees.path``)."""
     _check(trees, materials)
-    per_path = np.ones((len(trees.paths), 3))
+    products = np.ones((len(trees.paths), 3))
     for i, path in enumerate(trees.paths):  # one iteration per distinct path, not per node
         for s, kind in path:
-            per_path[i] *= np.asarray(materials[s]["t" if kind else "r"], dtype=np.float64)
-    return per_path[trees.path]
+            products[i] *= np.asarray(materials[s]["t" if kind else "r"], dtype=np.float64)
+    return products if per_path else products[trees.path]
 
 
 def accumulate(trees, values: np.ndarray) -> np.ndarray:
@@ -311,9 +323,6 @@ def undetermined_radiance(trees, materials, intensities, undetermined, *, kd_nod
     path passes a reflection or transmission coefficient that is undetermined.
     """
     intensities = _check(trees, materials, intensities)
-    x, _ = node_parameters(trees, materials)
-    if kd_nodes is not None:
-        x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)
     n_s = len(materials)
     slots = np.zeros((n_s, 3, MAX_LINEAR), dtype=bool)
     coeff = np.zeros((n_s, 2, 3), dtype=bool)  # r, t bands
@@ -341,12 +350,17 @@ def undetermined_radiance(trees, materials, intensities, undetermined, *, kd_nod
     out = np.zeros((len(trees), 3))
     if len(sel) == 0:
         return out
-    terms = linear_basis(trees, materials, intensities)[sel] * x[sel] * path_products(trees, materials)[sel][:, :, None]
+    x, _ = node_parameters(trees, materials, sel)  # the selected nodes' only
+    if kd_nodes is not None:
+        x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)[sel]
+    path_sel = trees.path[sel]
+    terms = linear_basis(trees, materials, intensities)[sel] * x * path_products(trees, materials, per_path=True)[path_sel][:, :, None]
+    del x
     slot = slots[trees.surface[sel]]
     if guessed is not None:
         slot[:, :, 0] |= guessed[sel][:, None]
     part = np.where(slot, terms, 0.0).sum(axis=2)
-    out[sel] = np.where(per_path[trees.path[sel]], terms.sum(axis=2), part)
+    out[sel] = np.where(per_path[path_sel], terms.sum(axis=2), part)
     return out
 
 
@@ -368,10 +382,14 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
     every band has no branch in the trees, so its σ shows nowhere.
     """
     intensities = _check(trees, materials, intensities)
-    x, _ = node_parameters(trees, materials)
-    if kd_nodes is not None:
-        x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)
     n_s = len(materials)
+
+    def params(nodes):
+        """x (n, 3, L) of the nodes ``nodes`` only (most of a tiled texture's have no σ)."""
+        x = node_parameters(trees, materials, nodes)[0]
+        if kd_nodes is not None:
+            x[:, :, 0] = np.asarray(kd_nodes, dtype=np.float64)[nodes]
+        return x
 
     def sig(s, name, n):
         """σ of ``name`` on surface s as n floats: 0 where fit.json gives none (null or missing)."""
@@ -391,7 +409,7 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
             st[s, j] = sig(s, name, 1)[0]
         sf[s] = [sig(s, "r", 3), sig(s, "t", 3)]
     basis = linear_basis(trees, materials, intensities)  # the kept one: a tiled texture's tile asked for it already
-    prod = path_products(trees, materials)
+    prod = path_products(trees, materials, per_path=True)  # per distinct path
     # d(path product)/d(factor) · σ, one distinct path at a time: the product of the path's other
     # factors times the factor's exponent and power below (a zero factor's branch still counts).
     dpath = np.zeros((len(trees.paths), 3))
@@ -411,7 +429,7 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
     if len(sel) == 0:
         return var
     surf_sel, path_sel = trees.surface[sel], trees.path[sel]
-    var[sel] = ((basis[sel] * sx[surf_sel]) ** 2).sum(axis=2) * prod[sel] ** 2
+    var[sel] = ((basis[sel] * sx[surf_sel]) ** 2).sum(axis=2) * prod[path_sel] ** 2
     # θ's part on the surfaces whose θ has a σ only (a 12 MP texture: the derivatives of every
     # node took a sixth of its time, most of them on a Lambertian ground with no θ).
     for s, idx in _groups(trees):
@@ -419,12 +437,12 @@ def uncertain_radiance(trees, materials, intensities, sigma, *, kd_nodes=None, t
             continue
         model = get_model(materials[s].brdf)
         L, P, k = model.n_linear, model.n_nonlinear, trees.n_lights
-        weight = _surface_geometry(trees, idx)[3]
+        weight = _surface_weight(trees, idx)
         _, dg = model.g_and_dg_on(model.theta_of(materials[s]), _surface_terms(trees, model, idx))
         dbasis = _weighted(weight, intensities, dg.reshape(len(idx) * k, L * P)).reshape(len(idx), 3, L, P)
-        dtheta = np.einsum("nclp,ncl->ncp", dbasis, x[idx, :, :L]) * st[s, :P]
-        var[idx] += (dtheta**2).sum(axis=2) * prod[idx] ** 2
-    var[sel] += np.einsum("ncl,ncl->nc", basis[sel], x[sel]) ** 2 * dpath[path_sel]
+        dtheta = np.einsum("nclp,ncl->ncp", dbasis, params(idx)[:, :, :L]) * st[s, :P]
+        var[idx] += (dtheta**2).sum(axis=2) * prod[trees.path[idx]] ** 2
+    var[sel] += np.einsum("ncl,ncl->nc", basis[sel], params(sel)) ** 2 * dpath[path_sel]
     return np.sqrt(var)
 
 

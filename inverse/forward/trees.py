@@ -357,15 +357,28 @@ class _Caster:
         point = origin + t[:, None] * direction
         return hit, surface, tri, uv, point
 
-    def occluded(self, origin: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Whether the segment origin → target (both (M, 3)) hits any surface."""
-        if len(origin) == 0:
-            return np.zeros(0, dtype=bool)
-        rays = np.empty((len(origin), 6), dtype=np.float32)
-        rays[:, :3] = origin
-        np.subtract(target, origin, out=rays[:, 3:], casting="same_kind")
-        occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
-        return occ.numpy().astype(bool)
+    def lit(self, origin: np.ndarray, cand: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        """(M, K) bool: whether the segment from each ``origin`` (M, 3) to each light (K, 3) hits
+        no surface, tested where ``cand`` (M, K) only (False elsewhere). The rays are filled one
+        light at a time (float32, the direction rounded from the float64 difference): no (M·K, 3)
+        gathers of origins and light positions."""
+        vis = np.zeros(cand.shape, dtype=bool)
+        sel = [np.flatnonzero(cand[:, k]) for k in range(cand.shape[1])]
+        rays = np.empty((sum(len(i) for i in sel), 6), dtype=np.float32)
+        start = 0
+        for k, i in enumerate(sel):
+            o = origin[i]
+            rays[start:start + len(i), :3] = o
+            np.subtract(lights[k], o, out=rays[start:start + len(i), 3:], casting="same_kind")
+            start += len(i)
+        if len(rays) == 0:
+            return vis
+        occ = self.rc.test_occlusions(self.o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+        start = 0
+        for k, i in enumerate(sel):
+            vis[i, k] = occ[start:start + len(i)] == 0
+            start += len(i)
+        return vis
 
     def shading_normal(self, tri, uv, surface):
         """Interpolated vertex normals where the mesh has them, else the geometric normal."""
@@ -499,14 +512,15 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         # Direct lighting: light on the viewer's side of the shading normal and segment unoccluded.
         to_light = light_pos[None] - point[:, None]
         dist2 = np.sum(to_light**2, axis=2)
-        ldir = normalize(to_light)
+        # normalize()'s floats from the squares just summed (np.linalg.norm sums the same squares)
+        norm = np.sqrt(dist2)[:, :, None]
+        ldir = np.divide(to_light, norm, out=np.zeros_like(to_light), where=norm > 0)
+        del to_light, norm
         close = dist2 <= eps**2
         stats["lights_too_close"] += int(np.count_nonzero(close))
         cand = (_dot(ldir, ns[:, None]) > 0) & ~close
-        vis = np.zeros((m, n_lights), dtype=bool)
-        ni, ki = np.nonzero(cand)
-        stats["rays"]["shadow"] += len(ni)
-        vis[ni, ki] = ~caster.occluded(point[ni] + eps * ngf[ni], light_pos[ki])
+        stats["rays"]["shadow"] += int(np.count_nonzero(cand))
+        vis = caster.lit(point + eps * ngf, cand, light_pos)
         node.update(light_dir=ldir, light_dist2=np.maximum(dist2, eps**2), visible=vis)
         levels.append(node)
 
@@ -518,34 +532,40 @@ def build_trees(scene, camera, lights, depth: int = 3, *, prune_tol: float = 1e-
         if level == depth:
             stats["pruned"]["depth"] += int(np.count_nonzero(want_r) + np.count_nonzero(want_t))
             break
-        cos_i = _dot(-d, ns)
-        n1 = np.where(entering, 1.0, ior[surf])
-        n2 = np.where(entering, ior[surf], 1.0)
-        F = np.where(s_t, fresnel(cos_i, n1, n2), 1.0)
+        # Fresnel, reflection and refraction of the nodes that branch only (most nodes are a
+        # matte ground's, with neither branch): each node's values are the same floats either way.
+        tr = np.flatnonzero(s_t)
+        F = np.ones(m)
+        F[tr] = fresnel(_dot(-d[tr], ns[tr]), np.where(entering[tr], 1.0, ior[surf[tr]]),
+                        np.where(entering[tr], ior[surf[tr]], 1.0))
         w_r = node["fresnel"] * F
         w_t = node["fresnel"] * (1.0 - F)
-        refl = reflect(d, ns)
-        bad = _dot(refl, ngf) <= 0  # a shading normal must not send the ray into its own surface
-        refl[bad] = reflect(d[bad], ngf[bad])
-        trans, tir = refract(d, ns, n1 / n2)
-        bad = ~tir & (_dot(trans, ngf) >= 0)
+        ir = np.flatnonzero(want_r)
+        refl = reflect(d[ir], ns[ir])
+        bad = _dot(refl, ngf[ir]) <= 0  # a shading normal must not send the ray into its own surface
+        refl[bad] = reflect(d[ir][bad], ngf[ir][bad])
+        it = np.flatnonzero(want_t)
+        d_t, ngf_t = d[it], ngf[it]
+        eta = np.where(entering[it], 1.0, ior[surf[it]]) / np.where(entering[it], ior[surf[it]], 1.0)
+        trans, tir = refract(d_t, ns[it], eta)
+        bad = ~tir & (_dot(trans, ngf_t) >= 0)
         if np.any(bad):
-            trans[bad], tir_bad = refract(d[bad], ngf[bad], (n1 / n2)[bad])
+            trans[bad], tir_bad = refract(d_t[bad], ngf_t[bad], eta[bad])
             tir[bad] |= tir_bad
-        tir &= s_t
-        stats["total_internal_reflections"] += int(np.count_nonzero(tir & want_t))
-        take_r = want_r & (w_r >= prune_tol)
-        take_t = want_t & ~tir & (w_t >= prune_tol)
-        stats["pruned"]["weight"] += int(np.count_nonzero(want_r & ~take_r) + np.count_nonzero(want_t & ~tir & ~take_t))
+        stats["total_internal_reflections"] += int(np.count_nonzero(tir))
+        take_r = w_r[ir] >= prune_tol
+        take_t = ~tir & (w_t[it] >= prune_tol)
+        stats["pruned"]["weight"] += int(np.count_nonzero(~take_r) + np.count_nonzero(~tir & ~take_t))
         stats["rays"]["reflection"] += int(np.count_nonzero(take_r))
         stats["rays"]["refraction"] += int(np.count_nonzero(take_t))
 
-        ir, it = np.nonzero(take_r)[0], np.nonzero(take_t)[0]
+        refl, trans = refl[take_r], trans[take_t]
+        ir, it = ir[take_r], it[take_t]
         idx = np.concatenate([ir, it])
         kind = np.concatenate([np.full(len(ir), REFLECTION), np.full(len(it), TRANSMISSION)])
         origin = point[idx]
         offset = eps * np.concatenate([ngf[ir], -ngf[it]])
-        direction = np.concatenate([refl[ir], trans[it]])
+        direction = np.concatenate([refl, trans])
         ray_fresnel = np.concatenate([w_r[ir], w_t[it]])
         ray_pixel = node["pixel"][idx]
         ray_parent = n_before + idx

@@ -363,28 +363,39 @@ def textured_nodes(trees, materials, intensities, textured_surfaces, *, pixel_ma
     Q : (H·W, 3) float64
         Per pixel of the trees, the light of every node but the textured ones (their kd 0).
     """
-    from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
+    from reflab.inverse.forward.models import get_model
+    from reflab.inverse.forward.rendering import linear_basis, path_products, surface_parameters
 
     npix = trees.width * trees.height
     basis = linear_basis(trees, materials, intensities)  # (N, 3, L), kd is slot 0
-    atten = path_products(trees, materials)  # (N, 3)
     textured = np.isin(trees.surface, list(textured_surfaces))
-    kd_table = np.stack([np.broadcast_to(mat["kd"], (3,)) for mat in materials]).astype(np.float64)
-    q_nodes = node_radiance(trees, materials, intensities, kd_nodes=np.where(textured[:, None], 0.0, kd_table[trees.surface]),
-                            basis=basis)
+    # Q from the nodes that can carry light only: a textured surface's kd is E's, so a textured
+    # Lambertian node (most of a tile: a matte ground) adds exactly 0, and so does a node no lamp
+    # lights (its basis is 0: the inside of a glass). The others' values are node_radiance's.
+    x_table, _ = surface_parameters(materials, np.flatnonzero(np.bincount(trees.surface, minlength=len(materials))))
+    beyond_kd = np.array([get_model(m.brdf).n_linear > 1 for m in materials])
+    carry = (~textured | beyond_kd[trees.surface]) & trees.visible.any(axis=1)
     if keep is not None:
-        q_nodes = np.where(np.asarray(keep, dtype=bool)[:, None], q_nodes, 0.0)
+        keep = np.asarray(keep, dtype=bool)
+        carry &= keep
         textured &= keep
-    Q = np.stack([np.bincount(trees.pixel, weights=q_nodes[:, c], minlength=npix) for c in range(3)], axis=1)
+    carry = np.flatnonzero(carry)
+    x = x_table[trees.surface[carry]]
+    x[textured[carry], :, 0] = 0.0
+    per_path = path_products(trees, materials, per_path=True)
+    q_nodes = per_path[trees.path[carry]] * np.einsum("ncl,ncl->nc", basis[carry], x)
+    del x
+    Q = np.stack([np.bincount(trees.pixel[carry], weights=q_nodes[:, c], minlength=npix) for c in range(3)], axis=1)
     # Textured nodes in pixel order, so that E's entries come out sorted by row.
     nodes = np.flatnonzero(textured)
     pix = trees.pixel[nodes]
     if np.any(pix[1:] < pix[:-1]):
         nodes = nodes[np.argsort(pix, kind="stable")]
     pix = trees.pixel[nodes].astype(np.int64)
+    atten = per_path[trees.path[nodes]]  # (n, 3)
     out = TexturedNodes(pix if pixel_map is None else np.asarray(pixel_map)[pix], trees.surface[nodes],
                         trees.triangle[nodes], trees.barycentric[nodes],
-                        (atten[nodes] * basis[nodes, :, 0]).T, (trees.fresnel[nodes, None] * atten[nodes]).T)
+                        (atten * basis[nodes, :, 0]).T, (trees.fresnel[nodes, None] * atten).T)
     return out, Q
 
 

@@ -414,9 +414,13 @@ def pixel_footprint(pixel: np.ndarray, path: np.ndarray, point: np.ndarray, widt
         off[hit] = point[j[hit]] - point[hit]
         offsets.append(off)
     right, down = offsets
-    area = np.linalg.norm(np.cross(right, down), axis=1)
-    single = np.where(np.isnan(right[:, 0]), np.linalg.norm(down, axis=1), np.linalg.norm(right, axis=1))
-    return np.where(np.isnan(area), single, np.sqrt(area))
+    out = np.sqrt(np.linalg.norm(np.cross(right, down), axis=1))
+    # One neighbour only (an edge of what the path sees): that offset's length, measured for those
+    # nodes alone (the same floats as over every node).
+    edge = np.flatnonzero(np.isnan(out))
+    no_right = np.isnan(right[edge, 0])
+    out[edge] = np.where(no_right, np.linalg.norm(down[edge], axis=1), np.linalg.norm(right[edge], axis=1))
+    return out
 
 
 def choose_texel_size(footprints: np.ndarray, scale: float = 1.0, quantile: float = 0.25) -> float | None:

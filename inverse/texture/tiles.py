@@ -53,6 +53,8 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
         ``trees`` (stats: ``build_s``, ``nodes``, ``tiles``, ``cache`` "tiled"), ``guess`` ((H·W,)
         bool or None), ``blocks`` ((row0, width, height) per photograph), ``width``, ``height``.
     """
+    from threadpoolctl import threadpool_limits
+
     from reflab.inverse.forward.photographs import lamp_slots, slot_lights
     from reflab.inverse.forward.rendering import release_basis, undetermined_decision, undetermined_part
     from reflab.inverse.forward.trees import TileTask, build_trees, tile_rows
@@ -131,6 +133,10 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
     # With TILE_WORKERS > 1, tiles are reduced that many at a time in threads, taken back in order.
     workers = max(1, min(TILE_WORKERS, len(tiles)))
     pool = ThreadPoolExecutor(workers) if workers > 1 else None
+    # BLAS on one thread while the tiles run: their one large product (the camera's rays, (N, 3)
+    # @ (3, 3)) took 0.1 s of spin-waiting CPU a tile on two threads at a load of 5, 4 ms on one
+    # (the same floats: OpenBLAS splits the rows between its threads).
+    blas = threadpool_limits(1, user_api="blas")
     try:
         futures = deque(pool.submit(reduce_tile, k) for k in range(len(tiles))) if pool else None
         for k, (i, _, _) in enumerate(tiles):
@@ -144,6 +150,7 @@ def texture_tiled(scene, photos, images, materials, solver: SolverOptions, *, de
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)  # a cancel or an error: no further tile starts
             release_free_memory()  # what the workers' heaps kept, before the assembly's peak
+        blas.restore_original_limits()
     if task is not None:
         task.step(len(tiles), len(tiles), "texture: the system")
     footprint = {}
