@@ -287,16 +287,19 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # (left free on the demo it fitted box ns 2.5 ± 0.7, true 30, from the box in the mirror).
         own = np.array([bool(textured[s]) and name != "kd" for s, name in lay.x_names], dtype=bool)
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
-        # Its own reflection and transmission likewise: what the pixels of its pinned texture show
-        # of them, the texture moves with too (floor_mirror's floor r, true 0, was held for want of
-        # a texture-free pixel although a 0.01 move changes its photographs by χ² 102).
-        own_s = np.array([bool(textured[f // 2]) for f in range(lay.n_factors)], dtype=bool)
-        if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any() or (own_s[:, None] & sf.s).any():
+        # Its own reflection and transmission likewise where no texture-free pixel shows them:
+        # what the pixels of its pinned texture show of them, the texture moves with too
+        # (floor_mirror's floor r, true 0, was held for want of a texture-free pixel although a
+        # 0.01 move changes its photographs by χ² 102). Where one does, their σ is as before (the
+        # lab's box r read through a 320x240 sample: ± 0.02 so, ± 0.08 from the few texels read twice).
+        own_s = np.array([bool(textured[f // 2]) for f in range(lay.n_factors)], dtype=bool)[:, None] \
+            & sf.s & ~np.isfinite(sig_t.s)
+        if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any() or own_s.any():
             # ... and from texels seen twice (directly and in a mirror), each one's albedo free.
             lobed = np.zeros(len(textured), dtype=bool)  # textured surfaces with a lobe to judge
             lobed[[s for (s, _), o in zip(lay.x_names, own[:, None] & sf.x) if o.any()]] = True
             lobed[[s for (s, _), o in zip(lay.theta_names, own_theta & sf.theta) if o]] = True
-            lobed[[f // 2 for f in np.flatnonzero((own_s[:, None] & sf.s).any(axis=1))]] = True
+            lobed[[f // 2 for f in np.flatnonzero(own_s.any(axis=1))]] = True
             sig_o = sigmas(pb, p, sf_t, res, keep=~anywhere,
                            extra=seen_twice(pb, p, materials, textured, anywhere, res, lobed))
             # A lobe seen only where its texture shows (sig_t inf: each photograph's view of a
@@ -304,11 +307,9 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
             sig.x[own] = np.fmax(np.where(np.isfinite(sig_t.x[own]), sig.x[own], every.x[own]), sig_o.x[own])
             sig.theta[own_theta] = np.fmax(np.where(np.isfinite(sig_t.theta[own_theta]), sig.theta[own_theta],
                                                     every.theta[own_theta]), sig_o.theta[own_theta])
-            # r and t that no texture-free pixel shows (held at 0 before: texture_confounded) are
-            # what the texels seen twice say; where one does, its σ as before (the lab's box r at
-            # 320x240 read through a sample: ± 0.02 there, ± 0.08 from the few texels read twice).
-            sig.s[own_s] = np.where(np.isfinite(sig_t.s[own_s]), sig.s[own_s],
-                                    np.fmax(every.s[own_s], sig_o.s[own_s]))
+            # r and t that no texture-free pixel shows (held at 0 before: texture_confounded): what
+            # the texels seen twice say, never below every pixel's σ.
+            sig.s[own_s] = np.fmax(every.s[own_s], sig_o.s[own_s])
     for s, lobe in (colour or {}).items():
         # A lobe the texture's colours determine: every pixel of the surface informs it, with each
         # pixel's albedo free along the texture's colour set (its own σ, robust).
