@@ -291,7 +291,7 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # what the pixels of its pinned texture show of them, the texture moves with too
         # (floor_mirror's floor r, true 0, was held for want of a texture-free pixel although a
         # 0.01 move changes its photographs by χ² 102). Where one does, their σ is as before (the
-        # lab's box r read through a 320x240 sample: ± 0.02 so, ± 0.08 from the few texels read twice).
+        # lab's tile r read through a 320x240 sample: ± 0.01 so, ± 0.03 from the few texels read twice).
         own_s = np.array([bool(textured[f // 2]) for f in range(lay.n_factors)], dtype=bool)[:, None] \
             & sf.s & ~np.isfinite(sig_t.s)
         if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any() or own_s.any():
