@@ -143,32 +143,66 @@ def _band_names(name, held) -> list:
     return [f"{name}[{c}]" for c in np.flatnonzero(held)]
 
 
-def texture_confounded(pb: Problem, p: Params, materials, textured) -> np.ndarray:
-    """(n_factors, 3) bool: the r and t of textured surfaces whose every pixel of signal is one where
-    free texture shows (:func:`texture_absorbed`).
+def texture_confounded(pb: Problem, p: Params, materials, textured) -> tuple[np.ndarray, np.ndarray]:
+    """(n_factors, 3) bool twice: the r and t of textured surfaces whose every pixel of signal is one
+    where free texture shows (:func:`texture_absorbed`); and of those, the ones that pixels of
+    texels seen twice show (:func:`twice_rows`).
 
     A textured surface's own faint reflection (or transmission) of a smooth surrounding is, pixel
-    for pixel, light its free texture can take up; no pixel tells the two apart. Fitted anyway, the
-    coefficient takes up the texture's correlation with the reflected light instead (a box on a
-    matte ground: r 0.1–0.2 per band for a true 0), and the texture rounds, which leave out the
-    pixels it claims, lose the whole surface. Such a coefficient is held at 0 and reported
-    undetermined: the photograph's light there is the texture's (docs/fit.md).
+    for pixel, light its free texture can take up; no pixel of a texel seen once tells the two
+    apart. Fitted anyway against one kd (the homogeneous start), the coefficient takes up the
+    texture's correlation with the reflected light instead (a box on a matte ground: r 0.1–0.2 per
+    band for a true 0), and the texture rounds, which leave out the pixels it claims, lose the whole
+    surface. Such a coefficient is held at 0 in that fit. Where texels seen twice (in two
+    photographs, or directly and in a mirror) show it, their pixels share one albedo and the
+    coefficient shows in how they differ: the fits against the recovered texture fit it (the
+    second mask, :func:`reflab.inverse.fit.rounds.fit` keeps it in the structure) and its σ is
+    judged like the surface's own lobe; otherwise it stays held and is reported undetermined
+    (docs/fit.md).
     """
     fac = pb.fac
     out = np.zeros((fac.layout.n_factors, BANDS), dtype=bool)
+    twice = out.copy()
     if textured is None or not any(textured):
-        return out
+        return out, twice
     factors = [f for i in np.flatnonzero(np.asarray(textured, dtype=bool)) for f in (2 * i, 2 * i + 1)
                if fac.exponents[:, f].any()]
     if not factors:
-        return out
+        return out, twice
     absorbed, _ = texture_absorbed(fac, p, materials, textured)
+    pair = twice_rows(fac, textured)
     A = fac.matrices(p.theta)
     floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
-    for c in range(BANDS):
-        clear = abs(A[c][~absorbed]).max(axis=0).toarray().ravel() > floor if (~absorbed).any() else np.zeros(fac.n_columns, bool)
-        for f in factors:
-            out[f, c] = not clear[fac.exponents[:, f] > 0].any()
+
+    def shown(rows):
+        if not rows.any():
+            return np.zeros((fac.n_columns, BANDS), dtype=bool)
+        return np.stack([abs(A[c][rows]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor
+
+    clear, paired = shown(~absorbed), shown(pair)
+    for f in factors:
+        cols = fac.exponents[:, f] > 0
+        out[f] = ~clear[cols].any(axis=0)
+        twice[f] = out[f] & paired[cols].any(axis=0)
+    return out, twice
+
+
+def twice_rows(fac: Factorization, textured) -> np.ndarray:
+    """(R,) bool: used pixels with a node of a texel of a textured surface that another used pixel
+    sees too (:func:`texel_groups`: in another photograph, or in a mirror or through glass)."""
+    tr = fac.trees
+    group = texel_groups(tr, textured)
+    row_of = np.full(fac.width * fac.height, -1, dtype=np.int64)
+    row_of[fac.rows] = np.arange(fac.n_rows)
+    row = row_of[np.asarray(tr.pixel, dtype=np.int64)]
+    nodes = np.flatnonzero((group >= 0) & (row >= 0))
+    out = np.zeros(fac.n_rows, dtype=bool)
+    if len(nodes) == 0:
+        return out
+    # Distinct (texel, pixel) pairs: two nodes of one texel in one pixel are not two views.
+    pairs = np.unique(np.stack([group[nodes], row[nodes]], axis=1), axis=0)
+    ids, g, count = np.unique(pairs[:, 0], return_inverse=True, return_counts=True)
+    out[pairs[count[g.reshape(-1)] >= 2, 1]] = True
     return out
 
 

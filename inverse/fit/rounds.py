@@ -143,12 +143,19 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
         unheld = free.copy()
         if held is not None:
             hold(fac, unheld, held)  # a value the user gave stays theirs
-        confounded = texture_confounded(pb, p, materials, textured) & unheld.s
+        confounded, twice = texture_confounded(pb, p, materials, textured)
+        confounded &= unheld.s
         free.s &= ~confounded
         init.s[confounded], p.s[confounded] = 0.0, 0.0
+        # One that texels seen twice show stays in the structure: held at 0 here (fitted against
+        # one kd it takes up the texture), fitted by the fits against the recovered texture, which
+        # take this structure, and judged like the surface's own lobe (_complete).
+        twice &= confounded
     else:
-        free = structure.copy()
+        free, twice = structure.copy(), None
     found = free.copy()
+    if twice is not None:
+        found.s |= twice
     pb.phases["structure"] = time.perf_counter() - t0
     if held is not None:
         hold(fac, free, held)
@@ -218,7 +225,7 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
             return _refit_without(first, fac, image, bad, method, maxiter=maxiter, textured=textured, names=names,
                                   task=task, held=held, guessed=guessed, passes=REJECT_PASSES if reject is True else int(reject),
                                   max_seconds=None if max_seconds is None else max_seconds - fitted,
-                                  uncertainty=uncertainty, nuisance=nuisance)
+                                  uncertainty=uncertainty, nuisance=nuisance, twice=twice)
     stats = {"used_pixels": int(fac.n_rows), "free_parameters": free.count(), "at_bound": at_bound(fac, p, free),
              "noise": [float(v) for v in pb.noise], "scan_evaluations": pb.scan_evaluations,
              "rejected": {"count": 0, "pixels": [], "threshold_sigmas": REJECT_SIGMAS}}
@@ -280,11 +287,19 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         # (left free on the demo it fitted box ns 2.5 ± 0.7, true 30, from the box in the mirror).
         own = np.array([bool(textured[s]) and name != "kd" for s, name in lay.x_names], dtype=bool)
         own_theta = np.array([bool(textured[s]) for s, _ in lay.theta_names], dtype=bool)
-        if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any():
+        # Its own reflection and transmission likewise where no texture-free pixel shows them:
+        # what the pixels of its pinned texture show of them, the texture moves with too
+        # (floor_mirror's floor r, true 0, was held for want of a texture-free pixel although a
+        # 0.01 move changes its photographs by χ² 102). Where one does, their σ is as before (the
+        # lab's tile r read through a 320x240 sample: ± 0.01 so, ± 0.03 from the few texels read twice).
+        own_s = np.array([bool(textured[f // 2]) for f in range(lay.n_factors)], dtype=bool)[:, None] \
+            & sf.s & ~np.isfinite(sig_t.s)
+        if (own[:, None] & sf.x).any() or (own_theta & sf.theta).any() or own_s.any():
             # ... and from texels seen twice (directly and in a mirror), each one's albedo free.
             lobed = np.zeros(len(textured), dtype=bool)  # textured surfaces with a lobe to judge
             lobed[[s for (s, _), o in zip(lay.x_names, own[:, None] & sf.x) if o.any()]] = True
             lobed[[s for (s, _), o in zip(lay.theta_names, own_theta & sf.theta) if o]] = True
+            lobed[[f // 2 for f in np.flatnonzero(own_s.any(axis=1))]] = True
             sig_o = sigmas(pb, p, sf_t, res, keep=~anywhere,
                            extra=seen_twice(pb, p, materials, textured, anywhere, res, lobed))
             # A lobe seen only where its texture shows (sig_t inf: each photograph's view of a
@@ -292,6 +307,9 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
             sig.x[own] = np.fmax(np.where(np.isfinite(sig_t.x[own]), sig.x[own], every.x[own]), sig_o.x[own])
             sig.theta[own_theta] = np.fmax(np.where(np.isfinite(sig_t.theta[own_theta]), sig.theta[own_theta],
                                                     every.theta[own_theta]), sig_o.theta[own_theta])
+            # r and t that no texture-free pixel shows (held at 0 before: texture_confounded): what
+            # the texels seen twice say, never below every pixel's σ.
+            sig.s[own_s] = np.fmax(every.s[own_s], sig_o.s[own_s])
     for s, lobe in (colour or {}).items():
         # A lobe the texture's colours determine: every pixel of the surface informs it, with each
         # pixel's albedo free along the texture's colour set (its own σ, robust).
@@ -355,13 +373,22 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
                      found)
 
 
-def _refit_without(first: FitSolution, fac: Factorization, image, bad, method, *, passes, **kw) -> FitSolution:
-    """Fit again from ``first`` with the pixels ``bad`` left out; traces, counts and time add up."""
+def _refit_without(first: FitSolution, fac: Factorization, image, bad, method, *, passes, twice=None,
+                   **kw) -> FitSolution:
+    """Fit again from ``first`` with the pixels ``bad`` left out; traces, counts and time add up.
+
+    ``twice``: a textured surface's r and t that ``first`` held at 0 but keeps in its structure
+    (:func:`reflab.inverse.fit.determined.texture_confounded`): held in the refit too."""
+    structure = first.structure if twice is None else Free(first.structure.x, first.structure.s & ~twice,
+                                                            first.structure.theta)
     again = fit(fac.without(bad), image, first.materials, method, scan=False, reject=passes - 1,
-                structure=first.structure, **kw)
+                structure=structure, **kw)
     merged = _merged(first, again, fac.width, bad)
+    if twice is not None:
+        merged = dataclasses.replace(merged, structure=first.structure)
     if "complete" in again.stats:  # σ later: completing the refit completes the merge
-        merged.stats["complete"] = lambda: _merged(first, again.stats["complete"](), fac.width, bad)
+        merged.stats["complete"] = lambda: dataclasses.replace(
+            _merged(first, again.stats["complete"](), fac.width, bad), structure=merged.structure)
     return merged
 
 
