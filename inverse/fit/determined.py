@@ -170,7 +170,6 @@ def texture_confounded(pb: Problem, p: Params, materials, textured) -> tuple[np.
     if not factors:
         return out, twice
     absorbed, _ = texture_absorbed(fac, p, materials, textured)
-    pair = twice_rows(fac, textured)
     A = fac.matrices(p.theta)
     floor = SIGNAL_FLOOR * max(pb.peak, 1e-300)
 
@@ -179,11 +178,15 @@ def texture_confounded(pb: Problem, p: Params, materials, textured) -> tuple[np.
             return np.zeros((fac.n_columns, BANDS), dtype=bool)
         return np.stack([abs(A[c][rows]).max(axis=0).toarray().ravel() for c in range(BANDS)], axis=1) > floor
 
-    clear, paired = shown(~absorbed), shown(pair)
+    clear = shown(~absorbed)
     for f in factors:
-        cols = fac.exponents[:, f] > 0
-        out[f] = ~clear[cols].any(axis=0)
-        twice[f] = out[f] & paired[cols].any(axis=0)
+        out[f] = ~clear[(fac.exponents[:, f] > 0)].any(axis=0)
+    held = np.zeros(len(textured), dtype=bool)
+    held[[f // 2 for f in factors if out[f].any()]] = True
+    if held.any():  # texels seen twice only for the surfaces whose r or t is held (a lambert ground's 300 000 nodes are not grouped)
+        paired = shown(twice_rows(fac, held))
+        for f in factors:
+            twice[f] = out[f] & paired[(fac.exponents[:, f] > 0)].any(axis=0)
     return out, twice
 
 
