@@ -320,7 +320,8 @@ def texel_groups(tr, textured) -> np.ndarray:
             if len(first) < 2:
                 first = direct
             sample = first[:: max(1, len(first) // 4096)]  # the median spacing, from a few thousand
-            spacing = float(np.median(cKDTree(pts[first]).query(pts[sample], k=2)[0][:, 1]))
+            index = cKDTree(pts[first])
+            spacing = float(np.median(index.query(pts[sample], k=2)[0][:, 1]))
             starts = direct[photo[direct] == order[0]]
             out[starts] = starts
             for k in order[1:]:  # a loop over photographs, not nodes
@@ -330,8 +331,9 @@ def texel_groups(tr, textured) -> np.ndarray:
                 out[mine[same]] = starts[near[same]]
                 out[mine[~same]] = mine[~same]
                 starts = np.concatenate([starts, mine[~same]])
-            if len(other):
-                dist, near = cKDTree(pts[starts]).query(pts[other])
+            if len(other):  # one photograph: the texel starts are the first's nodes, whose index is built
+                same_starts = len(starts) == len(first) and np.array_equal(starts, first)
+                dist, near = (index if same_starts else cKDTree(pts[starts])).query(pts[other])
                 same = dist < 0.5 * spacing
                 out[other[same]] = starts[near[same]]
         return out
