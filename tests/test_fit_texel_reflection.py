@@ -7,20 +7,10 @@ W, H = 160, 120
 
 
 def _workspace(root, name, shots, seed, noise=0.01):
-    from reflab.hardware.sim.lab import named_views, write_lab
-    from reflab.hardware.sim.reference import render_reference
+    from reflab.hardware.sim.lab import photographed
     from reflab.hardware.sim.scenes import build
 
-    lab = build(name, W, H)
-    rng = np.random.default_rng(seed)
-
-    def photo(cam, lights):
-        img = render_reference(lab.scene, cam, lights, albedo=lab.albedo)
-        return img + rng.normal(0.0, noise * img.max(), img.shape)
-
-    further = [(n, photo(cam, li), cam, li) for n, cam, li in named_views(lab.camera, lab.lights, shots)]
-    write_lab(root, lab, materials=False, photograph=photo(lab.camera, lab.lights), further=further)
-    return lab
+    return photographed(root, build(name, W, H), shots, noise=noise, seed=seed)
 
 
 def test_a_textured_floor_reflection_is_determined_by_its_texels_seen_twice(tmp_path):

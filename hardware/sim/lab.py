@@ -308,6 +308,23 @@ def write_lab(workspace, lab: SimLab, *, materials: bool = True, photograph=None
     return written
 
 
+def photographed(workspace, lab: SimLab, shots="", *, noise: float = 0.01, seed: int = 0, materials: bool = False) -> SimLab:
+    """Write ``lab`` (:func:`write_lab`) with its reference photograph and the further ``shots``
+    (:func:`named_views`' names) by the independent reference renderer, each with Gaussian noise of
+    ``noise`` × its peak from one generator seeded ``seed``. Returns ``lab``."""
+    from reflab.hardware.sim.reference import render_reference
+
+    rng = np.random.default_rng(seed)
+
+    def photo(cam, lights):
+        img = render_reference(lab.scene, cam, lights, albedo=lab.albedo)
+        return img + rng.normal(0.0, noise * img.max(), img.shape)
+
+    further = [(n, photo(cam, li), cam, li) for n, cam, li in named_views(lab.camera, lab.lights, shots)]
+    write_lab(workspace, lab, materials=materials, photograph=photo(lab.camera, lab.lights), further=further)
+    return lab
+
+
 def user_workspace(root, width: int, height: int, *, textured: bool = True, noise: float = 0.0, seed: int = 0):
     """The lab written as a user's workspace (scene.json: only what a user knows, the truth in
     truth.json; untextured, no surface declared textured) with its input photograph made by the

@@ -295,10 +295,9 @@ def uniform_lobes(trees, materials, intensities, image, textured, noise, *, mask
         Surface index → its Material with ``kd``, ``ks``, the shape and (unless given) ``r`` so
         fitted, for each textured Phong or Ward surface with enough directly seen lit pixels.
     """
-    from reflab.inverse.fit.dichromatic import MIN_LIT, MIN_PIXELS, _estimate, _Objective, _Pixels
+    from reflab.inverse.fit.dichromatic import MIN_LIT, MIN_PIXELS, _estimate, _Objective, _Pixels, lobed_textured
     from reflab.inverse.fit.problem import NOISE_FLOOR
     from reflab.inverse.fit.ranges import FIT_RANGE
-    from reflab.inverse.forward.models import get_model
     from reflab.reconstruction.scene import SCALAR_RANGE
 
     image = np.asarray(image, dtype=np.float64)
@@ -311,14 +310,7 @@ def uniform_lobes(trees, materials, intensities, image, textured, noise, *, mask
     if mask is not None:
         single &= np.asarray(mask, dtype=bool).reshape(-1)
     out = {}
-    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
-        model = get_model(materials[s].brdf)
-        if "ks" not in model.linear or model.n_nonlinear != 1:
-            continue
-        shape = model.nonlinear[0]
-        given = set() if held is None else set(held[s])
-        if {"ks", shape} & given:
-            continue
+    for s, model, shape, given in lobed_textured(materials, textured, held):
         nodes = np.flatnonzero(level1 & (np.asarray(trees.surface) == s))
         nodes = nodes[single[trees.pixel[nodes]]]
         px = trees.pixel[nodes]

@@ -96,6 +96,19 @@ def _finite(v: float):
     return round(float(v), 6) if np.isfinite(v) else None
 
 
+def lobed_textured(materials, textured, held=None):
+    """``(s, model, shape, given)`` for each textured surface whose model has ks and one shape
+    parameter, neither of them given by the user (``held[s]``: the names held)."""
+    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
+        model = get_model(materials[s].brdf)
+        if "ks" not in model.linear or model.n_nonlinear != 1:
+            continue
+        shape = model.nonlinear[0]
+        given = set() if held is None else set(held[s])
+        if not {"ks", shape} & given:
+            yield int(s), model, shape, given
+
+
 def _direct_pixels(trees, s: int, textured, mask) -> tuple[np.ndarray, np.ndarray]:
     """Nodes of surface ``s`` seen directly whose pixel has no other textured node, and their pixels."""
     tex = np.asarray(textured, dtype=bool)[trees.surface]
@@ -306,14 +319,7 @@ def colour_lobes(trees, materials, intensities, image, textured, noise, *, mask=
     # from the photograph by more (a noise-free photograph still differs by its rendering).
     ref = 1.0 if rms is None else max(1.0, float(np.mean((np.asarray(rms, dtype=np.float64) / scale) ** 2)))
     out = {}
-    for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
-        model = get_model(materials[s].brdf)
-        if "ks" not in model.linear or model.n_nonlinear != 1:
-            continue
-        shape = model.nonlinear[0]
-        given = set() if held is None else set(held[s])
-        if {"ks", shape} & given:
-            continue
+    for s, model, shape, given in lobed_textured(materials, textured, held):
         nodes, px = _direct_pixels(trees, s, textured, mask)
         if len(nodes) < MIN_PIXELS:
             continue
