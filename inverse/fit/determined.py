@@ -316,13 +316,11 @@ def texel_groups(tr, textured) -> np.ndarray:
             if len(direct) < 2 or (len(other) == 0 and not several):
                 continue
             order = np.unique(photo[direct])
-            first = direct[photo[direct] == order[0]]
-            if len(first) < 2:
-                first = direct
+            starts = direct[photo[direct] == order[0]]
+            first = starts if len(starts) >= 2 else direct
             sample = first[:: max(1, len(first) // 4096)]  # the median spacing, from a few thousand
             index = cKDTree(pts[first])
             spacing = float(np.median(index.query(pts[sample], k=2)[0][:, 1]))
-            starts = direct[photo[direct] == order[0]]
             out[starts] = starts
             for k in order[1:]:  # a loop over photographs, not nodes
                 mine = direct[photo[direct] == k]
@@ -331,9 +329,8 @@ def texel_groups(tr, textured) -> np.ndarray:
                 out[mine[same]] = starts[near[same]]
                 out[mine[~same]] = mine[~same]
                 starts = np.concatenate([starts, mine[~same]])
-            if len(other):  # one photograph: the texel starts are the first's nodes, whose index is built
-                same_starts = len(starts) == len(first) and np.array_equal(starts, first)
-                dist, near = (index if same_starts else cKDTree(pts[starts])).query(pts[other])
+            if len(other):  # one photograph: its direct nodes are the starts, whose index is built
+                dist, near = (index if len(order) == 1 else cKDTree(pts[starts])).query(pts[other])
                 same = dist < 0.5 * spacing
                 out[other[same]] = starts[near[same]]
         return out
