@@ -164,6 +164,11 @@ def fit(fac: Factorization, image, materials, method: str = "ftbo", *, max_round
     # makes them: holding it would tighten them around a value nobody knows.
     sigma_free = free.copy()
     if still_held is not None:
+        if colour:  # a lobe the texture's colours now estimate is a fresh value, not the hold of an earlier round
+            still_held = still_held.copy()
+            for s, lobe in colour.items():
+                still_held.x[fac.layout.x_offset[s] + fac.models[s].linear.index("ks")] = True
+                still_held.theta[fac.layout.theta_offset[s] + fac.models[s].nonlinear.index(lobe.shape)] = True
         free = free & still_held
     grey = None
     if guessed is not None:
