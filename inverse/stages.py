@@ -38,13 +38,15 @@ class FitOptions:
                                           "iteration and fit.json's message says so (default: none)", unit="s",
                                     type=positive_float)
     texture_rounds: int = opt(2, "when a surface is textured: rounds of refitting against the texture recovered "
-                                 "from the pixels that directly seen texture lights (0 = the homogeneous fit alone, "
+                                 "from the pixels that directly seen texture lights, at least (over several photographs more, up to 4, while a "
+                                 "textured lobe still moves by more than 5 %; 0 = the homogeneous fit alone, "
                                  "as in the dissertation)", type=nonneg_int)
     single: bool = opt(False, "fit the reference photograph alone, ignoring inputs/ (the dissertation's method)",
                        flag="--single-photograph")
     pixels: int = opt(85_000, "pixels the fit reads when it samples (above --sample-above, or a photograph above "
                               "2 MP): a pilot, then the pixels that show lobes, reflections and transmissions and "
-                              "a share of the rest (0 = never sample)", type=nonneg_int)
+                              "a share of the rest; a sixth more per further photograph (0 = never sample)",
+                      type=nonneg_int)
     sample_above: float = opt(0.2, "the fit reads every usable pixel of the photographs up to this many megapixels "
                                    "(all photographs together) and samples only above (its rows "
                                    "weighed back: docs/fit.md \"Sampling\")", unit="MP", type=nonneg_float)

@@ -80,7 +80,7 @@ def test_the_texture_rounds_go_on_until_a_textured_lobe_settles(tmp_path):
     alternate as a linearly converging pair, each round taking back part of the highlight the last
     texture kept. Two rounds left the box at ks 0.134, ns 19.5 (46 % and 35 % low); rounds that go
     on while the lobe moves by more than 5 % reach both within 10 % of the values that made the
-    images, and within 3σ."""
+    images (four rounds), and within 3σ."""
     from reflab.hardware.sim.lab import build_lab, photographed
     from reflab.inverse.stages import FitOptions, fit
 
@@ -95,5 +95,31 @@ def test_the_texture_rounds_go_on_until_a_textured_lobe_settles(tmp_path):
     assert np.all(np.abs(ks - true["ks"]) <= 3 * sd), (ks, sd)
     ns, sn = box["material"]["ns"], box["sigma"]["ns"]
     assert abs(ns - float(true["ns"])) <= 0.1 * float(true["ns"]) and abs(ns - float(true["ns"])) <= 3 * sn, (ns, sn)
+    from reflab.inverse.fit.texture_aware import MAX_ROUNDS, SETTLE
+
     moved = [r.get("lobe_moved") for r in result.report["texture_rounds"]["rounds"]]
-    assert len(moved) > 2 and moved[-2] <= 0.05 < moved[0], moved  # went on, and stopped once settled
+    # Went on past two, and stopped once settled or at the cap.
+    assert len(moved) > 2 and moved[0] > SETTLE and (moved[-2] <= SETTLE or len(moved) == MAX_ROUNDS), moved
+
+
+def test_a_sample_of_several_photographs_grows_with_them_and_reads_a_textured_lobe(tmp_path):
+    """The same seven photographs at 320x240 (537 600 pixels) are read through a sample. At the
+    one-photograph budget (85 000, 16 %) few of the box's texels had two pixels read, the rounds'
+    fit left its highlight out (loosely known texels) and its lobe stayed undetermined at ns 4 for
+    30; the budget grown by a sixth per further photograph (170 000, pilot included) gives both
+    within 10 % of the values that made the images, and within 3σ."""
+    from reflab.hardware.sim.lab import build_lab, photographed
+    from reflab.inverse.fit import sampling
+    from reflab.inverse.stages import FitOptions, fit
+
+    root = tmp_path / "ws"
+    lab = photographed(root, build_lab(320, 240), "L0,L1,T35,T-35,T70,T-70", noise=0.01, seed=0)
+    true = next(s.material.params for s in lab.scene if s.name == "box")
+    report = fit(FitOptions(root)).report
+    assert report["sampling"]["pixels"] == sampling.budget(sampling.PIXELS, 7) == 2 * sampling.PIXELS
+    box = next(s for s in report["surfaces"] if s["name"] == "box")
+    assert not {"ks", "ns"} & set(box["undetermined"]), box["undetermined"]
+    ks, sd = np.asarray(box["material"]["ks"]), np.asarray(box["sigma"]["ks"])
+    assert np.all(np.abs(ks - true["ks"]) <= np.minimum(0.1 * np.asarray(true["ks"]), 3 * sd)), (ks, sd)
+    ns, sn = box["material"]["ns"], box["sigma"]["ns"]
+    assert abs(ns - float(true["ns"])) <= min(0.1 * float(true["ns"]), 3 * sn), (ns, sn)

@@ -53,7 +53,8 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
     pixels : int
         Pixels the fit reads when it samples (:mod:`reflab.inverse.fit.sampling`: a pilot, then the
-        evidence and a share of the others; a photograph above :data:`reflab.inverse.fit.large.LARGE`
+        evidence and a share of the others; over several photographs a sixth more per further one,
+        :func:`reflab.inverse.fit.sampling.budget`; a photograph above :data:`reflab.inverse.fit.large.LARGE`
         pixels through a binned view); 0: it never samples, whatever the photographs' size.
     sample_above : int
         The fit samples when the photographs hold more usable pixels than this.
@@ -194,7 +195,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.photograph import remember_noise
 
         remember_noise(image, noise_usable)
-    first, first_trees = sampling.pilot(frame, pixels) if sampled else usable, trees
+    photographs = int(trees.stats.get("photographs", 1)) if isinstance(trees.stats, dict) else 1
+    first, first_trees = sampling.pilot(frame, sampling.budget(pixels, photographs)) if sampled else usable, trees
     if reach is not None:  # the first fit's rows (the pilot's, or all) weighed as every pixel's sample
         first_trees = sampling.weighted(trees, sampling.weights(first & frame, reach))
         if not sampled:  # no later draw: every fit reads these rows with these weights
@@ -219,7 +221,8 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     if sampled and not result.message.startswith("stopped"):
         # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
         t3 = time.perf_counter()
-        keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame, pixels,
+        keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame,
+                                                               sampling.budget(pixels, photographs),
                                                                open_lobes=sampling.open_lobes(result))
         sample_report["pilot"] = int(fac.n_rows)
         if reach is not None:
