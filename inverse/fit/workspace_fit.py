@@ -7,6 +7,7 @@ rounds, which build on it: no import cycle.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -20,6 +21,22 @@ from reflab.inverse.fit.result import SceneFit
 from reflab.inverse.fit.rounds import FitSolution, check_image, fit, fit_json, saturated_pixels
 
 
+def _waits_for_saves(func):
+    """``func``, returning (or raising) only once the trees cache it writes on a thread is on disk."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        from reflab.inverse.forward.trees import wait_for_saves
+
+        try:
+            return func(*args, **kwargs)
+        finally:
+            wait_for_saves()
+
+    return wrapper
+
+
+@_waits_for_saves
 def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation: float | None = None,
                   maxiter: int | None = None, max_seconds: float | None = None, texture_rounds: int = 2,
                   progress=None, task: Task | None = None, single: bool = False,
@@ -65,19 +82,6 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         What was written to fit.json.
     result : FitSolution
     """
-    from reflab.inverse.forward.trees import wait_for_saves
-
-    try:
-        return _fit_workspace(workspace, method, depth, saturation=saturation, maxiter=maxiter,
-                              max_seconds=max_seconds, texture_rounds=texture_rounds, progress=progress, task=task,
-                              single=single, pixels=pixels, sample_above=sample_above)
-    finally:
-        wait_for_saves()  # the trees cache, written while the fit ran, is there when the stage returns
-
-
-def _fit_workspace(workspace, method, depth, *, saturation, maxiter, max_seconds, texture_rounds, progress, task,
-                   single, pixels, sample_above) -> tuple[dict, FitSolution]:
-    """:func:`fit_workspace`'s work, its trees cache still being written when it returns."""
     from reflab.core.workspace import Workspace, write_json
     from reflab.inverse.fit.photograph import stack_photographs
     from reflab.reconstruction.scene import Scene
