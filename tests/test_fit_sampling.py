@@ -33,6 +33,28 @@ def test_the_sample_keeps_every_strong_evidence_pixel_and_is_seeded():
     assert counts["evidence"] + counts["bulk"] == int(keep.sum()) < len(mask)
 
 
+def test_a_term_of_vanishing_light_weighs_nothing_and_nothing_overflows():
+    """A term whose light squared sums to a subnormal number (the lab lit a 1e-160th as brightly:
+    zoo seed 1 with seven photographs had such a lobe) gets no weight; 1/total had overflowed to
+    inf. Every weight stays finite and in [0, 1], and the lab at its own light is unchanged."""
+    import warnings
+
+    from reflab.hardware.sim.lab import build_lab
+    from reflab.inverse.fit.sampling import evidence_weight
+    from reflab.inverse.forward.trees import build_trees
+
+    lab = build_lab(40, 30, textured=False)
+    trees = build_trees(lab.scene, lab.camera, lab.lights, depth=3)
+    truth = [s.material for s in lab.scene]
+    intensities = np.asarray(lab.lights.intensities, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        dim = evidence_weight(trees, truth, 1e-160 * intensities)
+        bright = evidence_weight(trees, truth, intensities)
+    assert np.all(np.isfinite(dim)) and dim.min() >= 0.0 and dim.max() <= 1.0
+    assert bright.max() > 0.0 and np.all(bright <= 1.0)
+
+
 def _values(report, textured):
     """Determined values with σ; the kd of a surface fitted textured (its texture's mean gain) left out."""
     return {(s["name"], k, c): (v, s["sigma"][k][c] if isinstance(s["sigma"][k], list) else s["sigma"][k])

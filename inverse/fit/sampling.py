@@ -119,7 +119,9 @@ def evidence_weight(trees, materials, intensities, surfaces=None) -> np.ndarray:
     per = coo_matrix((light, (pixel, term)), shape=(trees.width * trees.height, n_terms)).tocsr()  # sums duplicates
     per.data **= 2
     total = np.asarray(per.sum(axis=0)).ravel()
-    per = per @ diags(np.divide(1.0, total, out=np.zeros_like(total), where=total > 0))
+    # A term whose light squared sums to a subnormal (zoo seed 1 with seven photographs: a lobe
+    # lit at 1e-160) has no information; 1/total would overflow to inf.
+    per = per @ diags(np.divide(1.0, total, out=np.zeros_like(total), where=total > 1e-300))
     return np.asarray(per.max(axis=1).todense()).ravel()
 
 
