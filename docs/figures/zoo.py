@@ -22,7 +22,12 @@ compared with truth.json. Reported over the seeds:
   and over those of them whose light the render says rests on no undetermined value (its
   ``undetermined_pixels``, docs/fit.md "Renders that say where they guess").
 
-    python docs/figures/zoo.py --seeds 0-11 --size 160x120 [--noise 0.0] [--json out.json] [--keep DIR]
+With ``--photographs`` (e.g. ``L0,L1,T35,T-35,T70,T-70``: each lamp alone, the turntable turned
+about the scene's vertical axis) each scene gets those further photographs too, by the same
+renderer with noise of the same share (seeded per scene), in ``inputs/``: the fit over several
+photographs judged on scenes it was never tuned on.
+
+    python docs/figures/zoo.py --seeds 0-11 --size 160x120 [--noise 0.0] [--photographs SHOTS] [--json out.json] [--keep DIR]
 """
 from __future__ import annotations
 
@@ -102,12 +107,15 @@ def view_scores(root: Path, depth: int) -> dict:
     return out
 
 
-def run_seed(seed: int, width: int, height: int, noise: float, root: Path, depth: int = 3, with_views: bool = True) -> dict:
+def run_seed(seed: int, width: int, height: int, noise: float, root: Path, depth: int = 3, with_views: bool = True,
+             shots: str = "") -> dict:
     from reflab.core.workspace import read_json
-    from reflab.hardware.sim.zoo import write_zoo_workspace
+    from reflab.hardware.sim.zoo import write_further_photographs, write_zoo_workspace
     from reflab.inverse.stages import FitOptions, TextureOptions, fit, texture
 
     zoo = write_zoo_workspace(root, seed, width, height, noise=noise, depth=depth, truth_views=with_views)
+    if shots:
+        write_further_photographs(root, zoo, shots, depth)
     t0, c0 = time.perf_counter(), time.process_time()
     result = fit(FitOptions(root, depth=depth))
     fit_s, fit_cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -174,13 +182,15 @@ def main(argv=None):
     ap.add_argument("--no-views", action="store_true", help="skip the novel and relit views")
     ap.add_argument("--json")
     ap.add_argument("--keep", help="folder to keep the workspaces in (default: a temporary one)")
+    ap.add_argument("--photographs", default="", help="further shots of every scene: Lk (lamp k alone), TA (turntable A degrees)")
     args = ap.parse_args(argv)
     W, H = (int(v) for v in args.size.split("x"))
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(args.keep or tmp)
         for seed in _seeds(args.seeds):
-            r = run_seed(seed, W, H, args.noise, base / f"zoo-{seed}-{W}x{H}", with_views=not args.no_views)
+            r = run_seed(seed, W, H, args.noise, base / f"zoo-{seed}-{W}x{H}", with_views=not args.no_views,
+                         shots=args.photographs)
             results.append(r)
             print(f"seed {seed}: fit {r['fit_s']:.1f} s, {r['determined']} determined, worst {r['worst']:.2f}, "
                   f"wrong {r['wrong']}, recovered {r['recovered']}/{r['visible']}, views {r.get('views')}", flush=True)

@@ -347,6 +347,23 @@ def write_zoo_workspace(root, seed: int, width: int = 160, height: int = 120, *,
     return zoo
 
 
+def write_further_photographs(root, zoo: ZooScene, shots, depth: int = 3) -> None:
+    """The further photographs ``shots`` (:func:`reflab.hardware.sim.lab.named_views`: ``Lk`` lamp k
+    alone, ``TA`` the turntable turned by A degrees) of a zoo scene, by the reference renderer
+    with the scene's noise share of each one's peak (seeded by its seed), written into ``root``'s
+    inputs/ with their camera and lamps: the fit over several photographs on a random scene."""
+    from reflab.hardware.sim.lab import named_views
+    from reflab.hardware.sim.reference import render_reference
+    from reflab.inverse.forward.photographs import write_input
+
+    rng = np.random.default_rng([35, zoo.seed, 2])
+    for name, cam, lights in named_views(zoo.camera, zoo.lights, shots):
+        img = render_reference(zoo.scene, cam, lights, depth=depth, albedo=zoo.albedo)
+        if zoo.noise > 0:
+            img = img + rng.normal(0.0, zoo.noise * img.max(), img.shape)
+        write_input(root, name, img, cam, lights)
+
+
 # ---------------------------------------------------------------- scoring a fit
 def seen_surfaces(report: dict) -> set:
     """Indices of the surfaces with a column in the fit (seen by the camera and lit)."""

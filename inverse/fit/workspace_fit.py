@@ -227,7 +227,9 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         t3 = time.perf_counter()
         keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame,
                                                                sampling.budget(pixels, photographs),
-                                                               open_lobes=sampling.open_lobes(result))
+                                                               open_lobes=sampling.open_lobes(result) if photographs == 1
+                                                               else sorted(set(sampling.open_lobes(result))
+                                                                           | set(sampling.every_lobe(result.materials, held))))
         sample_report["pilot"] = int(fac.n_rows)
         if reach is not None:
             probability = probability * reach
