@@ -447,9 +447,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
             colour_mask &= ~(given & ~mask)
     t_start = time.perf_counter()
     if max_rounds is None:  # one photograph: a texel seen once settles nothing (zoo at 640x480: 1.5x the time, no gain)
-        stats = getattr(trees, "stats", None)
-        several = isinstance(stats, dict) and len(stats.get("block_row0") or ()) > 1
-        max_rounds = MAX_ROUNDS if several else int(rounds)
+        from reflab.inverse.forward.photographs import photograph_count
+
+        max_rounds = MAX_ROUNDS if photograph_count(trees) > 1 else int(rounds)
     planned, cap = int(rounds), max(int(rounds), int(max_rounds))
     k = -1
     while k + 1 < planned:

@@ -182,6 +182,7 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     lobes' sample (``Stack.even``), else drawn here (:func:`reflab.inverse.fit.sampling.even`).
     """
     from reflab.inverse.forward.models import get_model
+    from reflab.inverse.forward.photographs import photograph_count
 
     t1 = time.perf_counter()
     models = [get_model(s.material.brdf) for s in scene]
@@ -199,7 +200,7 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         from reflab.inverse.fit.photograph import remember_noise
 
         remember_noise(image, noise_usable)
-    photographs = int(trees.stats.get("photographs", 1)) if isinstance(trees.stats, dict) else 1
+    photographs = photograph_count(trees)
     first, first_trees = sampling.pilot(frame, sampling.budget(pixels, photographs)) if sampled else usable, trees
     if reach is not None:  # the first fit's rows (the pilot's, or all) weighed as every pixel's sample
         first_trees = sampling.weighted(trees, sampling.weights(first & frame, reach))
@@ -225,11 +226,12 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
     if sampled and not result.message.startswith("stopped"):
         # The pilot found the lobes and reflections; the fit now reads where they show, and a share of the rest.
         t3 = time.perf_counter()
+        lobes = set(sampling.open_lobes(result))
+        if photographs > 1:  # a sharp highlight only a further photograph holds (sampling.every_lobe)
+            lobes |= set(sampling.every_lobe(result.materials, held))
         keep, probability, sample_report = sampling.fit_sample(trees, result.materials, intensities, frame,
                                                                sampling.budget(pixels, photographs),
-                                                               open_lobes=sampling.open_lobes(result) if photographs == 1
-                                                               else sorted(set(sampling.open_lobes(result))
-                                                                           | set(sampling.every_lobe(result.materials, held))))
+                                                               open_lobes=sorted(lobes))
         sample_report["pilot"] = int(fac.n_rows)
         if reach is not None:
             probability = probability * reach
@@ -261,7 +263,7 @@ def fit_scene(trees, scene, intensities, image, usable, method: str = "ftbo", *,
         even = None if not sampled else colour_pixels if colour_pixels is not None else \
             sampling.even(trees, frame, np.flatnonzero([s.textured for s in scene]))
         ref = trees.stats.get("reference_pixels") if isinstance(trees.stats, dict) else None
-        if sampled and ref and int(trees.stats.get("photographs", 1)) > 1:
+        if sampled and ref and photographs > 1:
             # The rounds' texture from the reference photograph's every pixel and the further ones'
             # sampled pixels (the view): its texels keep the reference's footprint, and the rounds'
             # cost grows with the sample, not with the photographs. The colour lobes read their own

@@ -258,6 +258,13 @@ def stack_trees(trees_list, lights_list, names=None) -> Stack:
     return Stack(trees, slots, blocks, None if valid.all() else valid)
 
 
+def photograph_count(trees) -> int:
+    """How many photographs ``trees`` hold: :func:`stack_trees`' ``stats["photographs"]`` (kept by
+    the trees of some of their pixels), 1 for one photograph's own trees."""
+    stats = getattr(trees, "stats", None)
+    return int(stats.get("photographs", 1)) if isinstance(stats, dict) else 1
+
+
 def turned_view(camera, lights, angle_deg: float, centre_xy, *, direction: float = 1.0, lit=None):
     """The camera and lamps of a photograph taken with the turntable turned by ``angle_deg``,
     in the scene's frame (docs/formats.md "inputs/"): the objects turned by ``direction · angle``
