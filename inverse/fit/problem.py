@@ -19,6 +19,8 @@ from reflab.inverse.fit.ranges import theta_bounds
 
 #: Nonlinear parameters searched in log2 (scale parameters spanning decades).
 LOG2 = frozenset({"ns", "alpha"})
+#: Shape parameters whose lobe widens as they grow (Ward's α; a Phong lobe widens as ns falls).
+WIDER_UP = frozenset({"alpha"})
 #: Noise assumed at least this fraction of the image peak: a noise-free float image still carries
 #: rounding, so σ never reaches 0 and a parameter with vanishing signal stays undetermined.
 NOISE_FLOOR = 1e-6
@@ -102,6 +104,7 @@ class Search:
     def __init__(self, fac: Factorization):
         names = [name for _, name in fac.layout.theta_names]
         self.log = np.array([n in LOG2 for n in names], dtype=bool)
+        self.wider_up = np.array([n in WIDER_UP for n in names], dtype=bool)
         lo, hi = theta_bounds(fac)
         self.lo = np.where(self.log, np.log2(np.maximum(lo, 1e-300)), lo)
         self.hi = np.where(self.log, np.log2(hi), hi)

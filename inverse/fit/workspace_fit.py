@@ -70,7 +70,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
         Fit the reference photograph alone (the dissertation's method), ignoring ``inputs/``.
     pixels : int
         Pixels the fit reads when it samples (:mod:`reflab.inverse.fit.sampling`: a pilot, then the
-        evidence and a share of the others; over several photographs a sixth more per further one,
+        evidence and a share of the others; over several photographs half again per further one,
         :func:`reflab.inverse.fit.sampling.budget`; a photograph above :data:`reflab.inverse.fit.large.LARGE`
         pixels through a binned view); 0: it never samples, whatever the photographs' size.
     sample_above : int
