@@ -115,3 +115,22 @@ def test_phases_add_up_over_a_rejection_refit():
         assert np.all(np.abs(got - want) <= 0.01 * sigma + 1e-12), name
         np.testing.assert_allclose(getattr(done.sigma, name), sigma, rtol=1e-3)
     assert abs(done.time_s - now.time_s) < 0.5 * now.time_s
+
+
+def test_the_coarse_subsample_of_a_weighted_sample_weighs_its_rows_once(monkeypatch):
+    """A sample's rows carry weights (sampling.weights) that the factorization applies to A and
+    Problem to b. The coarse subsample (the scan's, and where an open lobe is weighed) rebuilt its
+    Problem from the weighted b, weighing the photograph twice: at the true parameters of an exact
+    image its residual was the data times (√w − 1), not 0 (floor_mirror's seven 320x240
+    photographs: a χ² 35 times the fit's, on which the mirror's open lobe was weighed)."""
+    truth, fac0, img, _ = _homogeneous_lab_from_ns_2_14(160, 120)
+    w = np.random.default_rng(0).uniform(0.3, 3.0, 160 * 120)
+    fac = Factorization(fac0.trees, fac0.models, fac0._args[0], weights=w)
+    monkeypatch.setattr(ftbo, "COARSE_MIN_ROWS", 10_000)
+    pb = Problem(fac, img, [m.transparent for m in truth])
+    coarse = ftbo.coarse_problem(pb)
+    assert coarse is not None and coarse.fac.n_rows == 80 * 60
+    p = params_of(fac, truth)
+    for prob in (pb, coarse):
+        r = prob.residual(prob.fac.matrices(p.theta), prob.fac.y(p.x, p.s))
+        assert np.abs(r).max() < 1e-9 * img.max(), np.abs(r).max()
