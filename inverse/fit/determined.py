@@ -89,9 +89,8 @@ def unresolved(pb: Problem, p: Params, init: Params, free: Free, sig: Params, A,
     bad_x = free.x & ~(sig.x <= RESOLVE * xs) & ((p.x > BOUND_TOL * xs) | ~seen | (not bounds_hold))
     bad_s = free.s & ~(sig.s <= RESOLVE) & (((p.s > BOUND_TOL) & (p.s < 1.0 - BOUND_TOL)) | (not bounds_hold))
     # A shininess pinned at its lower bound is a lobe as broad as diffuse light: it trades with kd
-    # and fits misfit, not a highlight (docs/fit.md). So is a Ward α at its upper bound (zoo seed 3,
-    # seven photographs at 320x240: a textured box started as a broad blue lobe reported α 1.0 ±
-    # 0.12 for 0.07); its lower bound, a spike as sharp as the range allows, is a limit too.
+    # and fits misfit, not a highlight (docs/fit.md). So is a Ward α at its upper bound; at its
+    # lower one, a spike as sharp as the range allows, it is a limit, not an estimate.
     u = pb.search.to_u(p.theta)
     pinned = pb.search.log & ((u <= pb.search.lo + 1e-6) | (pb.search.wider_up & (u >= pb.search.hi - 1e-6)))
     bad_t = free.theta & (~(theta_resolution(pb, p, sig) <= theta_resolve) | pinned)
@@ -539,7 +538,7 @@ def _weigh(pb: Problem, p: Params, lin: Free, k: int, q: int, value: float, band
     a = cur.x[k, bands] * L
     sd = sigmas(pb, cur, lin, r, robust=False, keep=keep).x[k, bands] * L / np.sqrt(scale)
     # One grey lobe: the bands' estimates combined by their information, their spread a misfit.
-    # A band with σ beyond 1e150 says nothing (its square would overflow: zoo seed 1, seven photographs).
+    # A band with σ beyond 1e150 says nothing (its square would overflow).
     w = np.where((sd > 0) & (sd < 1e150), 1.0 / np.clip(sd, 1e-150, 1e150) ** 2, 0.0)
     if w.sum() > 0:
         a_hat, s_hat = float(np.sum(w * a) / w.sum()), float(1.0 / np.sqrt(w.sum()))

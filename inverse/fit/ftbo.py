@@ -473,8 +473,7 @@ def coarse_problem(pb: Problem):
     sub = fac.without(fac.rows[(x % stride != 0) | (y % stride != 0)])
     image = np.zeros((fac.width * fac.height, BANDS))
     # The photograph itself: ``b`` carries a sample's row weights, which ``sub`` applies again
-    # (weighed twice, the data no longer matched the model: floor_mirror's seven 320x240
-    # photographs, a χ² 35 times the residual's, the open mirror lobe weighed on that misfit).
+    # (weighed twice, its data would no longer match its model; docs/fit.md, "Sampling").
     image[fac.rows] = (pb.b if pb.scale is None else pb.b / pb.scale).T
     coarse = Problem(sub, image.reshape(fac.height, fac.width, BANDS), pb.transparent)
     coarse.noise, coarse.deadline, coarse.task = pb.noise, pb.deadline, pb.task

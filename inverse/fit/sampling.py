@@ -41,10 +41,8 @@ PILOT, EVIDENCE, BULK = 15 / 85, 45 / 85, 25 / 85
 #: 85 000 of the lab's seven 320x240 photographs (16 %) left its box's highlight on texels read
 #: once, the rounds' fit left those pixels out and the lobe stayed undetermined at ns 4 for 30;
 #: 170 000 gave ks 0.249 ± 0.015, ns 30.4 ± 1.8 (0.25 / 30) in 10 s. A larger pilot mattered:
-#: the evidence and bulk grown alone left the lobe at ns 2.8. A half (340 000 for seven) rather
-#: than a sixth: the lab's values are noise-limited where the sample is (640x480: the box's ks σ
-#: 0.019 → 0.013, 27 → 32 of its 37 values within 10 %; 320x240: 30 → 33, the 33 the shots show),
-#: for 20 % more time (2.8 → 3.4 s a photograph at seven).
+#: the evidence and bulk grown alone left the lobe at ns 2.8. Half rather than a sixth: where the
+#: fit samples, its values are noise-limited by the sample (docs/fit.md, "Sampling").
 PER_FURTHER = 1 / 2
 #: The sampling's seed.
 SEED = 0
