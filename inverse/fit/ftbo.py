@@ -474,7 +474,8 @@ def coarse_problem(pb: Problem):
     image = np.zeros((fac.width * fac.height, BANDS))
     # The photograph itself: ``b`` carries a sample's row weights, which ``sub`` applies again
     # (weighed twice, its data would no longer match its model; docs/fit.md, "Sampling").
-    image[fac.rows] = (pb.b if pb.scale is None else pb.b / pb.scale).T
+    data = pb.b if pb.scale is None else np.divide(pb.b, pb.scale, out=np.zeros_like(pb.b), where=pb.scale > 0)
+    image[fac.rows] = data.T
     coarse = Problem(sub, image.reshape(fac.height, fac.width, BANDS), pb.transparent)
     coarse.noise, coarse.deadline, coarse.task = pb.noise, pb.deadline, pb.task
     coarse.scan_share = sub.n_rows / fac.n_rows
