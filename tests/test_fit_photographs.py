@@ -218,3 +218,28 @@ def test_inputs_errors_name_the_file(tmp_path):
     (ws.inputs / "orphan.json").write_text(json.dumps({"camera": camera, "lights": json.loads(ws.lights.read_text())}))
     with pytest.raises(WorkspaceError, match=r"orphan.exr.*missing"):
         load_photographs(root)
+
+
+def test_a_photograph_its_sidecar_does_not_describe_is_named(tmp_path):
+    """A shot kept under the wrong lamp (the defect a real GRBL showed) is fitted all the same; the
+    model's misfit on it, against the other photographs', names its file in fit.json's warnings."""
+    from reflab.inverse.fit.diagnosis import MISMATCH_SHARE
+    from reflab.inverse.forward.photographs import turned_view
+    from reflab.inverse.stages import FitOptions, fit
+
+    root = tmp_path / "ws"
+    lab, photo = _lab_workspace(root, textured=True, noise=0.01)
+    names = [_add(root, lab, photo, a, lamps) for a, lamps in ((35.0, [0]), (-35.0, [1]), (70.0, None))]
+    clean = fit(FitOptions(root)).report
+    assert not [w for w in clean["warnings"] if "does not match" in w], clean["warnings"]
+    assert [p["name"] for p in clean["photographs"]] == ["input", *sorted(names)]
+    assert all(0.0 <= p["unexplained"] < MISMATCH_SHARE for p in clean["photographs"]), clean["photographs"]
+    # The +35° shot taken under lamp 1, its sidecar saying lamp 0.
+    camera, _ = turned_view(lab.camera, lab.lights, 35.0, (0.0, 0.0), lit=[0])
+    _, other_lamp = turned_view(lab.camera, lab.lights, 35.0, (0.0, 0.0), lit=[1])
+    write_image(Workspace(root).inputs / f"{names[0]}.exr", photo(camera, other_lamp))
+    wrong = fit(FitOptions(root)).report
+    flagged = [w for w in wrong["warnings"] if "does not match" in w]
+    assert len(flagged) == 1 and f"inputs/{names[0]}.exr" in flagged[0] and f"inputs/{names[0]}.json" in flagged[0], flagged
+    shares = {p["name"]: p["unexplained"] for p in wrong["photographs"]}
+    assert shares[names[0]] >= MISMATCH_SHARE > max(v for k, v in shares.items() if k != names[0]), shares

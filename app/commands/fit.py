@@ -56,7 +56,9 @@ def run(args) -> int:
              f"{report['trees']['nodes']} tree nodes")
     if len(report.get("photographs", [])) > 1:
         LOG.info(f"reflab fit: {len(report['photographs'])} photographs: " + ", ".join(
-            f"{p['name']} ({p['pixels_used']} px, RMS {max(p['rms']):.3g})" for p in report["photographs"]))
+            f"{p['name']} ({p['pixels_used']} px, RMS {max(p['rms']):.3g}"
+            + (f", {100 * p['unexplained']:.1f} % unexplained)" if "unexplained" in p else ")")
+            for p in report["photographs"]))
     LOG.info(f"reflab fit: {cols['used']} monomial columns used (the dense factorization has {cols['dense_dissertation']})")
     rms = ", ".join(f"{v:.3g}" for v in report["rms"])
     LOG.info(f"reflab fit: {args.method} {result.iterations} iterations in {report['time_s']:.2f} s, RMS per band [{rms}]"

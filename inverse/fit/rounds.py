@@ -344,7 +344,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         th = slice(lay.theta_offset[s], lay.theta_offset[s + 1])
         if name != "kd" and (np.any(~fitted_free.theta[th]) or np.any(loose.theta[th])):
             loose.x[k] |= fitted_free.x[k]
-    status, warnings = diagnose(pb, p, *pb.unweighted(A, res), textured, names)
+    shares = []  # per stacked photograph, its share of pixels the model does not explain
+    status, warnings = diagnose(pb, p, *pb.unweighted(A, res), textured, names, per_photograph=shares)
     # An undetermined lobe is reported and rendered where the data and the prior over the field's
     # lobes agree (determined.plausible_lobes); any other undetermined value off a range bound.
     before = p
@@ -370,6 +371,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
     if message.startswith("stopped"):  # iteration cap or wall-clock budget
         warnings.insert(0, f"the fit did not converge ({message})")
         status = "not converged" if status == "ok" else status
+    if shares:
+        stats = {**stats, "unexplained_by_photograph": shares}
     if colour:
         stats = {**stats, "colour_lobes": {(names[s] if names else f"surface {s}"): lobe.to_json() for s, lobe in colour.items()}}
     return FitSolution(method, p, fitted_free, materials_of(fac, p, materials), sig, pb.rms(res), elapsed, trace,

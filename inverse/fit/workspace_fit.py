@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -154,6 +155,7 @@ def fit_workspace(workspace, method: str = "ftbo", depth: int = 3, *, saturation
     if geometry is not None and geometry["surfaces"]:
         extra["geometry_sigma"] = geometry
     report = fit_json(result, fac, scene, depth, extra)
+    mismatched_warnings(report, result.stats.get("unexplained_by_photograph"))
     annotate(report)  # what the photograph said of each textured surface's albedo, per surface
     if len(photos) > 1:
         for item, shares in zip(report["surfaces"], determined_by(stack, photos, fac, image, result, scene)):
@@ -310,6 +312,29 @@ def photograph_report(stack, photos, image, unused, fac, result) -> list:
                     "pixels_used": int(len(px)),
                     "rms": [float(v) for v in np.sqrt(np.mean(res * res, axis=0))] if len(px) else [0.0, 0.0, 0.0]})
     return out
+
+
+def mismatched_warnings(report: dict, shares) -> None:
+    """fit.json's photographs gain ``unexplained`` (the share of their pixels read that the fitted
+    model, with its texture, leaves above the diagnosis' threshold); a photograph that stands out
+    (:func:`reflab.inverse.fit.diagnosis.mismatched_photographs`) gets a warning naming its file:
+    a shot whose lamps or camera are not those its sidecar gives is fitted all the same, and only
+    its misfit shows it."""
+    from reflab.inverse.fit.diagnosis import mismatched_photographs
+
+    photos = report.get("photographs") or []
+    if not shares or len(shares) != len(photos):
+        return
+    for item, share in zip(photos, shares):
+        item["unexplained"] = round(float(share), 6)
+    others = lambda i: float(np.median(np.delete(np.asarray(shares), i)))
+    for i in mismatched_photographs(shares):
+        item = photos[i]
+        sidecar = "camera.json and lights.json" if i == 0 else Path(item["file"]).with_suffix(".json").as_posix()
+        report["warnings"].append(
+            f"photograph {item['name']} ({item['file']}) does not match the others: the model leaves "
+            f"{100 * shares[i]:.0f}% of its pixels unexplained against {100 * others(i):.1f}% in theirs; was it taken "
+            f"with the camera and the {item['lamps']} lamp{'s' if item['lamps'] != 1 else ''} {sidecar} give?")
 
 
 #: A photograph "determines" a parameter when it holds at least this share of its information.

@@ -129,13 +129,19 @@ def _photographs(sec: Section, fit: dict) -> None:
     photos = [p for p in as_list(fit.get("photographs")) if isinstance(p, dict)]
     if len(photos) < 2:
         return
-    sec.table(["photograph", "file", "size", "lamps lit", "pixels used", "RMS per band"],
+    def unexplained(p):
+        v = p.get("unexplained")
+        return f"{100 * v:.1f} %" if isinstance(v, (int, float)) else "–"
+
+    sec.table(["photograph", "file", "size", "lamps lit", "pixels used", "RMS per band", "unexplained"],
               [[p.get("name"), p.get("file"), f"{p.get('width')} × {p.get('height')}", num(p.get("lamps")),
-                num(p.get("pixels_used")), num(p.get("rms"), 3)] for p in photos],
+                num(p.get("pixels_used")), num(p.get("rms"), 3), unexplained(p)] for p in photos],
               "The photographs fitted together (the reference input and inputs/, docs/fit.md \"Several photographs "
               "and the plan\"): one set of parameters for all; \"determined by\" in the table above names the "
               "photographs holding at least 10 % of a parameter's information. RMS: the fitted model with "
-              "homogeneous albedo, linear radiance.")
+              "homogeneous albedo, linear radiance. Unexplained: the share of its pixels read that the model, "
+              "with its texture, leaves above six times the noise; a photograph far above the others is "
+              "named in the warnings (its lamps or camera may not be those its sidecar gives).")
 
 
 def _colour_lobes(sec: Section, fit: dict) -> None:
