@@ -227,13 +227,23 @@ def test_a_photograph_its_sidecar_does_not_describe_is_named(tmp_path):
     from reflab.inverse.forward.photographs import turned_view
     from reflab.inverse.stages import FitOptions, fit
 
+    from reflab.inverse.forward.photographs import write_input
+
     root = tmp_path / "ws"
     lab, photo = _lab_workspace(root, textured=True, noise=0.01)
     names = [_add(root, lab, photo, a, lamps) for a, lamps in ((35.0, [0]), (-35.0, [1]), (70.0, None))]
+    # A shot ten times as noisy as the others (another exposure) is judged against its own noise.
+    cam, lights = turned_view(lab.camera, lab.lights, -70.0, (0.0, 0.0))
+    noisy = photo(cam, lights)
+    noisy = noisy + np.random.default_rng(1).normal(0.0, 0.1 * noisy.max(), noisy.shape)
+    write_input(root, "noisy", noisy, cam, lights)
+    names.append("noisy")
     clean = fit(FitOptions(root)).report
     assert not [w for w in clean["warnings"] if "does not match" in w], clean["warnings"]
     assert [p["name"] for p in clean["photographs"]] == ["input", *sorted(names)]
     assert all(0.0 <= p["unexplained"] < MISMATCH_SHARE for p in clean["photographs"]), clean["photographs"]
+    # (judged against the others' noise, 3.0 % of the noisy shot's pixels were over the line)
+    assert {p["name"]: p["unexplained"] for p in clean["photographs"]}["noisy"] < 0.005, clean["photographs"]
     # The +35° shot taken under lamp 1, its sidecar saying lamp 0.
     camera, _ = turned_view(lab.camera, lab.lights, 35.0, (0.0, 0.0), lit=[0])
     _, other_lamp = turned_view(lab.camera, lab.lights, 35.0, (0.0, 0.0), lit=[1])

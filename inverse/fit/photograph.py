@@ -122,6 +122,20 @@ def read_photograph(photo, saturation: float | None = None):
 
 def stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
                       task=None, log=None, further: int = 0, above: int = 0, background: bool = False):
+    stack, image, saturated, photos = _stack_photographs(workspace, scene, depth, saturation=saturation, single=single,
+                                                         task=task, log=log, further=further, above=above,
+                                                         background=background)
+    if len(photos) > 1 and isinstance(stack.trees.stats, dict):
+        # Each photograph's own noise (a brighter exposure, a highlight that sets the scale): the
+        # diagnosis judges each photograph's misfit against it (diagnosis.mismatched_photographs).
+        stack.trees.stats["block_noise"] = [
+            image_noise(part, ~saturated[stack.pixels(i)].reshape(part.shape[:2])).tolist()
+            for i, part in enumerate(stack.split(image))]
+    return stack, image, saturated, photos
+
+
+def _stack_photographs(workspace, scene, depth: int, *, saturation: float | None = None, single: bool = False,
+                       task=None, log=None, further: int = 0, above: int = 0, background: bool = False):
     """The workspace's photographs (the reference and ``inputs/``, or the reference alone with
     ``single``) checked, their trees built or read from the cache, stacked into one system
     (:mod:`reflab.inverse.forward.photographs`).
