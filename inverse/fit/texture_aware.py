@@ -577,8 +577,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
             colour = precise or None
             if colour:
                 materials, guessed = hold_colour(materials, guessed, colour)
-                out = one_round(k, last, materials, guessed, colour, free_round[2], relative_view, result, left,
-                                time.perf_counter())
+                now = time.perf_counter()
+                out = one_round(k, last, materials, guessed, colour, free_round[2], relative_view, result,
+                                None if max_seconds is None else max_seconds - (now - t_start), now)
             else:
                 out = free_round
         else:
