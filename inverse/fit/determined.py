@@ -289,7 +289,9 @@ def _photograph_of(tr) -> np.ndarray:
     row0 = stats.get("block_row0") if isinstance(stats, dict) else None
     if row0 is None or len(row0) < 2:
         return np.zeros(len(tr.pixel), dtype=np.int64)
-    return np.searchsorted(np.asarray(row0), np.asarray(tr.pixel, dtype=np.int64) // int(tr.width), side="right") - 1
+    from reflab.inverse.forward.photographs import photograph_of
+
+    return photograph_of(tr.pixel, row0, tr.width)
 
 
 def texel_groups(tr, textured) -> np.ndarray:

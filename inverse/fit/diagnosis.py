@@ -66,15 +66,16 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None, per_phot
     n_surf = len(fac.models)
     textured = [False] * n_surf if textured is None else [bool(t) for t in textured]
     names = [f"surface {i}" for i in range(n_surf)] if names is None else list(names)
-    tol = np.broadcast_to((DIAG_SIGMAS * pb.noise + DIAG_FLOOR * pb.peak)[:, None], res.shape).copy()
+    # What a residual may reach besides the noise: a floor, and on textured surfaces their albedo's variation.
+    allowance = np.full(res.shape, DIAG_FLOOR * pb.peak)
     diffuse = np.array([textured[s] and fac.layout.x_names[i][1] == "kd"
                         for s, i in zip(fac.col_surface, fac.col_x)], dtype=bool)
     if diffuse.any():
         y = fac.y(p.x, p.s)
-        tol += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
-    bad = np.any(np.abs(res) > tol, axis=0)
+        allowance += np.stack([A[c] @ np.where(diffuse, y[c], 0.0) for c in range(BANDS)])
+    bad = np.any(np.abs(res) > allowance + DIAG_SIGMAS * pb.noise[:, None], axis=0)
     if per_photograph is not None:
-        per_photograph[:] = _shares(fac, res, tol - DIAG_SIGMAS * pb.noise[:, None], pb.noise, getattr(pb, "scale", None))
+        per_photograph[:] = _shares(fac, res, allowance, pb.noise, getattr(pb, "scale", None))
     if not bad.any():
         return "ok", []
     # Which surface each unexplained pixel sees first (its primary hit).
@@ -115,7 +116,9 @@ def _shares(fac, res, allowance, noise, scale) -> list:
     row0 = stats.get("block_row0") if isinstance(stats, dict) else None
     if row0 is None or len(row0) < 2:
         return []
-    photo = np.searchsorted(np.asarray(row0), np.asarray(fac.rows) // int(fac.width), side="right") - 1
+    from reflab.inverse.forward.photographs import photograph_of
+
+    photo = photograph_of(fac.rows, row0, fac.width)
     own = stats.get("block_noise")
     own = np.asarray(own if own is not None and len(own) == len(row0) else [noise] * len(row0), dtype=np.float64)
     allowance = allowance + DIAG_SIGMAS * own[photo].T
@@ -135,14 +138,16 @@ MISMATCH_RATIO = 5.0
 
 
 def mismatched_photographs(shares) -> list:
-    """Indices of the photographs whose unexplained share (:func:`diagnose`'s ``per_photograph``)
-    stands out from the others' (:data:`MISMATCH_SHARE`, :data:`MISMATCH_RATIO`)."""
+    """``(index, the others' median share)`` of each photograph whose unexplained share
+    (:func:`diagnose`'s ``per_photograph``) stands out from the others' (:data:`MISMATCH_SHARE`,
+    :data:`MISMATCH_RATIO`)."""
     shares = np.asarray(shares, dtype=np.float64)
     out = []
     for i, v in enumerate(shares):
         others = np.delete(shares, i)
-        if len(others) and v >= MISMATCH_SHARE and v >= MISMATCH_RATIO * float(np.median(others)):
-            out.append(i)
+        median = float(np.median(others)) if len(others) else 0.0
+        if len(others) and v >= MISMATCH_SHARE and v >= MISMATCH_RATIO * median:
+            out.append((i, median))
     return out
 
 

@@ -481,8 +481,9 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
     t_start = time.perf_counter()
     from reflab.inverse.forward.photographs import photograph_count
 
+    several = photograph_count(trees) > 1
     if max_rounds is None:  # one photograph: a texel seen once settles nothing (zoo at 640x480: 1.5x the time, no gain)
-        max_rounds = MAX_ROUNDS if photograph_count(trees) > 1 else int(rounds)
+        max_rounds = MAX_ROUNDS if several else int(rounds)
 
     def one_round(k, last, materials, guessed, colour, tex, relative_view, previous, left, t0):
         """One round: the texture under ``materials``, then the fit against it (module docstring)."""
@@ -552,7 +553,6 @@ def fit_with_texture(trees, scene, models, intensities, image, start: FitSolutio
             colour = colour_held(trees, materials, guessed, intensities, image, textured, start.stats.get("noise"),
                                  mask if colour_mask is None else colour_mask, held, result.rms)[2]
             colour_s = time.perf_counter() - t0
-        several = photograph_count(trees) > 1
         dropped = {}
         if colour and several and any(not lobe_known(lobe) for lobe in colour.values()):
             # Over several photographs the rounds fit a textured lobe from its texels seen twice: a

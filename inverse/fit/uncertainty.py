@@ -24,6 +24,7 @@ import numpy as np
 from scipy.sparse import csr_matrix, diags
 
 from reflab.inverse.forward.factorization import BANDS, gram
+from reflab.inverse.forward.photographs import photograph_of
 from reflab.inverse.fit.problem import NOISE_FLOOR, Free, Params, Problem
 
 #: Target number of tiles across the image's shorter side (tile size = shorter side / this, ≥ 4 px).
@@ -130,7 +131,7 @@ def robust_sd(H: np.ndarray, scores: np.ndarray | None, rows, width: int, height
         if blocks is not None and len(blocks) > 1:
             fine, n_fine = tile_index(rows, width, height)
             photo_of_tile = np.zeros(n_fine, dtype=np.int64)
-            photo_of_tile[fine] = np.searchsorted(np.asarray(blocks), np.asarray(rows) // width, side="right") - 1
+            photo_of_tile[fine] = photograph_of(rows, blocks, width)
             per_photo = np.zeros((scores.shape[0], len(blocks)))
             np.add.at(per_photo.T, photo_of_tile, scores.T)
             sandwich = np.fmax(sandwich, covariance(H, per_photo)[1])

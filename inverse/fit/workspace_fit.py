@@ -327,13 +327,12 @@ def mismatched_warnings(report: dict, shares) -> None:
         return
     for item, share in zip(photos, shares):
         item["unexplained"] = round(float(share), 6)
-    others = lambda i: float(np.median(np.delete(np.asarray(shares), i)))
-    for i in mismatched_photographs(shares):
+    for i, others in mismatched_photographs(shares):
         item = photos[i]
         sidecar = "camera.json and lights.json" if i == 0 else Path(item["file"]).with_suffix(".json").as_posix()
         report["warnings"].append(
             f"photograph {item['name']} ({item['file']}) does not match the others: the model leaves "
-            f"{100 * shares[i]:.0f}% of its pixels unexplained against {100 * others(i):.1f}% in theirs; was it taken "
+            f"{100 * shares[i]:.0f}% of its pixels unexplained against {100 * others:.1f}% in theirs; was it taken "
             f"with the camera and the {item['lamps']} lamp{'s' if item['lamps'] != 1 else ''} {sidecar} give?")
 
 

@@ -153,8 +153,7 @@ class Stack:
 
     def photograph_of(self, pixel) -> np.ndarray:
         """Index of the photograph each flat pixel index lies in."""
-        rows = np.asarray(pixel) // self.width
-        return np.searchsorted(np.array([b.row0 for b in self.blocks]), rows, side="right") - 1
+        return photograph_of(pixel, [b.row0 for b in self.blocks], self.width)
 
     def split(self, image) -> list:
         """A stacked (H, W, …) image cut back into the photographs' own images."""
@@ -256,6 +255,12 @@ def stack_trees(trees_list, lights_list, names=None) -> Stack:
         v, u = np.mgrid[b.row0:b.row0 + b.height, 0:b.width]
         valid[(v * width + u).ravel()] = True
     return Stack(trees, slots, blocks, None if valid.all() else valid)
+
+
+def photograph_of(pixel, row0, width: int) -> np.ndarray:
+    """Index of the stacked photograph each flat pixel index lies in, the photographs starting at
+    the image rows ``row0`` (``stats["block_row0"]`` of stacked trees) of an image ``width`` wide."""
+    return np.searchsorted(np.asarray(row0), np.asarray(pixel, dtype=np.int64) // int(width), side="right") - 1
 
 
 def photograph_count(trees) -> int:
