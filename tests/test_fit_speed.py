@@ -114,7 +114,10 @@ def test_phases_add_up_over_a_rejection_refit():
         got, want, sigma = getattr(done.params, name), getattr(now.params, name), getattr(now.sigma, name)
         assert np.all(np.abs(got - want) <= 0.01 * sigma + 1e-12), name
         np.testing.assert_allclose(getattr(done.sigma, name), sigma, rtol=1e-3)
-    assert abs(done.time_s - now.time_s) < 0.5 * now.time_s
+    # The completed fit's time counts the search it completes as well as the completion; as times
+    # they are compared in structure only (a loaded CI machine makes any ratio of wall times flaky).
+    assert done.time_s > later.time_s > 0
+    assert sum(done.stats["phases_s"].values()) <= done.time_s + 1e-5
 
 
 def test_the_coarse_subsample_of_a_weighted_sample_weighs_its_rows_once(monkeypatch):
