@@ -127,13 +127,14 @@ def test_a_sample_of_several_photographs_grows_with_them_and_reads_a_textured_lo
 
 
 def test_a_texel_read_from_a_pixel_or_two_does_not_set_the_scale_its_reflections_are_judged_on(tmp_path):
-    """The lab's seven noise-free 320x240 photographs (the reference renderer): the rounds' fit kept
-    the directly seen pixels of texels read from under two pixels when those pixels had fed the
-    texture. Where the photographs disagree on such a texel (detail finer than the texels, seen
-    from seven places) its value runs wild; those nodes came out 2-8 % too bright, set the
-    textured ground's kd 0.2-0.4 % low, and the mirror's r and the sheet's t took it up: r
-    0.8515 / 0.8526 / 0.8529 for 0.85 (at 2.6-2.9σ), t [0.3505, 0.6014, 0.9222]. Left out, both
-    come within 0.1 % of the values that made the images."""
+    """The lab's seven noise-free 320x240 photographs (the reference renderer), read through a
+    sample: the rounds' fit kept the directly seen pixels of texels read from under two pixels
+    when those pixels had fed the texture. Where the photographs disagree on such a texel (detail
+    finer than the texels, seen from seven places) its value runs wild; those nodes came out 2-8 %
+    too bright, set the textured ground's kd 0.2-0.4 % low, and the mirror's r and the sheet's t
+    took it up: r 0.8515 / 0.8526 / 0.8529 for 0.85 (at 2.6-2.9σ), t [0.3505, 0.6014, 0.9222].
+    Left out, both come within 0.1 % of the values that made the images, the mirror's kd within
+    5 %."""
     from reflab.hardware.sim.lab import build_lab, photographed
     from reflab.inverse.stages import FitOptions, fit
 
@@ -141,7 +142,7 @@ def test_a_texel_read_from_a_pixel_or_two_does_not_set_the_scale_its_reflections
     lab = photographed(root, build_lab(320, 240), "L0,L1,T35,T-35,T70,T-70", noise=0.0)
     truth = {s.name: s.material.params for s in lab.scene}
     surfaces = {s["name"]: s for s in fit(FitOptions(root)).report["surfaces"]}
-    for name, key in (("mirror", "r"), ("sheet", "t")):
+    for name, key, tol in (("mirror", "r", 1e-3), ("sheet", "t", 1e-3), ("mirror", "kd", 0.05)):
         got, want = np.asarray(surfaces[name]["material"][key]), np.asarray(truth[name][key])
         assert key not in surfaces[name]["undetermined"]
-        assert np.all(np.abs(got - want) <= 1e-3 * want), (name, key, got)
+        assert np.all(np.abs(got - want) <= tol * want), (name, key, got)
