@@ -241,7 +241,7 @@ def widened(result, fac, image, scene, var):
     height and width together); a value the geometry makes loose keeps its fitted value, reported
     undetermined. fit.json's ``geometry_sigma`` keeps the σ without the geometry's share.
     """
-    from reflab.inverse.fit.determined import RESOLVE_THETA, undetermined_names, unresolved
+    from reflab.inverse.fit.determined import RESOLVE_LOBE, RESOLVE_THETA, undetermined_names, unresolved
     from reflab.inverse.fit.problem import Free, Params, Problem, params_of
 
     old = result.sigma
@@ -254,7 +254,8 @@ def widened(result, fac, image, scene, var):
     free = result.free
 
     def judged(s):
-        return unresolved(pb, result.params, init, free, s, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+        return unresolved(pb, result.params, init, free, s, A, theta_resolve=RESOLVE_THETA, bounds_hold=False,
+                          lobe_resolve=RESOLVE_LOBE)
 
     was, now = judged(old), judged(sig)
     loose = Free(now.x & ~was.x, now.s & ~was.s, now.theta & ~was.theta)

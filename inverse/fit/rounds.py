@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from reflab.core.task import Task, ensure
-from reflab.inverse.fit.determined import (RESOLVE_THETA, hold, plausible_lobes, seen_twice, structural_free, texture_absorbed, texture_confounded,
+from reflab.inverse.fit.determined import (RESOLVE_LOBE, RESOLVE_THETA, hold, plausible_lobes, seen_twice, structural_free, texture_absorbed, texture_confounded,
                                 theta_resolution, undetermined_names, unresolved)
 from reflab.inverse.fit.diagnosis import DIAG_FLOOR, DIAG_SIGMAS, REJECT_PASSES, REJECT_SHARE, REJECT_SIGMAS, diagnose, outliers
 from reflab.inverse.forward.factorization import Factorization, one_blas_thread
@@ -322,7 +322,8 @@ def _complete(pb: Problem, p: Params, init: Params, free: Free, found: Free, res
         sig.theta[lay.theta_offset[s] + fac.models[s].nonlinear.index(lobe.shape)] = lobe.sigma_theta
     # Fitted, but the robust σ spans its scale (a value on a bound included): reported undetermined.
     fitted_free = free if grey is None else free | grey
-    loose = unresolved(pb, p, init, fitted_free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False)
+    loose = unresolved(pb, p, init, fitted_free, sig, A, theta_resolve=RESOLVE_THETA, bounds_hold=False,
+                       lobe_resolve=RESOLVE_LOBE)
     if textured is not None and any(textured):
         # A textured surface's θ is known from its texels seen twice at most, and its texels carry
         # its error into every other view: judged relative to its value, as a shininess is, even
