@@ -125,7 +125,6 @@ def test_a_sample_of_several_photographs_grows_with_them_and_reads_a_textured_lo
     assert abs(ns - float(true["ns"])) <= min(0.1 * float(true["ns"]), 3 * sn), (ns, sn)
 
 
-
 def test_a_texel_read_from_a_pixel_or_two_does_not_set_the_scale_its_reflections_are_judged_on(tmp_path):
     """The lab's seven noise-free 320x240 photographs (the reference renderer), read through a
     sample: the rounds' fit kept the directly seen pixels of texels read from under two pixels

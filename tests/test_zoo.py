@@ -206,6 +206,5 @@ def test_a_lobe_height_known_only_to_a_factor_is_undetermined(tmp_path):
     report = fit(FitOptions(tmp_path)).report
     wall = next(s for s in report["surfaces"] if s["name"] == "wall")
     assert {"ks", "ns"} <= set(wall["undetermined"]), wall["undetermined"]
-    import json
     rows = compare(report, json.loads((tmp_path / "truth.json").read_text()), [s.textured for s in zoo.scene])
     assert score(rows)["wrong"] == [], score(rows)["wrong"]
