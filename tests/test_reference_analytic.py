@@ -70,6 +70,23 @@ def test_phong_plane_matches_closed_form():
     np.testing.assert_allclose(img.reshape(-1, 3), want, rtol=1e-5, atol=1e-9)
 
 
+def test_a_lamp_that_lights_nothing_leaves_only_the_other_lamps_light():
+    """A lamp under the ground lights no point the camera sees: its shadow rays are an empty batch,
+    which Dr.Jit answered by aborting the process (zoo seed 62, a turntable shot at 320x240: the
+    whole zoo run died with it). The image is the other lamp's closed form, the lamp alone black."""
+    cam = _camera()
+    light, inten = np.array([0.3, 0.2, 0.5]), np.array([0.4, 0.3, 0.2])
+    below = PointLight(np.array([0.0, 0.0, -0.4]), np.array([1.0, 1.0, 1.0]))
+    kd, ks, ns = np.array([0.5, 0.4, 0.3]), 0.6, 20.0
+    scene = Scene([Surface("ground", "g.ply", _mat("phong", kd=kd, ks=ks, ns=ns), mesh=_ground())])
+    alone = render_reference(scene, cam, Lights([below]), depth=2)
+    assert alone.shape == (cam.height, cam.width, 3) and np.all(alone == 0.0)
+    img = render_reference(scene, cam, Lights([below, PointLight(light, inten)]), depth=2)
+    p, d = _plane_hits(cam)
+    want = _phong(p, np.array([0, 0, 1.0]), -d, light, inten, kd, ks, ns)
+    np.testing.assert_allclose(img.reshape(-1, 3), want, rtol=1e-5, atol=1e-9)
+
+
 def test_mirror_reflects_the_ground_seen_from_the_mirrored_camera():
     # A vertical mirror x = 0.1 (opaque, r = 0.8, black) beside a lambert ground, lamp in front.
     cam = _camera(eye=(-0.4, -0.4, 0.5), target=(0.1, 0.05, 0.05))

@@ -102,6 +102,9 @@ class _Caster:
     def intersect(self, o: np.ndarray, d: np.ndarray):
         """Nearest hits of rays (o, d): (hit mask, t, surface index, geometric normal, shading normal)."""
         n = len(o)
+        if n == 0:  # Dr.Jit aborts the process on a zero-length ray batch ("jit_var(r0): unknown variable!")
+            return (np.zeros(0, dtype=bool), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3)),
+                    np.zeros((0, 3)))
         si = self.scene.ray_intersect(self._ray(o, d))
         hit = np.array(si.is_valid(), dtype=bool).reshape(n)
         t = np.array(si.t, dtype=np.float64).reshape(n)
@@ -132,6 +135,8 @@ class _Caster:
 
     def occluded(self, o: np.ndarray, d: np.ndarray, tmax: np.ndarray) -> np.ndarray:
         """Whether anything lies on the segments o + s d, 0 < s < tmax."""
+        if len(o) == 0:  # as in intersect: an empty batch would abort the process
+            return np.zeros(0, dtype=bool)
         return np.array(self.scene.ray_test(self._ray(o, d, tmax)), dtype=bool).reshape(len(o))
 
 
