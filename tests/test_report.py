@@ -219,11 +219,12 @@ def test_full_report_is_self_contained_with_every_section_and_the_truth(lab_work
     # Surfaces are the truth's own meshes: placement error 0.
     assert re.search(r"tile\s+\S+\s+phong\s+opaque\s+yes\s+\d+\s+[\d.]+\s+[\d.]+\s+0\.000\s+0\.000\s", text)
     # The fit's tile ns is 10 below the truth, with its sigma.
-    assert re.search(r"\b50 ± 2\s+truth 60, error -10\s", text)
+    # A shape searched in log2 also reads as its one-σ factor: e^(σ / value).
+    assert re.search(r"\b50 ± 2 \(×/÷ 1\.04\)\s+truth 60, error -10\s", text)
     assert re.search(r"\[0\.25, 0\.25, 0\.25\]\s+at its bound: ks\[0\] upper", text)
     assert "Where the fit's time went" in text and re.search(r"\bmethod\s+F-TBO\s", text)
     # The tile's lobe came from its texture's colours: the report says so, with its numbers.
-    assert re.search(r"tile\s+0\.341 ± 0\.005\s+ns 62\.8 ± 1\.9\s+line\s+1231 \(3 outliers\)\s+1\.02\s", text)
+    assert re.search(r"tile\s+0\.341 ± 0\.005\s+ns 62\.8 ± 1\.9 \(×/÷ 1\.03\)\s+line\s+1231 \(3 outliers\)\s+1\.02\s", text)
     # What the photograph said of the box's albedo (fit.json albedo_model).
     assert re.search(r"box\s+texture\s+812\s+3142\s+2 px \(210 blocks\)\s+\[0\.002, 0\.002, 0\.003\]\s", text)
     assert "whose re-render includes this texture" in text  # the texture's residual: the fit's maps

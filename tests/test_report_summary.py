@@ -27,6 +27,10 @@ def test_a_sigma_wider_than_the_plausible_range_reads_undetermined():
     lo, hi = plausible_range("phong", "ks", {"ns": 30.0})
     assert lo == 0 and hi == pytest.approx(1 / float(phong_lobe_albedo(30.0))) and 4.0 < hi < 5.0
     assert plausible_range("phong", "ns") == (2.0, 2.0**20) and plausible_range("phong", "ior") is None
+    # A shape searched in log2 reads with its one-σ factor, e^(σ / value): ns 5.2 ± 1.65 spans
+    # 3.8-7.1 at one σ, and its truth 11.03 (zoo seed 61) lies 2.4 of these factors up.
+    assert pm_range(5.2, 1.65, (2.0, 2.0**20), log=True) == "5.2 ± 1.6 (×/÷ 1.37)"
+    assert pm_range(5.2, 1.65, (2.0, 2.0**20)) == "5.2 ± 1.6"
     text = value_text("phong", "ns", {"brdf": "phong", "ns": 46.52}, 8.2e4, [])
     assert text.startswith("undetermined (plausible range 2–") and "±" not in text
 

@@ -11,7 +11,8 @@ compared with truth.json. Reported over the seeds:
 - σ calibration over the determined values (fitted, not reported undetermined, finite σ; a
   textured surface's kd, its texture's mean, is left out as in docs/figures/fit_calibration.py):
   the share within 3σ, the worst |error|/σ;
-- confident wrong values: determined values beyond 3σ + 2 % of the true value;
+- confident wrong values: determined values beyond 3σ + 2 % of the true value (a shape the fit
+  searches in log2, ns or α, in log2 units: :func:`reflab.hardware.sim.zoo.deviation`);
 - recall: the share of the visible parameters (every parameter the fit was free to fit on a
   surface the photograph sees) that are determined and within 10 % of the truth (or 0.01 for
   r and t, attenuations whose truth may be 0);

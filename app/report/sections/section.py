@@ -94,6 +94,9 @@ def pm_range(value, sigma, rng, undetermined=False, digits: int = 4, log: bool =
         wide = wide or sigma / (value * math.log(2)) > math.log2(hi / lo)
     if (any(undetermined) if isinstance(undetermined, list) else bool(undetermined)) or wide:
         return f"undetermined (plausible range {span(lo, hi)})"
+    if log and isinstance(sigma, (int, float)) and isinstance(value, (int, float)) and value > 0:
+        # Its σ is symmetric in log2: one σ is a factor, and the upward tail is the longer.
+        return f"{pm(value, sigma, digits)} (×/÷ {num(2.0 ** (sigma / (value * math.log(2))), 3)})"
     return pm(value, sigma, digits)
 
 
