@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from reflab.hardware.sim.zoo import compare, random_scene, score, sphere_mesh, write_zoo_workspace
+from reflab.hardware.sim.zoo import compare, deviation, random_scene, score, sphere_mesh, write_zoo_workspace
 
 #: (seed, noise): varied and quick at 80x60: glass and a textured cylinder (4); glass, a mirror and
 #: noise (9); seven surfaces with spheres, a wall and inks (6); a glass box under 1 % noise (2:
@@ -243,8 +243,6 @@ def test_a_shape_searched_in_log2_is_judged_in_log2():
     fitted a box's ns 5.20 ± 1.65 for 11.03: 3.5σ linearly, 2.4σ in log2. Judged in log2 it is
     not confidently wrong, where a linear parameter with the same numbers is; and a shape fitted
     above its truth is judged tighter than linearly (20 ± 5.5 for 7: 2.4σ linearly, 3.8σ in log2)."""
-    from reflab.hardware.sim.zoo import deviation
-
     up = ("box2", "ns", 5.2039, 11.0345, 1.6528, True)
     z, margin = deviation("ns", *up[2:5])
     assert z == pytest.approx(np.log2(11.0345 / 5.2039) / (1.6528 / (5.2039 * np.log(2))), rel=1e-12)

@@ -30,6 +30,7 @@ from reflab.calibration.camera import Camera
 from reflab.calibration.lights import Lights, PointLight
 from reflab.hardware.sim.lab import SimLab, _material, _rot_z, box_mesh, plane_mesh, write_lab
 from reflab.hardware.sim.scenes import cylinder_mesh
+from reflab.inverse.fit.problem import LOG2
 from reflab.inverse.fit.ranges import phong_lobe_albedo
 from reflab.reconstruction.scene import Mesh, Scene, Surface
 
@@ -45,9 +46,6 @@ NOVEL_TURN = 35.0
 SIGMAS, SLACK = 3.0, 0.02
 #: Recall: within this share of the true value (or :data:`ATTENUATION_FLOOR` for r and t).
 RECALL, ATTENUATION_FLOOR = 0.10, 0.01
-#: Shapes the fit searches in log2 (docs/formats.md, fit.json): their σ is judged in log2 units,
-#: σ / (fitted ln 2), and their slack is log2(1 + SLACK).
-LOG2_SHAPES = ("ns", "alpha")
 
 
 def sphere_mesh(radius: float, center, rings: int = 16, segments: int = 32) -> Mesh:
@@ -404,10 +402,11 @@ def compare(report: dict, truth: dict, textured: list) -> list:
 
 def deviation(name: str, fitted: float, true: float, sigma: float) -> tuple[float, float]:
     """(|error| / σ, the error's margin beyond SIGMAS σ plus SLACK: > 0 is confidently wrong) of one
-    determined value; a shape searched in log2 (:data:`LOG2_SHAPES`) in log2 units, where the fit's
-    σ is symmetric (a broad lobe's linear σ understates its upward tail: zoo seed 61, one
-    photograph, a box's ns 5.20 ± 1.65 for 11.03 is 3.5σ off linearly, 2.4σ in log2)."""
-    if name in LOG2_SHAPES and fitted > 0 and true > 0:
+    determined value; a shape the fit searches in log2 (:data:`reflab.inverse.fit.problem.LOG2`) in
+    log2 units, σ / (fitted ln 2) with slack log2(1 + SLACK), where the fit's σ is symmetric (a
+    broad lobe's linear σ understates its upward tail: zoo seed 61, one photograph, a box's ns
+    5.20 ± 1.65 for 11.03 is 3.5σ off linearly, 2.4σ in log2)."""
+    if name in LOG2 and fitted > 0 and true > 0:
         err, sig = abs(np.log2(fitted / true)), sigma / (fitted * np.log(2.0))
         return err / sig, err - (SIGMAS * sig + np.log2(1.0 + SLACK))
     err = abs(fitted - true)

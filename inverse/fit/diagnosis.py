@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from reflab.inverse.forward.factorization import BANDS
+from reflab.inverse.forward.trees import seen_first
 from reflab.inverse.fit.problem import Params, Problem
 
 
@@ -79,10 +80,7 @@ def diagnose(pb: Problem, p: Params, A, res, textured=None, names=None, per_phot
     if not bad.any():
         return "ok", []
     # Which surface each unexplained pixel sees first (its primary hit).
-    tr = fac.trees
-    first = np.full(fac.width * fac.height, -1, dtype=np.int64)
-    primary = np.asarray(tr.level) == 1
-    first[np.asarray(tr.pixel)[primary]] = np.asarray(tr.surface)[primary]
+    first = seen_first(fac.trees, fac.width * fac.height)
     where = first[fac.rows[bad]]
     counts = np.bincount(where[where >= 0], minlength=n_surf)
     share = float(np.sum(res[:, bad] ** 2) / max(np.sum(res**2), 1e-300))

@@ -212,7 +212,7 @@ def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, 
     from whole trees: the same pixels), which ``stack.reach`` leaves at 0: the fit does not draw them."""
     from reflab.inverse.fit import sampling
     from reflab.inverse.forward.photographs import stack_trees
-    from reflab.inverse.forward.trees import first_surfaces, trees_for_workspace, trees_of_pixels
+    from reflab.inverse.forward.trees import first_surfaces, seen_first, trees_for_workspace, trees_of_pixels
 
     whole = [None if share is not None else trees_for_workspace(workspace, scene, photo.camera, photo.lights,
                                                                 depth=depth, log=log, task=task, background=background)
@@ -224,9 +224,7 @@ def _stack_shares(workspace, scene, depth, photos, images, masks, shares, task, 
     for i, (photo, sat, t) in enumerate(zip(photos, masks, whole)):
         w, h = int(photo.camera.width), int(photo.camera.height)
         if t is not None:
-            mine = np.full(w * h, -1, dtype=np.int64)
-            top = np.asarray(t.level) == 1
-            mine[np.asarray(t.pixel)[top]] = np.asarray(t.surface)[top]
+            mine = seen_first(t, w * h)
         else:
             mine = first_surfaces(scene, photo.camera)
         v, u = np.divmod(np.arange(w * h), w)

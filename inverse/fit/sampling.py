@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from reflab.inverse.forward.trees import seen_first
+
 #: Pixels the fit reads at most, by default (``reflab fit --pixels``, :class:`reflab.inverse.stages.FitOptions`'
 #: default is this number): above it, it samples.
 PIXELS = 85_000
@@ -274,9 +276,7 @@ def even(trees, mask, surfaces, count: int = EVEN, seed: int = SEED) -> np.ndarr
     photograph shows keeps its pixels (the demo's tile: its lobe undetermined from the reference's
     pixels alone, ks 0.35 ± 0.09, determined from every photograph's, ± 0.008)."""
     mask = np.asarray(mask, dtype=bool).reshape(-1)
-    first = np.full(len(mask), -1, dtype=np.int64)
-    top = np.asarray(trees.level) == 1
-    first[np.asarray(trees.pixel)[top]] = np.asarray(trees.surface)[top]
+    first = seen_first(trees, len(mask))
     stats = trees.stats if isinstance(getattr(trees, "stats", None), dict) else {}
     starts = np.asarray(stats.get("block_row0", [0]), dtype=np.int64) * int(trees.width)
     return even_of(first, mask, starts, surfaces, count, seed)

@@ -40,6 +40,7 @@ from reflab.inverse.forward.factorization import Factorization
 from reflab.inverse.fit.albedo_model import select
 from reflab.inverse.fit.rounds import FitSolution, fit
 from reflab.inverse.forward.rendering import linear_basis, node_radiance, path_products
+from reflab.inverse.forward.trees import seen_first
 from reflab.inverse.texture.solve import SolverOptions, build_maps, recover_texture, sample_texture
 
 #: A round whose fit leaves an RMS residual more than RISE times the best so far is not kept. Each
@@ -233,9 +234,7 @@ def feeds_texture(trees, textured, share, min_share: float = MIN_SHARE, keep: fl
     npix = trees.width * trees.height
     least = np.asarray(share, dtype=np.float64).reshape(npix, -1).min(axis=1)
     feeds = least >= min_share
-    first = np.asarray(trees.level) == 1
-    seen_on = np.full(npix, -1, dtype=np.int64)
-    seen_on[trees.pixel[first]] = trees.surface[first]
+    seen_on = seen_first(trees, npix)
     for s in np.flatnonzero(np.asarray(textured, dtype=bool)):
         on = (seen_on == s) & (least > 0)
         if on.any() and feeds[on].mean() < keep:

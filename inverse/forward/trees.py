@@ -616,6 +616,15 @@ def trees_of_pixels(scene, camera, lights, pixels, depth: int = 3, task=None):
     return trees
 
 
+def seen_first(trees, npix: int | None = None) -> np.ndarray:
+    """(H·W,) int64: the surface each pixel's tree sees first, its level-1 node's (−1: none);
+    ``npix`` pixels where given, else the trees' ``width`` × ``height``."""
+    out = np.full(int(trees.width) * int(trees.height) if npix is None else int(npix), -1, dtype=np.int64)
+    top = np.asarray(trees.level) == 1
+    out[np.asarray(trees.pixel)[top]] = np.asarray(trees.surface)[top]
+    return out
+
+
 def first_surfaces(scene, camera) -> np.ndarray:
     """(H·W,) int64: the surface each of ``camera``'s pixels sees first (−1: none), the level-1
     nodes' of :func:`build_trees` without the rest of its work (no shadow rays, no deeper levels)."""

@@ -90,13 +90,15 @@ def pm_range(value, sigma, rng, undetermined=False, digits: int = 4, log: bool =
         parts = [pm_range(v, s, rng, u, digits, log) for v, s, u in zip(value, sig, und)]
         return parts[0] if len(set(parts)) == 1 and parts[0].startswith("undetermined") else "[" + ", ".join(parts) + "]"
     wide = isinstance(sigma, (int, float)) and (not math.isfinite(sigma) or sigma > hi - lo)
-    if log and isinstance(sigma, (int, float)) and isinstance(value, (int, float)) and value > 0 and lo > 0:
-        wide = wide or sigma / (value * math.log(2)) > math.log2(hi / lo)
+    spread = None  # σ in log2 units, of a parameter searched in log2
+    if log and isinstance(sigma, (int, float)) and isinstance(value, (int, float)) and value > 0:
+        spread = sigma / (value * math.log(2))
+        wide = wide or (lo > 0 and spread > math.log2(hi / lo))
     if (any(undetermined) if isinstance(undetermined, list) else bool(undetermined)) or wide:
         return f"undetermined (plausible range {span(lo, hi)})"
-    if log and isinstance(sigma, (int, float)) and isinstance(value, (int, float)) and value > 0:
+    if spread is not None:
         # Its σ is symmetric in log2: one σ is a factor, and the upward tail is the longer.
-        return f"{pm(value, sigma, digits)} (×/÷ {num(2.0 ** (sigma / (value * math.log(2))), 3)})"
+        return f"{pm(value, sigma, digits)} (×/÷ {num(2.0 ** spread, 3)})"
     return pm(value, sigma, digits)
 
 
